@@ -1,0 +1,44 @@
+"""What every estimator returns and the options they share; no estimation here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Options:
+    """Options shared by the estimators (CLI flags and session.toml end up here).
+
+    motion_model: "constant_velocity" or "random_walk"; None = the session's [motion] model.
+    robust: loss on projection factors: "huber", "cauchy" or "none".
+    robust_k: loss threshold in whitened units (sigmas).
+    accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
+    progress: show progress bars.
+    """
+
+    motion_model: str | None = None
+    robust: str = "huber"
+    robust_k: float = 2.0
+    accel_psd_m2_s3: float | None = None
+    progress: bool = True
+
+
+@dataclass
+class Estimate:
+    """One method's answer for a whole session.
+
+    xyz_m: positions, shape (F, M, 3) [m, world]; NaN where the method gives no estimate.
+    cov_m2: marginal covariances, shape (F, M, 3, 3) [m^2]; NaN where none.
+    outlier: flagged observations, bool (C, F, M); all False when the method flags none.
+    runtime_s: wall time of the estimation.
+    info: method-specific figures for summary.json (chosen noise, iterations, ...).
+    """
+
+    method: str
+    xyz_m: np.ndarray
+    cov_m2: np.ndarray
+    outlier: np.ndarray
+    runtime_s: float = 0.0
+    info: dict = field(default_factory=dict)

@@ -1,0 +1,439 @@
+"""Session folders <-> validated tables and a camera rig; the only module that knows file layouts.
+
+A session folder (see CONTRACT.md and README.md) holds ``session.toml``, ``calibration.toml``
+(aniposelib format), ``observations.csv`` or ``.parquet``, and optionally ``truth.csv`` (simulated
+sessions), ``reference_xyz.csv`` (another tool's 3D, e.g. DLTdv's xyzpts, for comparison),
+``calibration_true.toml`` (simulated sessions with a calibration error: the rig used to render).
+
+Every problem with user input raises :class:`batgraph.errors.InputError` with a one-line message
+naming the file, the row (CSV line number, header = line 1) or key, and the problem. This module
+does not estimate anything.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import tomli_w
+
+from . import atomic
+from .camera import Camera, Rig
+from .errors import InputError
+
+OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
+TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
+MOTION_MODELS = ("random_walk", "constant_velocity")
+
+
+@dataclass
+class MotionConfig:
+    """[motion] of session.toml. Random-walk noise from the paper's eq. 4-5 unless ``sigma_m`` is set.
+
+    accel_psd_m2_s3: for ``constant_velocity``, the power spectral density of the white-noise
+        acceleration [m^2/s^3]; None means "choose it from the data" (see batgraph.motion).
+    """
+
+    model: str = "constant_velocity"
+    flight_speed_mps: float = 3.0
+    span_m: float = 0.5
+    flap_hz: float = 4.0
+    flap_angle_deg: float = 90.0
+    sigma_m: float | None = None
+    accel_psd_m2_s3: float | None = None
+
+
+@dataclass
+class Session:
+    """A loaded session.
+
+    observations: columns frame (int64), camera (str), marker (str), u, v (float, raw pixels),
+        weight (float in (0, 1]); only seen points (rows with empty u/v are dropped on load).
+    truth, reference: columns frame, marker, x, y, z [m, world], or None.
+    warnings: non-fatal remarks found while loading (e.g. points outside the image).
+    """
+
+    name: str
+    fps: float
+    rig: Rig
+    observations: pd.DataFrame
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    pixel_sigma_px: float = 1.0
+    marker_names: list[str] = field(default_factory=list)
+    skeleton: list[tuple[str, str]] = field(default_factory=list)
+    truth: pd.DataFrame | None = None
+    reference: pd.DataFrame | None = None
+    true_rig: Rig | None = None
+    extra_toml: dict = field(default_factory=dict)
+    path: Path | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def markers(self) -> list[str]:
+        """All marker labels: session.toml's order first, then the others as first seen."""
+        seen = list(dict.fromkeys(self.observations["marker"]))
+        return list(self.marker_names) + [m for m in seen if m not in self.marker_names]
+
+    @property
+    def frames(self) -> np.ndarray:
+        """Every frame index from the first to the last observation, shape (F,)."""
+        f = self.observations["frame"]
+        return np.arange(int(f.min()), int(f.max()) + 1)
+
+
+@dataclass
+class DenseObservations:
+    """Observations as dense arrays, the layout estimators work on.
+
+    uv_px: raw pixels, shape (C, F, M, 2), NaN where unseen.
+    weight: shape (C, F, M), 0 where unseen.
+    frames: frame indices, shape (F,); cameras, markers: names along C and M.
+    """
+
+    cameras: list[str]
+    frames: np.ndarray
+    markers: list[str]
+    uv_px: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def seen(self) -> np.ndarray:
+        """bool (C, F, M)."""
+        return np.isfinite(self.uv_px[..., 0])
+
+    @property
+    def n_views(self) -> np.ndarray:
+        """Cameras seeing each (frame, marker), shape (F, M)."""
+        return self.seen.sum(axis=0)
+
+
+def dense_observations(session: Session) -> DenseObservations:
+    """Scatter the long observations table into (C, F, M) arrays (see :class:`DenseObservations`)."""
+    obs = session.observations
+    cams, frames, markers = session.rig.names, session.frames, session.markers
+    C, F, M = len(cams), len(frames), len(markers)
+    ci = obs["camera"].map({n: i for i, n in enumerate(cams)}).to_numpy()
+    fi = obs["frame"].to_numpy() - frames[0]
+    mi = obs["marker"].map({n: i for i, n in enumerate(markers)}).to_numpy()
+    uv = np.full((C, F, M, 2), np.nan)
+    w = np.zeros((C, F, M))
+    uv[ci, fi, mi] = obs[["u", "v"]].to_numpy(float)
+    w[ci, fi, mi] = obs["weight"].to_numpy(float)
+    return DenseObservations(cams, frames, markers, uv, w)
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+# ----------------------------------------------------------------------------------------------
+def _read_toml(path: Path) -> dict:
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: not valid TOML ({e})") from None
+
+
+def _number(value, where: str, positive: bool = False, allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InputError(f"{where}: expected a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise InputError(f"{where}: must be finite, got {value!r}")
+    if positive and not (x > 0 or (allow_zero and x == 0)):
+        raise InputError(f"{where}: must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    return x
+
+
+def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: expected numbers of shape {shape}, got {value!r}") from None
+    if arr.shape != shape:
+        raise InputError(f"{where}: expected shape {shape}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{where}: contains a non-finite value")
+    return arr
+
+
+def read_calibration(path: Path) -> Rig:
+    """Read an aniposelib-style calibration.toml into a :class:`Rig` (order of the tables)."""
+    data = _read_toml(path)
+    cams = []
+    for key, tab in data.items():
+        if key == "metadata" or not isinstance(tab, dict):
+            continue
+        where = f"{path} [{key}]"
+        for k in ("size", "matrix", "rotation", "translation"):
+            if k not in tab:
+                raise InputError(f"{where}: missing key '{k}'")
+        if tab.get("fisheye", False):
+            raise InputError(f"{where}: fisheye calibrations are not supported (use the 5-parameter model)")
+        name = str(tab.get("name", key))
+        size = _matrix(tab["size"], (2,), f"{where} size")
+        if (size <= 0).any() or (size != np.round(size)).any():
+            raise InputError(f"{where} size: expected two positive integers [width, height], got {tab['size']!r}")
+        K = _matrix(tab["matrix"], (3, 3), f"{where} matrix")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+            raise InputError(f"{where} matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        dist = np.asarray(tab.get("distortions", [0.0] * 5), dtype=object)
+        if dist.ndim != 1 or len(dist) > 5:
+            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], got {tab.get('distortions')!r}")
+        dist = _matrix(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
+        rvec = _matrix(tab["rotation"], (3,), f"{where} rotation")
+        tvec = _matrix(tab["translation"], (3,), f"{where} translation")
+        cov = None
+        if "pose_covariance" in tab:
+            cov = _matrix(tab["pose_covariance"], (6, 6), f"{where} pose_covariance")
+        cams.append(Camera(name, (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov))
+    if not cams:
+        raise InputError(f"{path}: no camera tables (expected [cam_0], [cam_1], ...)")
+    names = [c.name for c in cams]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"{path}: camera name {dup[0]!r} appears more than once")
+    return Rig(cams)
+
+
+def _line(i: int, is_csv: bool) -> str:
+    return f"line {i + 2}" if is_csv else f"row {i}"
+
+
+def _read_table(path: Path, required: list[str], what: str) -> tuple[pd.DataFrame, bool]:
+    is_csv = path.suffix.lower() != ".parquet"
+    try:
+        if is_csv:
+            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        else:
+            df = pd.read_parquet(path)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{path}: empty file (no header, no {what})") from None
+    except Exception as e:  # a corrupt file: say which and why, one line
+        raise InputError(f"{path}: cannot be read ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    for col in required:
+        if col not in df.columns:
+            close = difflib.get_close_matches(col, df.columns, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise InputError(f"{path}: missing column '{col}'{hint}; found {', '.join(df.columns)}")
+    if len(df) == 0:
+        raise InputError(f"{path}: no {what} (the file has a header only)")
+    return df, is_csv
+
+
+def _numeric(df: pd.DataFrame, col: str, path: Path, is_csv: bool, allow_missing: bool) -> np.ndarray:
+    raw = df[col]
+    text = raw.astype(str).str.strip()
+    missing = raw.isna() | text.isin(["", "nan", "NaN", "NA", "None"])
+    values = pd.to_numeric(raw.where(~missing), errors="coerce").to_numpy(dtype=float)
+    bad = ~missing.to_numpy() & np.isnan(values)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{path} {_line(i, is_csv)}: {col} {raw.iloc[i]!r} is not a number")
+    if np.isinf(values).any():
+        i = int(np.argmax(np.isinf(values)))
+        raise InputError(f"{path} {_line(i, is_csv)}: {col} is infinite ({raw.iloc[i]!r})")
+    if not allow_missing and missing.any():
+        i = int(np.argmax(missing.to_numpy()))
+        raise InputError(f"{path} {_line(i, is_csv)}: {col} is empty")
+    return values
+
+
+def _frames(df: pd.DataFrame, path: Path, is_csv: bool) -> np.ndarray:
+    f = _numeric(df, "frame", path, is_csv, allow_missing=False)
+    bad = (f < 0) | (f != np.round(f))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{path} {_line(i, is_csv)}: frame {df['frame'].iloc[i]!r} is not an integer >= 0")
+    return f.astype(np.int64)
+
+
+def _labels(df: pd.DataFrame, col: str, path: Path, is_csv: bool) -> pd.Series:
+    s = df[col].astype(str).str.strip()
+    empty = df[col].isna() | (s == "") | (s == "nan")
+    if empty.any():
+        i = int(np.argmax(empty.to_numpy()))
+        raise InputError(f"{path} {_line(i, is_csv)}: {col} is empty")
+    return s
+
+
+def read_observations(path: Path, rig: Rig) -> tuple[pd.DataFrame, list[str]]:
+    """Read and validate observations.csv/.parquet. Returns (table, warnings)."""
+    df, is_csv = _read_table(path, OBS_COLUMNS, "observations")
+    frame = _frames(df, path, is_csv)
+    camera = _labels(df, "camera", path, is_csv)
+    marker = _labels(df, "marker", path, is_csv)
+    u = _numeric(df, "u", path, is_csv, allow_missing=True)
+    v = _numeric(df, "v", path, is_csv, allow_missing=True)
+    if "weight" in df.columns:
+        w = _numeric(df, "weight", path, is_csv, allow_missing=True)
+        w = np.where(np.isnan(w), 1.0, w)
+        bad = ~((w > 0) & (w <= 1))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"{path} {_line(i, is_csv)}: weight {df['weight'].iloc[i]!r} is not in (0, 1]")
+    else:
+        w = np.ones(len(df))
+    unknown = ~camera.isin(rig.names)
+    if unknown.any():
+        i = int(np.argmax(unknown.to_numpy()))
+        raise InputError(
+            f"{path} {_line(i, is_csv)}: camera {camera.iloc[i]!r} is not in calibration.toml "
+            f"(cameras: {', '.join(rig.names)})"
+        )
+    half = np.isnan(u) != np.isnan(v)
+    if half.any():
+        i = int(np.argmax(half))
+        raise InputError(f"{path} {_line(i, is_csv)}: only one of u, v is given")
+    out = pd.DataFrame({"frame": frame, "camera": camera.to_numpy(), "marker": marker.to_numpy(),
+                        "u": u, "v": v, "weight": w})
+    out["line"] = np.arange(len(out))
+    out = out[~np.isnan(u)]
+    if len(out) == 0:
+        raise InputError(f"{path}: no observations (every u, v is empty)")
+    dup = out.duplicated(["frame", "camera", "marker"], keep=False)
+    if dup.any():
+        rows = out[dup].head(2)
+        a, b = (_line(int(i), is_csv) for i in rows["line"])
+        r = rows.iloc[0]
+        raise InputError(f"{path} {a} and {b}: duplicate observation of frame {r.frame}, "
+                         f"camera {r.camera!r}, marker {r.marker!r}")
+    warnings = []
+    n_out = 0
+    for cam in rig:
+        sel = out["camera"] == cam.name
+        n_out += int((~cam.in_image(out.loc[sel, ["u", "v"]].to_numpy())).sum())
+    if n_out:
+        warnings.append(f"{path}: {n_out} observation(s) lie outside their camera's image; kept")
+    out = out.drop(columns="line").sort_values(["frame", "camera", "marker"], kind="stable")
+    return out.reset_index(drop=True), warnings
+
+
+def read_points(path: Path) -> pd.DataFrame:
+    """Read a frame, marker, x, y, z table (truth.csv, reference_xyz.csv); empty xyz rows dropped."""
+    df, is_csv = _read_table(path, TRUTH_COLUMNS, "points")
+    out = pd.DataFrame({"frame": _frames(df, path, is_csv), "marker": _labels(df, "marker", path, is_csv)})
+    for c in "xyz":
+        out[c] = _numeric(df, c, path, is_csv, allow_missing=True)
+    return out.dropna().reset_index(drop=True)
+
+
+def _session_config(path: Path) -> dict:
+    data = _read_toml(path)
+    sess = data.get("session")
+    if not isinstance(sess, dict):
+        raise InputError(f"{path}: missing table [session]")
+    if "fps" not in sess:
+        raise InputError(f"{path} [session]: missing key 'fps'")
+    _number(sess["fps"], f"{path} [session] fps", positive=True)
+    motion = data.get("motion", {})
+    model = motion.get("model", MotionConfig.model)
+    if model not in MOTION_MODELS:
+        raise InputError(f"{path} [motion] model: {model!r} is not one of {', '.join(MOTION_MODELS)}")
+    for k in ("flight_speed_mps", "span_m", "flap_hz", "flap_angle_deg", "sigma_m", "accel_psd_m2_s3"):
+        if k in motion:
+            _number(motion[k], f"{path} [motion] {k}", positive=True, allow_zero=k == "flight_speed_mps")
+    noise = data.get("noise", {})
+    if "pixel_sigma_px" in noise:
+        _number(noise["pixel_sigma_px"], f"{path} [noise] pixel_sigma_px", positive=True)
+    return data
+
+
+def read_session(folder: str | Path) -> Session:
+    """Load and validate a session folder (see module docstring)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: session folder not found")
+    cfg = _session_config(folder / "session.toml")
+    rig = read_calibration(folder / "calibration.toml")
+    obs_path = folder / "observations.csv"
+    if not obs_path.exists() and (folder / "observations.parquet").exists():
+        obs_path = folder / "observations.parquet"
+    if not obs_path.exists():
+        raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
+    observations, warnings = read_observations(obs_path, rig)
+    sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})
+    known = {f for f in MotionConfig.__dataclass_fields__}
+    mcfg = MotionConfig(**{k: v for k, v in motion.items() if k in known})
+    markers = cfg.get("markers", {})
+    names = [str(n) for n in markers.get("names", [])]
+    skeleton = []
+    for i, edge in enumerate(markers.get("skeleton", [])):
+        if not (isinstance(edge, list) and len(edge) == 2):
+            raise InputError(f"{folder / 'session.toml'} [markers] skeleton[{i}]: expected a pair of marker names")
+        skeleton.append((str(edge[0]), str(edge[1])))
+    truth = read_points(folder / "truth.csv") if (folder / "truth.csv").exists() else None
+    ref = read_points(folder / "reference_xyz.csv") if (folder / "reference_xyz.csv").exists() else None
+    true_rig = (read_calibration(folder / "calibration_true.toml")
+                if (folder / "calibration_true.toml").exists() else None)
+    extra = {k: v for k, v in cfg.items() if k not in ("session", "motion", "noise", "markers")}
+    return Session(
+        name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,
+        observations=observations, motion=mcfg,
+        pixel_sigma_px=float(noise.get("pixel_sigma_px", 1.0)), marker_names=names, skeleton=skeleton,
+        truth=truth, reference=ref, true_rig=true_rig, extra_toml=extra, path=folder, warnings=warnings,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+# ----------------------------------------------------------------------------------------------
+def calibration_toml(rig: Rig) -> str:
+    """The aniposelib-format text of a rig (plus batgraph's optional pose_covariance)."""
+    doc = {}
+    for i, c in enumerate(rig):
+        tab = {
+            "name": c.name,
+            "size": [int(c.size_wh[0]), int(c.size_wh[1])],
+            "matrix": c.K.tolist(),
+            "distortions": c.dist.tolist(),
+            "rotation": c.rvec.tolist(),
+            "translation": c.tvec.tolist(),
+        }
+        if c.pose_cov is not None:
+            tab["pose_covariance"] = c.pose_cov.tolist()
+        doc[f"cam_{i}"] = tab
+    doc["metadata"] = {"written_by": "batgraph"}
+    return tomli_w.dumps(doc)
+
+
+def session_toml(session: Session) -> str:
+    m = session.motion
+    motion = {"model": m.model, "flight_speed_mps": m.flight_speed_mps, "span_m": m.span_m,
+              "flap_hz": m.flap_hz, "flap_angle_deg": m.flap_angle_deg}
+    if m.sigma_m is not None:
+        motion["sigma_m"] = m.sigma_m
+    if m.accel_psd_m2_s3 is not None:
+        motion["accel_psd_m2_s3"] = m.accel_psd_m2_s3
+    doc = {"session": {"name": session.name, "fps": session.fps}, "motion": motion,
+           "noise": {"pixel_sigma_px": session.pixel_sigma_px}}
+    if session.marker_names or session.skeleton:
+        doc["markers"] = {"names": list(session.marker_names), "skeleton": [list(e) for e in session.skeleton]}
+    doc.update(session.extra_toml)
+    return tomli_w.dumps(doc)
+
+
+def write_session(session: Session, folder: str | Path) -> Path:
+    """Write a session folder (every file atomically). Returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(folder / "session.toml", session_toml(session))
+    atomic.write_text(folder / "calibration.toml", calibration_toml(session.rig))
+    obs = session.observations
+    cols = OBS_COLUMNS + (["weight"] if "weight" in obs and not np.allclose(obs["weight"], 1.0) else [])
+    atomic.write_text(folder / "observations.csv", obs[cols].to_csv(index=False, float_format="%.6f"))
+    if session.truth is not None:
+        atomic.write_text(folder / "truth.csv", session.truth[TRUTH_COLUMNS].to_csv(index=False, float_format="%.9f"))
+    if session.reference is not None:
+        atomic.write_text(folder / "reference_xyz.csv",
+                          session.reference[TRUTH_COLUMNS].to_csv(index=False, float_format="%.9f"))
+    if session.true_rig is not None:
+        atomic.write_text(folder / "calibration_true.toml", calibration_toml(session.true_rig))
+    return folder
