@@ -3,7 +3,8 @@
 A session folder (see CONTRACT.md and README.md) holds ``session.toml``, ``calibration.toml``
 (aniposelib format), ``observations.csv`` or ``.parquet``, and optionally ``truth.csv`` (simulated
 sessions), ``reference_xyz.csv`` (another tool's 3D, e.g. DLTdv's xyzpts, for comparison),
-``calibration_true.toml`` (simulated sessions with a calibration error: the rig used to render).
+``calibration_true.toml`` (simulated sessions with a calibration error: the rig used to render),
+``truth_mislabels.csv`` (simulated sessions: frame, camera, marker of deliberately mislabelled rows).
 
 Every problem with user input raises :class:`batgraph.errors.InputError` with a one-line message
 naming the file, the row (CSV line number, header = line 1) or key, and the problem. This module
@@ -69,6 +70,7 @@ class Session:
     truth: pd.DataFrame | None = None
     reference: pd.DataFrame | None = None
     true_rig: Rig | None = None
+    mislabels: pd.DataFrame | None = None
     extra_toml: dict = field(default_factory=dict)
     path: Path | None = None
     warnings: list[str] = field(default_factory=list)
@@ -373,12 +375,16 @@ def read_session(folder: str | Path) -> Session:
     ref = read_points(folder / "reference_xyz.csv") if (folder / "reference_xyz.csv").exists() else None
     true_rig = (read_calibration(folder / "calibration_true.toml")
                 if (folder / "calibration_true.toml").exists() else None)
+    mislabels = None
+    if (folder / "truth_mislabels.csv").exists():
+        mislabels, _ = _read_table(folder / "truth_mislabels.csv", ["frame", "camera", "marker"], "rows")
+        mislabels = mislabels.assign(frame=mislabels["frame"].astype(np.int64))
     extra = {k: v for k, v in cfg.items() if k not in ("session", "motion", "noise", "markers")}
     return Session(
         name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,
         observations=observations, motion=mcfg,
         pixel_sigma_px=float(noise.get("pixel_sigma_px", 1.0)), marker_names=names, skeleton=skeleton,
-        truth=truth, reference=ref, true_rig=true_rig, extra_toml=extra, path=folder, warnings=warnings,
+        truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder, warnings=warnings,
     )
 
 
@@ -436,4 +442,7 @@ def write_session(session: Session, folder: str | Path) -> Path:
                           session.reference[TRUTH_COLUMNS].to_csv(index=False, float_format="%.9f"))
     if session.true_rig is not None:
         atomic.write_text(folder / "calibration_true.toml", calibration_toml(session.true_rig))
+    if session.mislabels is not None:
+        atomic.write_text(folder / "truth_mislabels.csv",
+                          session.mislabels[["frame", "camera", "marker"]].to_csv(index=False))
     return folder

@@ -1,0 +1,43 @@
+# Two commands do all the set-up on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: install demo test bench study samples lint clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+## demo: reconstruct the bundled flight and ear samples with every method (outputs in out/)
+demo: install
+	$(BIN)/batgraph reconstruct data/samples/flight_5cam --out out/flight_5cam --compare
+	$(BIN)/batgraph reconstruct data/samples/ear_2cam --out out/ear_2cam --compare
+
+## test: the test suite (what CI runs)
+test: install
+	$(BIN)/python -m pytest -q -ra
+
+## bench: speed and memory, ratios against baselines measured in the same run (see BENCHMARKS.md)
+bench: install
+	$(BIN)/python scripts/bench.py
+
+## study: the accuracy study (see BENCHMARKS.md / README.md)
+study: install
+	$(BIN)/python scripts/accuracy_study.py
+
+## samples: regenerate the bundled samples (deterministic)
+samples: install
+	$(BIN)/batgraph simulate flight data/samples/flight_5cam --cameras 5 --markers 24 --frames 160 --seed 1 --force
+	$(BIN)/batgraph simulate ear data/samples/ear_2cam --frames 250 --seed 1 --force
+
+lint: install
+	$(BIN)/ruff check batgraph scripts tests
+
+clean:
+	rm -rf out bench_out .pytest_cache

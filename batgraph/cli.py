@@ -1,0 +1,211 @@
+"""Command line: parses arguments and calls library functions; nothing else lives here.
+
+``batgraph reconstruct|simulate|import|export|view ...``; ``scripts/NAME.py`` are thin wrappers.
+User errors (:class:`batgraph.errors.InputError`) print one line and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import InputError
+
+
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return v
+
+
+# ----- reconstruct -----------------------------------------------------------------------------
+def _add_reconstruct(sub):
+    p = sub.add_parser("reconstruct", help="3D trajectories of every marker on every frame, with covariance",
+                       description="Reconstruct 3D marker trajectories from a session folder (or several).")
+    p.add_argument("sessions", nargs="+", metavar="SESSION", help="session folder(s)")
+    p.add_argument("--out", help="output folder (default SESSION/out; with several sessions OUT/<session>)")
+    p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
+                                     "(default smoother,filter)")
+    p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
+    p.add_argument("--motion", choices=["constant_velocity", "random_walk"],
+                   help="motion model (default: session.toml [motion] model, else constant_velocity)")
+    p.add_argument("--accel-psd", type=float, metavar="Q",
+                   help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
+    p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
+                   help="robust loss on projection factors (default huber)")
+    p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--viewer", choices=["spawn", "save", "none"], default="save",
+                   help="Rerun: stream live (spawn), write recording.rrd (save, default), or nothing")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
+    p.set_defaults(func=_cmd_reconstruct)
+
+
+def _fmt(x, scale=1.0, digits=2):
+    return "-" if x is None else f"{x * scale:.{digits}f}"
+
+
+def summary_lines(summary: dict) -> list[str]:
+    """The short end-of-run table: per method RMSE/coverage (with truth), median reprojection, runtime."""
+    lines = [f"{'method':<12}{'RMSE mm':>9}{'obs':>8}{'1-view':>8}{'0-view':>8}{'cov95':>7}"
+             f"{'reproj px':>11}{'time s':>8}"]
+    for name, m in summary["methods"].items():
+        t = m.get("truth", {})
+        rm, cv = t.get("rmse_m", {}), t.get("coverage95", {})
+        med = [c.get("median_px") for c in m.get("reprojection", {}).values() if c.get("median_px") is not None]
+        lines.append(f"{name:<12}{_fmt(rm.get('all'), 1000):>9}{_fmt(rm.get('observed'), 1000):>8}"
+                     f"{_fmt(rm.get('single_view'), 1000):>8}{_fmt(rm.get('unobserved'), 1000):>8}"
+                     f"{_fmt(cv.get('all'), 100, 0) + ('%' if cv.get('all') is not None else ''):>7}"
+                     f"{_fmt(sum(med) / len(med) if med else None):>11}{m['runtime_s']:>8.2f}")
+    return lines
+
+
+def _cmd_reconstruct(args) -> int:
+    from .pipeline import parse_methods, reconstruct
+    from .result import Options
+
+    methods = parse_methods(args.methods, args.compare)
+    options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
+                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet)
+    many = len(args.sessions) > 1
+    failed = 0
+    for s in args.sessions:
+        out = Path(args.out) / Path(s).name if (many and args.out) else args.out
+        try:
+            result = reconstruct(s, out, methods, options)
+        except InputError as e:
+            if not many:
+                raise
+            print(f"batgraph: error: {e}", file=sys.stderr)
+            failed += 1
+            continue
+        if not args.quiet:
+            print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
+            for w in result.session.warnings:
+                print(f"warning: {w}")
+            print("\n".join(summary_lines(result.summary)))
+    if many and not args.quiet:
+        print(f"{len(args.sessions) - failed} of {len(args.sessions)} sessions done, {failed} failed")
+    return 2 if failed else 0
+
+
+# ----- simulate --------------------------------------------------------------------------------
+def _add_simulate(sub):
+    p = sub.add_parser("simulate", help="write a synthetic session with ground truth (bat flight or ear)",
+                       description="Write a simulated session folder with truth.csv.")
+    p.add_argument("scene", choices=["flight", "ear"])
+    p.add_argument("out", metavar="OUT_SESSION")
+    p.add_argument("--cameras", type=_positive_int, help="number of cameras (flight: default 5, up to 30)")
+    p.add_argument("--markers", type=_positive_int,
+                   help="flight: total markers, 14 skeleton markers plus wing-membrane markers up to 180")
+    p.add_argument("--frames", type=_positive_int, help="number of frames (default 160 flight, 250 ear)")
+    p.add_argument("--fps", type=float, help="frame rate [Hz] (default 120 flight, 250 ear)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--noise-px", type=float, default=1.0, help="pixel noise std [px] (default 1)")
+    p.add_argument("--outlier-rate", type=float, default=0.0, help="fraction of mislabelled detections")
+    p.add_argument("--calib-rot-deg", type=float, default=0.0,
+                   help="calibration error: rotation of each affected camera [deg]")
+    p.add_argument("--calib-trans-mm", type=float, default=0.0,
+                   help="calibration error: translation of each affected camera [mm]")
+    p.add_argument("--force", action="store_true", help="overwrite an existing session folder")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    import numpy as np
+
+    from .session import write_session
+    from .simulate import simulate_ear, simulate_flight
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise InputError(f"{out}: folder exists and is not empty (use --force to overwrite)")
+    if not 0 <= args.outlier_rate < 1:
+        raise InputError(f"--outlier-rate: must be in [0, 1), got {args.outlier_rate}")
+    if args.noise_px < 0:
+        raise InputError(f"--noise-px: must be >= 0, got {args.noise_px}")
+    rng = np.random.default_rng(args.seed)
+    common = {"pixel_sigma_px": args.noise_px, "outlier_rate": args.outlier_rate}
+    if args.frames:
+        common["n_frames"] = args.frames
+    if args.fps:
+        common["fps"] = args.fps
+    if args.scene == "flight":
+        if args.cameras and args.cameras > 30:
+            raise InputError(f"--cameras: at most 30, got {args.cameras}")
+        if args.markers is not None and not 14 <= args.markers <= 180:
+            raise InputError(f"--markers: must be between 14 and 180, got {args.markers}")
+        session = simulate_flight(rng, n_cameras=args.cameras or 5, n_markers=args.markers,
+                                  calib_rot_deg=args.calib_rot_deg, calib_trans_mm=args.calib_trans_mm, **common)
+    else:
+        session = simulate_ear(rng, **common)
+    write_session(session, out)
+    print(f"wrote {args.scene} session to {out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
+          f"{len(session.frames)} frames, {len(session.observations)} observations)")
+    return 0
+
+
+# ----- import ----------------------------------------------------------------------------------
+def _add_import(sub):
+    p = sub.add_parser("import", help="convert another tool's files into a session folder")
+    fmt = p.add_subparsers(dest="format", required=True, metavar="FORMAT")
+    d = fmt.add_parser("dltdv", help="DLTdv8/DLTdv7/Argus xypts + DLT coefficients",
+                       description="Import a DLTdv trial: *xypts.csv and *dltCoefs.csv.")
+    d.add_argument("--xypts", required=True, help="DLTdv *xypts.csv (one row per frame)")
+    d.add_argument("--coefs", required=True, help="DLT coefficients *dltCoefs.csv (11 rows x cameras)")
+    d.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
+    d.add_argument("--out", required=True, help="session folder to write")
+    d.add_argument("--dltdv-version", type=int, choices=[7, 8], default=8,
+                   help="pixel convention: 8 = origin top-left (default), 7 = origin bottom-left")
+    d.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="image size [px]")
+    d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
+    d.add_argument("--pixel-sigma", type=float, default=1.0, help="click noise std [px] (default 1)")
+    d.set_defaults(func=_cmd_import_dltdv)
+
+
+def _cmd_import_dltdv(args) -> int:
+    from .formats.dltdv import import_dltdv
+
+    if args.fps <= 0:
+        raise InputError(f"--fps: must be > 0, got {args.fps}")
+    session = import_dltdv(args.xypts, args.coefs, args.fps, args.out, version=args.dltdv_version,
+                           image_size=tuple(args.image_size) if args.image_size else None,
+                           xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma)
+    print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
+          f"{len(session.observations)} observations)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_reconstruct(sub)
+    _add_simulate(sub)
+    _add_import(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    parser = build_parser()
+    if prog:
+        parser.prog = prog
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as e:
+        print(f"batgraph: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("batgraph: interrupted", file=sys.stderr)
+        return 130
+
+
+def run_script(command: str) -> None:
+    """Entry for ``scripts/<command>.py``: same as ``batgraph <command> ...``."""
+    sys.exit(main([command, *sys.argv[1:]]))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
