@@ -384,7 +384,8 @@ def read_session(folder: str | Path) -> Session:
         name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,
         observations=observations, motion=mcfg,
         pixel_sigma_px=float(noise.get("pixel_sigma_px", 1.0)), marker_names=names, skeleton=skeleton,
-        truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder, warnings=warnings,
+        truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder,
+        warnings=warnings,
     )
 
 
