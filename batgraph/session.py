@@ -187,7 +187,8 @@ def read_calibration(path: Path) -> Rig:
             raise InputError(f"{where} matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
         dist = np.asarray(tab.get("distortions", [0.0] * 5), dtype=object)
         if dist.ndim != 1 or len(dist) > 5:
-            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], got {tab.get('distortions')!r}")
+            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], "
+                             f"got {tab.get('distortions')!r}")
         dist = _matrix(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
         rvec = _matrix(tab["rotation"], (3,), f"{where} rotation")
         tvec = _matrix(tab["translation"], (3,), f"{where} translation")
