@@ -336,6 +336,12 @@ def _session_config(path: Path) -> dict:
     if "fps" not in sess:
         raise InputError(f"{path} [session]: missing key 'fps'")
     _number(sess["fps"], f"{path} [session] fps", positive=True)
+    for key in ("motion", "noise", "markers"):
+        if not isinstance(data.get(key, {}), dict):
+            raise InputError(f"{path}: '{key}' must be a table [{key}], got {data[key]!r}")
+    names = data.get("markers", {}).get("names", [])
+    if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+        raise InputError(f"{path} [markers] names: expected a list of marker names, got {names!r}")
     motion = data.get("motion", {})
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:

@@ -1,0 +1,428 @@
+"""DLTdv8 / DLTdv7 (and Argus) files <-> batgraph: 2D clicks, 11-parameter DLT coefficients, 3D points.
+
+DLTdv's files (Hedrick lab; Argus writes the same layout):
+
+* ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1),
+  ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's own GUI
+  counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
+* ``*dltCoefs.csv``: 11 rows (L1..L11) x one column per camera, no header;
+  ``u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)``, v likewise with L5..L8, in the
+  pixel convention of the xypts file.
+* ``*xyzpts.csv``: ``pt{p}_X, pt{p}_Y, pt{p}_Z`` per frame; ``*xyzres.csv``: ``pt{p}_dltres``.
+
+Pixel conventions (OpenCV: origin at the centre of the top-left pixel, v down):
+
+* DLTdv8: origin upper-left, pixel centres 1-based: ``u8 = u_cv + 1, v8 = v_cv + 1``.
+* DLTdv7 and earlier: origin lower-left, y up: ``u7 = u_cv + 1, v7 = H - v_cv`` (H = image height),
+  so importing them needs the image size. (Argus is documented as writing DLTdv-compatible files; which
+  origin a given Argus file uses is not verified here: pick the version whose origin matches.)
+
+:func:`pixel_transform` is the one place the conventions are written down; pixels and DLT
+coefficients are both converted through it. This module reads and writes files and builds a session;
+it does not triangulate (see :mod:`batgraph.triangulate`) and ignores ``*offsets.csv`` (camera frame
+offsets: apply them before importing) and DLTdv8's "sparse" xypts layout.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import atomic
+from ..camera import Camera, Rig
+from ..errors import InputError
+from ..session import Session, read_session, write_session
+
+VERSIONS = (5, 6, 7, 8)  # 5-7 share the lower-left origin; 8 is upper-left
+_MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
+_XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
+_XYZPTS = (re.compile(r"^pt(\d+)_([XYZ])$", re.IGNORECASE), "pt{p}_X / pt{p}_Y / pt{p}_Z")
+_XYZRES = (re.compile(r"^pt(\d+)_(dltres)$", re.IGNORECASE), "pt{p}_dltres")
+
+
+# ----------------------------------------------------------------------------------------------
+# pixel conventions
+# ----------------------------------------------------------------------------------------------
+def pixel_transform(version: int, height_px: float | None = None) -> np.ndarray:
+    """Affine map A, shape (3, 3), from OpenCV homogeneous pixels to DLTdv ``version`` pixels.
+
+    ``[u_dltdv, v_dltdv, 1] = A @ [u_cv, v_cv, 1]``; a DLT matrix converts as ``P_dltdv ~ A @ P_cv``.
+    height_px: image height H [px], needed for versions <= 7 (the y axis flips about it).
+    """
+    if version not in VERSIONS:
+        raise ValueError(f"DLTdv version must be one of {VERSIONS}, got {version!r}")
+    if version >= 8:
+        return np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 1]])
+    if height_px is None:
+        raise ValueError(f"DLTdv{version} pixels have a lower-left origin: the image height is needed")
+    return np.array([[1.0, 0, 1], [0, -1, float(height_px)], [0, 0, 1]])
+
+
+def _apply_affine(A: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
+    uv = np.asarray(uv_px, dtype=float)
+    return uv @ A[:2, :2].T + A[:2, 2]
+
+
+def to_opencv_px(uv_px: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
+    """DLTdv pixels (..., 2) -> OpenCV pixels (..., 2); NaN stays NaN."""
+    return _apply_affine(np.linalg.inv(pixel_transform(version, height_px)), uv_px)
+
+
+def from_opencv_px(uv_px: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
+    """OpenCV pixels (..., 2) -> DLTdv pixels (..., 2); NaN stays NaN."""
+    return _apply_affine(pixel_transform(version, height_px), uv_px)
+
+
+def _convert_coefs(coefs: np.ndarray, A: np.ndarray) -> np.ndarray:
+    L = np.asarray(coefs, dtype=float).reshape(-1, 11)
+    P = np.concatenate([L, np.ones((len(L), 1))], axis=1).reshape(-1, 3, 4)
+    P = A @ P
+    # A's last row is (0, 0, 1), so P[2, 3] stays 1; renormalise anyway so any A is safe
+    return (P / P[:, 2:3, 3:4]).reshape(-1, 12)[:, :11]
+
+
+def coefs_to_opencv(coefs: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
+    """DLT coefficients (n_cams, 11) in DLTdv pixels -> the same cameras' coefficients in OpenCV pixels."""
+    return _convert_coefs(coefs, np.linalg.inv(pixel_transform(version, height_px)))
+
+
+def coefs_from_opencv(coefs: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
+    """DLT coefficients (n_cams, 11) in OpenCV pixels -> DLTdv ``version`` pixels."""
+    return _convert_coefs(coefs, pixel_transform(version, height_px))
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+# ----------------------------------------------------------------------------------------------
+def _read_text_table(path: Path, header: bool, what: str) -> pd.DataFrame:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        df = pd.read_csv(path, header=0 if header else None, dtype=str, keep_default_na=False,
+                         skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{path}: empty file (expected {what})") from None
+    except Exception as e:  # a corrupt or ragged file: say which and why, one line
+        raise InputError(f"{path}: cannot be read ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    return df
+
+
+def _numbers(df: pd.DataFrame, path: Path, first_line: int, col_label) -> np.ndarray:
+    """All cells as floats (R, K), NaN where empty/NaN; InputError naming line and column otherwise.
+
+    first_line: file line number of df's row 0 (1-based); col_label(j) names column j in messages.
+    """
+    shape = df.shape
+    # one flat pass over every cell: vectorised, and the same rules for every column
+    text = pd.Series(df.to_numpy(dtype=object).ravel(), dtype=str).str.strip()
+    missing = text.str.lower().isin(_MISSING).to_numpy()
+    values = pd.to_numeric(text.mask(missing), errors="coerce").to_numpy(dtype=float)
+    for bad, problem in ((~missing & np.isnan(values), "is not a number"), (np.isinf(values), "is infinite")):
+        if bad.any():
+            k = int(np.argmax(bad))
+            i, j = divmod(k, shape[1])
+            raise InputError(f"{path} line {first_line + i}, {col_label(j)}: {text.iat[k]!r} {problem}")
+    return values.reshape(shape)
+
+
+def _read_wide(path: Path, pattern: tuple[re.Pattern, str], what: str) -> tuple[np.ndarray, list[tuple]]:
+    """A headed DLTdv table: (values (n_frames, n_cols) with NaN, parsed column keys)."""
+    path = Path(path)
+    df = _read_text_table(path, header=True, what=what)
+    regex, form = pattern
+    keys = []
+    for name in df.columns:
+        m = regex.match(name)
+        if m is None:
+            raise InputError(f"{path} line 1: column {name!r} is not of the form {form}")
+        keys.append(m.groups())
+    if len(df) == 0:
+        raise InputError(f"{path}: no rows (the file has a header only)")
+    values = _numbers(df, path, 2, lambda j: f"column {df.columns[j]}")
+    return values, keys
+
+
+def _check_complete(path: Path, keys: list[tuple], expected: list[tuple], fmt: str) -> None:
+    def norm(key):  # "pt01" is pt1; "x" is X
+        return tuple(int(k) if str(k).isdigit() else str(k).upper() for k in key)
+
+    have = {norm(key) for key in keys}
+    for key in expected:
+        if norm(key) not in have:
+            raise InputError(f"{path} line 1: missing column {fmt.format(*key)}")
+
+
+def read_xypts(path: str | Path, n_cams: int | None = None) -> pd.DataFrame:
+    """Read a DLTdv ``*xypts.csv`` into a long table, in the file's own pixel convention.
+
+    Returns columns frame (= row index, from 0), camera_index, point_index (0-based: ``cam1`` is 0,
+    ``pt1`` is 0), u, v [px, DLTdv convention]; only digitised cells. ``attrs`` holds n_frames,
+    n_points, n_cams (from the header, so never-digitised points and cameras still count).
+    n_cams: expected camera count (e.g. columns of the coefficient file); None accepts the header's.
+    """
+    path = Path(path)
+    values, keys = _read_wide(path, _XYPTS, "DLTdv xypts: pt{p}_cam{c}_X, pt{p}_cam{c}_Y columns")
+    pts = np.array([int(k[0]) for k in keys])
+    cams = np.array([int(k[1]) for k in keys])
+    axis = np.array([0 if k[2].upper() == "X" else 1 for k in keys])
+    if pts.min() < 1 or cams.min() < 1:
+        raise InputError(f"{path} line 1: point and camera numbers start at 1 (pt1, cam1)")
+    P, C = int(pts.max()), int(cams.max())
+    if n_cams is not None and C != n_cams:
+        raise InputError(f"{path} line 1: the header has cameras cam1..cam{C} but {n_cams} were expected")
+    _check_complete(path, keys, [(p, c, a) for p in range(1, P + 1) for c in range(1, C + 1) for a in "XY"],
+                    "pt{}_cam{}_{}")
+    n_frames = len(values)
+    uv = np.full((n_frames, P, C, 2), np.nan)
+    uv[:, pts - 1, cams - 1, axis] = values
+    half = np.isnan(uv[..., 0]) != np.isnan(uv[..., 1])
+    if half.any():
+        f, p, c = np.argwhere(half)[0]
+        raise InputError(f"{path} line {f + 2}, pt{p + 1}_cam{c + 1}: only one of X, Y is given")
+    f, p, c = np.nonzero(np.isfinite(uv[..., 0]))
+    out = pd.DataFrame({"frame": f.astype(np.int64), "camera_index": c.astype(np.int64),
+                        "point_index": p.astype(np.int64), "u": uv[f, p, c, 0], "v": uv[f, p, c, 1]})
+    out = out.sort_values(["frame", "camera_index", "point_index"], kind="stable").reset_index(drop=True)
+    out.attrs.update(n_frames=n_frames, n_points=P, n_cams=C)
+    return out
+
+
+def read_dlt_coefs(path: str | Path) -> np.ndarray:
+    """Read a DLTdv ``*dltCoefs.csv`` (11 rows x one column per camera, no header).
+
+    Returns coefficients L1..L11 per camera, shape (n_cams, 11), in the file's pixel convention.
+    """
+    path = Path(path)
+    df = _read_text_table(path, header=False, what="11 rows of DLT coefficients, one column per camera")
+    if len(df) != 11:
+        raise InputError(f"{path}: expected 11 rows (DLT coefficients L1..L11, one column per camera), "
+                         f"found {len(df)}")
+    L = _numbers(df, path, 1, lambda j: f"column {j + 1} (camera {j + 1})").T
+    if np.isnan(L).any():
+        c, i = np.argwhere(np.isnan(L))[0]
+        raise InputError(f"{path} line {i + 1}, column {c + 1}: "
+                         f"coefficient L{i + 1} of camera {c + 1} is empty")
+    M = np.concatenate([L, np.ones((len(L), 1))], axis=1).reshape(-1, 3, 4)[:, :, :3]
+    sing = np.abs(np.linalg.det(M)) <= 1e-12 * np.linalg.norm(M, axis=(1, 2)) ** 3
+    if sing.any():
+        c = int(np.argmax(sing))
+        raise InputError(f"{path} column {c + 1}: the DLT coefficients of camera {c + 1} are degenerate "
+                         f"(L1-L3, L5-L7, L9-L11 are not independent)")
+    return L
+
+
+def read_xyzpts(path: str | Path) -> pd.DataFrame:
+    """Read a DLTdv ``*xyzpts.csv``: columns frame (= row index), point_index (0-based), x, y, z.
+
+    Rows with NaN are dropped; ``attrs`` holds n_frames and n_points. Units are those of the
+    calibration (metres if the wand was given in metres).
+    """
+    path = Path(path)
+    values, keys = _read_wide(path, _XYZPTS, "DLTdv xyzpts: pt{p}_X, pt{p}_Y, pt{p}_Z columns")
+    pts = np.array([int(k[0]) for k in keys])
+    axis = np.array(["XYZ".index(k[1].upper()) for k in keys])
+    P = int(pts.max())
+    _check_complete(path, keys, [(p, a) for p in range(1, P + 1) for a in "XYZ"], "pt{}_{}")
+    xyz = np.full((len(values), P, 3), np.nan)
+    xyz[:, pts - 1, axis] = values
+    f, p = np.nonzero(np.isfinite(xyz).all(axis=-1))
+    out = pd.DataFrame({"frame": f.astype(np.int64), "point_index": p.astype(np.int64),
+                        "x": xyz[f, p, 0], "y": xyz[f, p, 1], "z": xyz[f, p, 2]})
+    out.attrs.update(n_frames=len(values), n_points=P)
+    return out
+
+
+def read_xyzres(path: str | Path) -> pd.DataFrame:
+    """Read a DLTdv ``*xyzres.csv``: columns frame, point_index (0-based), residual; NaN rows dropped."""
+    path = Path(path)
+    values, keys = _read_wide(path, _XYZRES, "DLTdv xyzres: pt{p}_dltres columns")
+    pts = np.array([int(k[0]) for k in keys])
+    res = np.full((len(values), int(pts.max())), np.nan)
+    res[:, pts - 1] = values
+    f, p = np.nonzero(np.isfinite(res))
+    out = pd.DataFrame({"frame": f.astype(np.int64), "point_index": p.astype(np.int64),
+                        "residual": res[f, p]})
+    out.attrs.update(n_frames=len(values), n_points=res.shape[1])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+# ----------------------------------------------------------------------------------------------
+def _scatter(table: pd.DataFrame, index_cols: list[str], value_cols: list[str],
+             shape: tuple[int, ...]) -> np.ndarray:
+    """Long table -> dense array of ``shape + (len(value_cols),)`` with NaN where no row."""
+    out = np.full(shape + (len(value_cols),), np.nan)
+    idx = tuple(table[c].to_numpy(dtype=np.int64) for c in index_cols)
+    out[idx] = table[value_cols].to_numpy(dtype=float)
+    return out
+
+
+def _size(table: pd.DataFrame, col: str, given: int | None) -> int:
+    n = int(table[col].max()) + 1 if len(table) else 0
+    return n if given is None else int(given)
+
+
+def _write_wide(path: str | Path, columns: list[str], values: np.ndarray, float_format: str) -> None:
+    text = pd.DataFrame(values, columns=columns).to_csv(index=False, na_rep="NaN", float_format=float_format)
+    atomic.write_text(path, text)
+
+
+def write_xypts(path: str | Path, table: pd.DataFrame, n_cams: int | None = None, n_points: int | None = None,
+                n_frames: int | None = None) -> None:
+    """Write a DLTdv ``*xypts.csv`` (the inverse of :func:`read_xypts`).
+
+    table: columns frame (>= 0; row k of the file is frame k), camera_index, point_index (0-based),
+        u, v [px, already in the target DLTdv convention: see :func:`from_opencv_px`].
+    n_cams, n_points, n_frames: file dimensions; default one past the table's largest index.
+    """
+    C, P = _size(table, "camera_index", n_cams), _size(table, "point_index", n_points)
+    F = _size(table, "frame", n_frames)
+    uv = _scatter(table, ["frame", "point_index", "camera_index"], ["u", "v"], (F, P, C))
+    cols = [f"pt{p}_cam{c}_{a}" for p in range(1, P + 1) for c in range(1, C + 1) for a in "XY"]
+    _write_wide(path, cols, uv.reshape(F, -1), "%.6f")
+
+
+def write_xyzpts(path: str | Path, table: pd.DataFrame, n_points: int | None = None,
+                 n_frames: int | None = None) -> None:
+    """Write a DLTdv ``*xyzpts.csv``. table: frame, point_index (0-based), x, y, z; NaN where missing."""
+    P, F = _size(table, "point_index", n_points), _size(table, "frame", n_frames)
+    xyz = _scatter(table, ["frame", "point_index"], ["x", "y", "z"], (F, P))
+    _write_wide(path, [f"pt{p}_{a}" for p in range(1, P + 1) for a in "XYZ"], xyz.reshape(F, -1), "%.9f")
+
+
+def write_xyzres(path: str | Path, table: pd.DataFrame, n_points: int | None = None,
+                 n_frames: int | None = None) -> None:
+    """Write a DLTdv ``*xyzres.csv``. table: frame, point_index (0-based), residual [px]; NaN = missing."""
+    P, F = _size(table, "point_index", n_points), _size(table, "frame", n_frames)
+    res = _scatter(table, ["frame", "point_index"], ["residual"], (F, P))
+    _write_wide(path, [f"pt{p}_dltres" for p in range(1, P + 1)], res.reshape(F, -1), "%.6f")
+
+
+def rig_to_dlt_coefs(rig: Rig, version: int = 8, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """DLT coefficients (n_cams, 11) of a rig's pinholes in DLTdv ``version`` pixels (distortion ignored).
+
+    image_size: (W, H) [px] for the y flip of versions <= 7; None uses each camera's own height.
+    """
+    out = []
+    for cam in rig:
+        h = image_size[1] if image_size is not None else cam.size_wh[1]
+        out.append(coefs_from_opencv(cam.to_dlt(), version, h)[0])
+    return np.array(out).reshape(-1, 11)
+
+
+def write_dlt_coefs(path: str | Path, rig: Rig, version: int = 8,
+                    image_size: tuple[int, int] | None = None) -> None:
+    """Write a DLTdv ``*dltCoefs.csv`` (11 rows x one column per camera, no header) for ``rig``.
+
+    Distortion is not representable in a DLT and is ignored; see :func:`rig_to_dlt_coefs`.
+    """
+    L = rig_to_dlt_coefs(rig, version, image_size)
+    # %.17g: every float64 round-trips exactly, so Camera -> file -> Camera loses nothing
+    text = "".join(",".join(f"{x:.17g}" for x in row) + "\n" for row in L.T)
+    atomic.write_text(path, text)
+
+
+# ----------------------------------------------------------------------------------------------
+# import
+# ----------------------------------------------------------------------------------------------
+def _names(given, n: int, default: str, what: str, where: str) -> list[str]:
+    names = [default.format(i + 1) for i in range(n)] if given is None else [str(s).strip() for s in given]
+    if len(names) != n:
+        raise InputError(f"{where}: {n} {what}s in the file but {len(names)} {what} names were given")
+    if any(not s for s in names) or len(set(names)) != len(names):
+        raise InputError(f"{where}: {what} names must be non-empty and distinct, got {names}")
+    return names
+
+
+def infer_image_size(K: np.ndarray, uv_cv_px: np.ndarray) -> tuple[int, int]:
+    """Image size (W, H) [px] when none is given: the principal point taken as the image centre.
+
+    ``W = round(2 cx + 1)`` (OpenCV's centre of a W-wide image is (W - 1) / 2), enlarged so that every
+    digitised pixel ``uv_cv_px`` (n, 2) lies inside; the same for H with cy. Only batgraph's
+    "outside the image" warnings and plots depend on it: a DLT has no distortion to centre.
+    """
+    size = np.round(2 * K[:2, 2] + 1)
+    if len(uv_cv_px):
+        size = np.maximum(size, np.ceil(np.nanmax(uv_cv_px, axis=0) + 0.5))
+    w, h = np.maximum(size, 1).astype(int)
+    return int(w), int(h)
+
+
+def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Path, *, version: int = 8,
+                 image_size: tuple[int, int] | None = None, xyzpts: str | Path | None = None,
+                 camera_names: list[str] | None = None, marker_names: list[str] | None = None,
+                 pixel_sigma_px: float = 1.0) -> Session:
+    """Convert a DLTdv trial into a session folder ``out`` and return the session as read back.
+
+    xypts, coefs: DLTdv ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention, ``version``).
+    fps: camera frame rate [Hz]; frame k (row k of xypts) is at time k / fps.
+    version: 8 (origin upper-left) or 5-7 (origin lower-left; needs ``image_size``).
+    image_size: (W, H) [px] of every camera; None (DLTdv8 only) infers it per camera with
+        :func:`infer_image_size`.
+    xyzpts: optional DLTdv ``*xyzpts.csv``, kept as the session's reference (reference_xyz.csv).
+    camera_names, marker_names: default cam1.. (coefficient columns) and pt1.. (xypts points).
+    Pixels and coefficients are converted to OpenCV's convention and each camera becomes K, R, t with
+    zero distortion (:meth:`Camera.from_dlt`). Raises InputError naming the file for bad input.
+    """
+    xypts, coefs, out = Path(xypts), Path(coefs), Path(out)
+    if version not in VERSIONS:
+        raise InputError(f"DLTdv version must be one of {', '.join(map(str, VERSIONS))}, got {version!r}")
+    if not (isinstance(fps, int | float) and math.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be a number > 0, got {fps!r}")
+    if not (isinstance(pixel_sigma_px, int | float) and math.isfinite(pixel_sigma_px) and pixel_sigma_px > 0):
+        raise InputError(f"pixel_sigma_px must be a number > 0, got {pixel_sigma_px!r}")
+    if image_size is not None:
+        size = np.asarray(image_size, dtype=object)
+        if size.shape != (2,) or not all(isinstance(s, int | float) and s > 0 and s == int(s) for s in size):
+            raise InputError(f"image size must be two positive integers W H, got {image_size!r}")
+        image_size = (int(size[0]), int(size[1]))
+    elif version <= 7:
+        raise InputError(f"{xypts}: DLTdv{version} files have their origin at the lower-left; "
+                         f"give the image size (--image-size W H) to convert them")
+    L = read_dlt_coefs(coefs)
+    clicks = read_xypts(xypts)
+    if clicks.attrs["n_cams"] != len(L):
+        raise InputError(f"{xypts} line 1: the header has {clicks.attrs['n_cams']} camera(s) "
+                         f"but {coefs} has {len(L)} column(s) of coefficients")
+    cams = _names(camera_names, len(L), "cam{}", "camera", str(coefs))
+    markers = _names(marker_names, clicks.attrs["n_points"], "pt{}", "point", str(xypts))
+    if len(clicks) == 0:
+        raise InputError(f"{xypts}: no digitised points (every cell is NaN)")
+
+    height = image_size[1] if image_size is not None else None
+    uv_cv = to_opencv_px(clicks[["u", "v"]].to_numpy(), version, height)
+    L_cv = coefs_to_opencv(L, version, height)
+    ci = clicks["camera_index"].to_numpy()
+    rig = Rig([Camera.from_dlt(name, L_cv[c], image_size or (1, 1)) for c, name in enumerate(cams)])
+    if image_size is None:
+        for c, cam in enumerate(rig):
+            cam.size_wh = infer_image_size(cam.K, uv_cv[ci == c])
+    observations = pd.DataFrame({
+        "frame": clicks["frame"].to_numpy(), "camera": np.array(cams)[ci],
+        "marker": np.array(markers)[clicks["point_index"].to_numpy()],
+        "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
+    })
+    reference = None
+    if xyzpts is not None:
+        ref = read_xyzpts(xyzpts)
+        if ref.attrs["n_points"] != len(markers):
+            raise InputError(f"{xyzpts} line 1: {ref.attrs['n_points']} point(s) "
+                             f"but {xypts} has {len(markers)}")
+        reference = ref.assign(marker=np.array(markers)[ref["point_index"].to_numpy()])
+        reference = reference[["frame", "marker", "x", "y", "z"]]
+    provenance = {"format": f"dltdv{version}", "xypts": xypts.name, "dlt_coefs": coefs.name,
+                  "image_size": "given" if image_size is not None else "inferred from principal point"}
+    if xyzpts is not None:
+        provenance["xyzpts"] = Path(xyzpts).name
+    session = Session(name=out.name, fps=float(fps), rig=rig, observations=observations,
+                      pixel_sigma_px=float(pixel_sigma_px), marker_names=markers, reference=reference,
+                      extra_toml={"import": provenance})
+    write_session(session, out)
+    return read_session(out)
