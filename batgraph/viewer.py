@@ -1,0 +1,563 @@
+"""Rerun logging of a session and its reconstructions (saved .rrd, live viewer, opening a file); estimates nothing.
+
+Rerun is imported lazily inside each function, so ``import batgraph`` never loads it.
+
+Timelines
+    ``frame`` (sequence: the frame index) and ``time`` (duration: ``frame / fps`` seconds).
+
+Entity paths (each ``{cam}`` / ``{method}`` part is escaped with ``rr.escape_entity_path_part``)
+
+=================================================  ========================================================
+``world``                                          AnnotationContext (static): class id ``i`` is marker
+                                                   ``i`` of ``session.markers`` (its label on hover)
+``world/cameras/{cam}``                            Transform3D world_from_cam (static) [m]
+``world/cameras/{cam}/image``                      Pinhole: K and image size [px] (static); 2D children
+                                                   live in this image's pixel space
+``world/cameras/{cam}/image/detections``           Points2D: the observed **raw (distorted)** pixels, per
+                                                   frame, class id = marker
+``world/cameras/{cam}/image/reproj/{method}``      Points2D: predicted raw pixels (u_hat, v_hat) per
+                                                   frame, in the method's colour, outliers in red
+``world/cameras/{cam}/image/reproj/{method}/residuals``  LineStrips2D: observed -> predicted, per frame
+``world/{method}/markers``                         Points3D per frame [m, world], class id = marker
+``world/{method}/ellipsoids``                      Ellipsoids3D: 95 % ellipsoid of each marker's covariance
+``world/{method}/skeleton``                        LineStrips3D: the ``[markers] skeleton`` edges of
+                                                   session.toml, per frame (an edge is drawn when both
+                                                   ends are estimated)
+``world/{method}/trails``                          LineStrips3D: each marker's last ``trail_frames``
+                                                   positions, per frame
+=================================================  ========================================================
+
+Every per-frame entity gets a row on every frame of the recording, possibly empty, because Rerun
+shows the latest row at or before the time cursor: a missing row would keep showing an old frame.
+
+Distortion: Rerun's Pinhole is an ideal pinhole (K only). The 2D entities are logged in raw pixels so
+that they sit where the marker is in the real image; in the 3D view, their rays through a strongly
+distorted lens are therefore slightly off the 3D markers (by the lens's distortion, not an error).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import uuid
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .atomic import atomic_path
+from .errors import InputError
+
+#: chi-square quantile, 3 degrees of freedom, 0.95: a 3D Gaussian's 95 % ellipsoid is
+#: ``(x - mu)^T cov^-1 (x - mu) <= CHI2_3D_95``, i.e. half-axes ``sqrt(CHI2_3D_95 * eigenvalue)``.
+CHI2_3D_95 = 7.814727903251178
+
+RECORDING_NAME = "recording.rrd"
+APPLICATION_ID = "batgraph"
+
+# Colours (RGB) per method, so a method looks the same in 3D and in every camera image.
+METHOD_COLORS = {
+    "smoother": (31, 119, 180),
+    "filter": (255, 127, 14),
+    "ekf": (44, 160, 44),
+    "ukf": (148, 103, 189),
+    "triangulate": (140, 86, 75),
+}
+_FALLBACK_COLORS = [(23, 190, 207), (188, 189, 34), (227, 119, 194), (127, 127, 127)]
+DETECTION_COLOR = (255, 255, 255)
+OUTLIER_COLOR = (214, 39, 40)
+
+
+class ViewerUnavailable(InputError):
+    """The Rerun viewer cannot be shown here (no display, or no rerun executable); one-line message."""
+
+
+def _rr():
+    try:
+        import rerun as rr
+    except ImportError:  # the viewer is optional for a library user; say what to install
+        raise InputError("the Rerun viewer needs the rerun-sdk package (pip install rerun-sdk)") from None
+    return rr
+
+
+def method_color(method: str) -> tuple[int, int, int]:
+    """RGB colour of a method; unknown methods get a stable colour from a fallback palette."""
+    if method in METHOD_COLORS:
+        return METHOD_COLORS[method]
+    return _FALLBACK_COLORS[sum(map(ord, method)) % len(_FALLBACK_COLORS)]
+
+
+def display_available() -> bool:
+    """False on Linux/BSD without an X11 or Wayland display (where a viewer window cannot open)."""
+    if sys.platform.startswith(("win", "darwin")):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _rerun_executable() -> str:
+    """Path of the rerun viewer binary shipped with rerun-sdk (works when the venv's bin is not on PATH)."""
+    import rerun_cli
+
+    exe = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
+    if sys.platform == "darwin":
+        bundled = exe.parent / "Rerun.app" / "Contents" / "MacOS" / "Rerun"
+        exe = bundled if bundled.exists() else exe
+    if not exe.exists():
+        raise ViewerUnavailable(f"the rerun viewer executable is missing ({exe}); reinstall rerun-sdk")
+    return str(exe)
+
+
+def _port_open(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(1.0)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _require_display(what: str) -> None:
+    if not display_available():
+        raise ViewerUnavailable(
+            f"cannot {what}: no display (DISPLAY / WAYLAND_DISPLAY unset); use --viewer save and open "
+            f"{RECORDING_NAME} on a machine with a screen (batgraph view OUT_DIR or rerun {RECORDING_NAME})"
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# geometry helpers (pure numpy)
+# ----------------------------------------------------------------------------------------------
+def ellipsoid_axes(cov: np.ndarray, chi2: float = CHI2_3D_95) -> tuple[np.ndarray, np.ndarray]:
+    """Half-axes and orientation of the confidence ellipsoids of 3x3 covariances.
+
+    cov: covariances, shape (N, 3, 3) [m^2], symmetric.
+    chi2: the ellipsoid's squared Mahalanobis radius (default: 95 % for 3 degrees of freedom).
+    Returns (half_sizes (N, 3) [m], quaternions_xyzw (N, 4)): the ellipsoid is
+    ``R diag(half_sizes) unit_sphere`` with ``R`` the rotation of the quaternion, whose columns
+    are the eigenvectors of ``cov``, so ``cov = R diag(half_sizes**2 / chi2) R^T``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    cov = np.asarray(cov, dtype=float)
+    if cov.ndim != 3 or cov.shape[1:] != (3, 3):
+        raise ValueError(f"cov must have shape (N, 3, 3), got {cov.shape}")
+    if len(cov) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    eigval, eigvec = np.linalg.eigh(0.5 * (cov + cov.transpose(0, 2, 1)))
+    # eigenvectors are defined up to sign: flip one to make a proper rotation (det +1)
+    eigvec[..., 2] *= np.sign(np.linalg.det(eigvec))[:, None]
+    half = np.sqrt(chi2 * np.clip(eigval, 0.0, None))  # round-off can make a flat direction slightly < 0
+    return half, Rotation.from_matrix(eigvec).as_quat()  # scipy's order is (x, y, z, w), as Rerun's
+
+
+def _trail_windows(xyz: np.ndarray, n: int) -> np.ndarray:
+    """Windows of the last ``n`` positions per frame: xyz (F, M, 3) -> (F, M, n, 3), oldest first.
+
+    Before the first frame the window repeats frame 0 (zero-length segments draw nothing).
+    """
+    F = len(xyz)
+    idx = np.clip(np.arange(F)[:, None] - (n - 1) + np.arange(n)[None, :], 0, None)  # (F, n)
+    return xyz[idx].transpose(0, 2, 1, 3)
+
+
+def _window_strips(win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the gaps of trail windows and keep those whose newest point exists.
+
+    win: (F, M, n, 3), NaN where a marker was not estimated.
+    Returns (strips (S, n, 3), keep (F, M) bool): a missing point takes the newest earlier point of
+    its window (or the oldest later one), so a trail jumps over a gap instead of breaking it.
+    """
+    valid = np.isfinite(win).all(axis=-1)  # (F, M, n)
+    n = win.shape[2]
+    last = np.maximum.accumulate(np.where(valid, np.arange(n), -1), axis=-1)
+    first = np.argmax(valid, axis=-1)[..., None]
+    src = np.where(last < 0, first, last)
+    keep = valid[..., -1]
+    filled = np.take_along_axis(win[keep], src[keep][..., None], axis=1)
+    return filled, keep
+
+
+def _dense_results(table: pd.DataFrame, frames: np.ndarray, markers: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """One method's trajectory rows -> xyz (F, M, 3) [m] and cov (F, M, 3, 3) [m^2], NaN where absent."""
+    F, M = len(frames), len(markers)
+    fi = np.searchsorted(frames, table["frame"].to_numpy(np.int64))
+    mi = _codes(table["marker"], markers)
+    xyz = np.full((F, M, 3), np.nan)
+    cov = np.full((F, M, 3, 3), np.nan)
+    xyz[fi, mi] = table[["x", "y", "z"]].to_numpy(float)
+    c = table[["cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz"]].to_numpy(float)
+    cov[fi, mi] = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    return xyz, cov
+
+
+# ----------------------------------------------------------------------------------------------
+# logging
+# ----------------------------------------------------------------------------------------------
+def _path(*parts: str) -> str:
+    rr = _rr()
+    return "/".join(rr.escape_entity_path_part(str(p)) for p in parts)
+
+
+def _time_columns(frames: np.ndarray, fps: float) -> list:
+    rr = _rr()
+    frames = np.asarray(frames, dtype=np.int64)
+    return [rr.TimeColumn("frame", sequence=frames), rr.TimeColumn("time", duration=frames / float(fps))]
+
+
+def _marker_list(session, *names) -> list[str]:
+    """Class ids of the recording: session.toml's markers, then the observed ones, then any in ``names``.
+
+    names: marker-name sequences or columns (e.g. a table's ``marker``), appended in first-seen order.
+    The same as ``session.markers`` followed by extras, but vectorised (it runs on million-row tables).
+    """
+    out = dict.fromkeys(map(str, session.marker_names))
+    for seq in (session.observations["marker"], *names):
+        if seq is not None and len(seq):
+            out.update(dict.fromkeys(map(str, pd.unique(pd.Series(seq)))))
+    return list(out)
+
+
+def _class_ids(keep: np.ndarray) -> np.ndarray:
+    """Marker index of every kept (frame, marker) cell, keep (F, M) -> (n,) uint16."""
+    return np.broadcast_to(np.arange(keep.shape[1], dtype=np.uint16), keep.shape)[keep]
+
+
+def _image_plane_distance(rig) -> float:
+    """Frustum depth for drawing: a tenth of the rig's spread (cameras 5 m apart -> ~0.5 m)."""
+    c = np.array([cam.center_world for cam in rig])
+    spread = float(np.median(np.linalg.norm(c - c.mean(axis=0), axis=1))) if len(c) > 1 else 0.0
+    return 0.1 * spread if spread > 0 else 0.3
+
+
+def log_session(rec, session, dense=None) -> None:
+    """Log the static rig and (if given) every frame's 2D detections.
+
+    rec: a ``rerun.RecordingStream``.
+    session: :class:`batgraph.session.Session` (rig, markers, fps).
+    dense: :class:`batgraph.session.DenseObservations` with uv_px (C, F, M, 2) raw pixels, NaN
+        where unseen; None logs the cameras only.
+    """
+    rr = _rr()
+    markers = _marker_list(session, None if dense is None else dense.markers)
+    rec.log("world", rr.AnnotationContext([(i, m) for i, m in enumerate(markers)]), static=True)
+    depth = _image_plane_distance(session.rig)
+    for cam in session.rig:
+        R_wc, t_wc = cam.world_from_cam()
+        rec.log(_path("world", "cameras", cam.name), rr.Transform3D(translation=t_wc, mat3x3=R_wc), static=True)
+        # camera axes x right, y down, z forward (batgraph.camera) = Rerun's RDF
+        rec.log(_path("world", "cameras", cam.name, "image"),
+                rr.Pinhole(image_from_camera=cam.K, resolution=list(cam.size_wh), camera_xyz=rr.ViewCoordinates.RDF,
+                           image_plane_distance=depth), static=True)
+    if dense is None:
+        return
+    uv = np.asarray(dense.uv_px)
+    C, F, M = len(dense.cameras), len(dense.frames), len(dense.markers)
+    if uv.shape != (C, F, M, 2):
+        raise ValueError(f"dense.uv_px must have shape {(C, F, M, 2)}, got {uv.shape}")
+    col = {m: i for i, m in enumerate(markers)}
+    ids_all = np.array([col[m] for m in dense.markers], dtype=np.uint16)
+    times = _time_columns(dense.frames, session.fps)
+    for c, name in enumerate(dense.cameras):
+        path = _path("world", "cameras", name, "image", "detections")
+        seen = np.isfinite(uv[c]).all(axis=-1)  # (F, M)
+        rec.log(path, rr.Points2D.from_fields(colors=DETECTION_COLOR, radii=rr.Radius.ui_points(3.0)), static=True)
+        rec.send_columns(path, indexes=times, columns=rr.Points2D.columns(
+            positions=uv[c][seen].astype(np.float32),
+            class_ids=np.broadcast_to(ids_all, seen.shape)[seen]).partition(seen.sum(axis=1)))
+
+
+def _send_method_frames(rec, method: str, frames: np.ndarray, fps: float, xyz: np.ndarray, cov: np.ndarray,
+                        edges: np.ndarray, windows: np.ndarray | None) -> None:
+    """Log one method's 3D entities on the given frames.
+
+    xyz (F, M, 3) [m]; cov (F, M, 3, 3) [m^2] (NaN: no ellipsoid); edges (E, 2) marker indices;
+    windows (F, M, n, 3) trail windows or None (no trails).
+    """
+    rr = _rr()
+    color = method_color(method)
+    times = _time_columns(frames, fps)
+    line = rr.Radius.ui_points(1.0)
+
+    path = _path("world", method, "markers")
+    ok = np.isfinite(xyz).all(axis=-1)  # (F, M)
+    rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(4.0)), static=True)
+    rec.send_columns(path, indexes=times, columns=rr.Points3D.columns(
+        positions=xyz[ok], class_ids=_class_ids(ok)).partition(ok.sum(axis=1)))
+
+    path = _path("world", method, "ellipsoids")
+    okc = ok & np.isfinite(cov).all(axis=(-2, -1))
+    half, quat = ellipsoid_axes(cov[okc])
+    rec.log(path, rr.Ellipsoids3D.from_fields(colors=(*color, 160), line_radii=rr.Radius.ui_points(0.5),
+                                              show_labels=False), static=True)
+    rec.send_columns(path, indexes=times, columns=rr.Ellipsoids3D.columns(
+        centers=xyz[okc], half_sizes=half, quaternions=quat, class_ids=_class_ids(okc)).partition(okc.sum(axis=1)))
+
+    if len(edges):
+        path = _path("world", method, "skeleton")
+        seg = xyz[:, edges]  # (F, E, 2, 3)
+        oks = np.isfinite(seg).all(axis=(-2, -1))
+        rec.log(path, rr.LineStrips3D.from_fields(colors=color, radii=line), static=True)
+        rec.send_columns(path, indexes=times, columns=[_strips_column(rr.LineStrips3D, seg[oks], oks.sum(axis=1))])
+
+    if windows is not None:
+        path = _path("world", method, "trails")
+        strips, keep = _window_strips(windows)
+        rec.log(path, rr.LineStrips3D.from_fields(colors=(*color, 128), radii=line), static=True)
+        rec.send_columns(path, indexes=times, columns=[_strips_column(rr.LineStrips3D, strips, keep.sum(axis=1))])
+
+
+def _strips_column(archetype, strips: np.ndarray, lengths: np.ndarray):
+    """Equal-length line strips as a Rerun column, built in Arrow directly.
+
+    archetype: ``rr.LineStrips2D`` or ``rr.LineStrips3D``; strips: (S, L, D) with D = 2 or 3;
+    lengths: strips per row (frame), shape (F,), summing to S. (Rerun's own numpy path loops in
+    Python over the strips: 0.4 s per million points.)
+    """
+    import pyarrow as pa
+
+    rr = _rr()
+    S, L, D = strips.shape
+    batch = rr.components.LineStrip3DBatch if D == 3 else rr.components.LineStrip2DBatch
+    points = pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(strips, np.float32).ravel()),
+                                               type=batch._ARROW_DATATYPE.value_type)
+    arr = pa.ListArray.from_arrays(pa.array(np.arange(S + 1, dtype=np.int32) * L), points,
+                                   type=batch._ARROW_DATATYPE)
+    return rr.ComponentColumn(archetype.descriptor_strips(), batch(arr), lengths=lengths)
+
+
+def _edges(session, markers: list[str]) -> np.ndarray:
+    """Skeleton edges of session.toml as marker indices, shape (E, 2); edges naming unknown markers are skipped."""
+    idx = {m: i for i, m in enumerate(markers)}
+    e = [(idx[a], idx[b]) for a, b in session.skeleton if a in idx and b in idx]
+    return np.array(e, dtype=np.int64).reshape(-1, 2)
+
+
+def _codes(values, categories: list[str]) -> np.ndarray:
+    """Index of each label in ``categories`` (all present), shape (n,).
+
+    In Arrow: pandas' own routes convert Arrow-backed strings to Python objects first (2 s for 6M rows).
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    arr = pc.cast(pa.array(values), pa.string())
+    return pc.index_in(arr, value_set=pa.array(categories, pa.string())).fill_null(-1).to_numpy().astype(np.int64)
+
+
+def _flags(col: pd.Series) -> np.ndarray:
+    """A boolean column that may have been read from CSV as text ("True"/"False") or have gaps -> bool (n,)."""
+    if pd.api.types.is_bool_dtype(col) or pd.api.types.is_numeric_dtype(col):
+        return col.fillna(0).to_numpy(dtype=float) != 0
+    return col.astype(str).str.strip().str.lower().isin(["true", "1", "yes"]).to_numpy()
+
+
+def _send_reprojection(rec, method: str, camera: str, frames: np.ndarray, fps: float, frame_idx: np.ndarray,
+                       class_ids: np.ndarray, uv: np.ndarray, uv_hat: np.ndarray, outlier: np.ndarray) -> None:
+    """One (method, camera) slice of the reprojection table -> predicted points and residual lines per frame.
+
+    frames (F,) the recording's frames; frame_idx (n,) row -> index into frames, non-decreasing;
+    class_ids (n,) marker ids; uv, uv_hat (n, 2) observed and predicted raw pixels; outlier (n,) bool.
+    """
+    rr = _rr()
+    times = _time_columns(frames, fps)
+    color = np.array(method_color(method), dtype=np.uint8)
+
+    path = _path("world", "cameras", camera, "image", "reproj", method)
+    ok = np.isfinite(uv_hat).all(axis=1)
+    colors = np.where(outlier[ok, None], np.array(OUTLIER_COLOR, np.uint8), color)
+    rec.log(path, rr.Points2D.from_fields(radii=rr.Radius.ui_points(2.5)), static=True)
+    rec.send_columns(path, indexes=times, columns=rr.Points2D.columns(
+        positions=uv_hat[ok].astype(np.float32), class_ids=class_ids[ok].astype(np.uint16), colors=colors,
+    ).partition(np.bincount(frame_idx[ok], minlength=len(frames))))
+
+    path = _path("world", "cameras", camera, "image", "reproj", method, "residuals")
+    okr = ok & np.isfinite(uv).all(axis=1)
+    rec.log(path, rr.LineStrips2D.from_fields(colors=color, radii=rr.Radius.ui_points(1.0)), static=True)
+    rec.send_columns(path, indexes=times, columns=[_strips_column(
+        rr.LineStrips2D, np.stack([uv[okr], uv_hat[okr]], axis=1), np.bincount(frame_idx[okr], minlength=len(frames)))])
+
+
+def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataFrame | None = None,
+                *, trail_frames: int = 10) -> None:
+    """Log every method's 3D markers, 95 % ellipsoids, skeleton, trails and 2D reprojections.
+
+    trajectories, reprojection: the tables of CONTRACT.md section 3 (reprojection may be None).
+    trail_frames: positions per trail (the current frame and the ``trail_frames - 1`` before it);
+        0 or 1 logs no trails.
+    Positions are metres in the world frame; frames are those of the two tables together.
+    """
+    rr = _rr()
+    markers = _marker_list(session, trajectories["marker"], None if reprojection is None else reprojection["marker"])
+    # re-logged because the tables may name markers the session does not (same prefix, same ids)
+    rec.log("world", rr.AnnotationContext([(i, m) for i, m in enumerate(markers)]), static=True)
+    frame_sets = [t["frame"].to_numpy(np.int64) for t in (trajectories, reprojection) if t is not None and len(t)]
+    if not frame_sets:
+        return
+    frames = np.unique(np.concatenate(frame_sets))
+    edges = _edges(session, markers)
+    for method, table in trajectories.groupby("method", sort=False):
+        xyz, cov = _dense_results(table, frames, markers)
+        windows = _trail_windows(xyz, trail_frames) if trail_frames > 1 else None
+        _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows)
+    if reprojection is None or not len(reprojection):
+        return
+    rp = reprojection
+    methods = list(pd.unique(rp["method"].astype(str)))
+    cameras = list(pd.unique(rp["camera"].astype(str)))
+    mc = _codes(rp["method"], methods) * len(cameras) + _codes(rp["camera"], cameras)
+    fi = np.searchsorted(frames, rp["frame"].to_numpy(np.int64))
+    order = np.lexsort((fi, mc))  # by (method, camera), then frame: each slice is one entity's rows in time order
+    ids = _codes(rp["marker"], markers)
+    uv, uv_hat = rp[["u", "v"]].to_numpy(float), rp[["u_hat", "v_hat"]].to_numpy(float)
+    outlier = _flags(rp["outlier"]) if "outlier" in rp else np.zeros(len(rp), bool)
+    for sl in np.split(order, np.flatnonzero(np.diff(mc[order])) + 1):
+        k = mc[sl[0]]
+        _send_reprojection(rec, methods[k // len(cameras)], cameras[k % len(cameras)], frames, session.fps,
+                           fi[sl], ids[sl], uv[sl], uv_hat[sl], outlier[sl])
+
+
+def default_blueprint(session):
+    """Layout: the 3D world on the left, one tab per camera image on the right."""
+    import rerun.blueprint as rrb
+
+    cams = [rrb.Spatial2DView(origin=_path("world", "cameras", c.name, "image"), name=c.name) for c in session.rig]
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="3D"), rrb.Tabs(*cams),
+                                        column_shares=[2, 1]), collapse_panels=False)
+
+
+def write_recording(path: str | os.PathLike, session, dense, trajectories: pd.DataFrame,
+                    reprojection: pd.DataFrame | None = None, *, trail_frames: int = 10) -> Path:
+    """Write the whole result as a Rerun recording (atomically); returns the path.
+
+    path: the .rrd file (``OUT_DIR/recording.rrd`` by convention).
+    session, dense: see :func:`log_session`; trajectories, reprojection, trail_frames: see
+    :func:`log_results`.
+    """
+    rr = _rr()
+    path = Path(path)
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+    with atomic_path(path) as tmp:
+        rec.save(tmp, default_blueprint=default_blueprint(session))
+        try:
+            rec.send_recording_name(session.name)
+            log_session(rec, session, dense)
+            log_results(rec, session, trajectories, reprojection, trail_frames=trail_frames)
+            rec.flush()
+        finally:
+            rec.disconnect()  # closes the file (and writes its footer) before the rename
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# live viewer and opening a file
+# ----------------------------------------------------------------------------------------------
+class LiveViewer:
+    """Stream one method's estimate, frame by frame, to a Rerun viewer while a filter runs.
+
+    session, dense: as for :func:`log_session` (cameras and all 2D detections are logged at once).
+    method: entity name of the streamed estimate (``world/{method}/...``).
+    mode: ``"spawn"`` (start a viewer window; needs a display), ``"connect"`` (to a running viewer
+        at ``url``, default ``rerun+http://127.0.0.1:9876/proxy``) or ``"save"`` (to the .rrd file
+        ``path``, e.g. to watch with ``rerun path`` while it grows).
+    Raises :class:`ViewerUnavailable` when a viewer cannot be spawned.
+    """
+
+    def __init__(self, session, dense=None, *, method: str = "filter", mode: str = "spawn",
+                 url: str | None = None, path: str | os.PathLike | None = None, port: int = 9876,
+                 trail_frames: int = 10):
+        rr = _rr()
+        if mode not in ("spawn", "connect", "save"):
+            raise ValueError(f"mode must be spawn, connect or save, got {mode!r}")
+        self.session, self.method, self.trail_frames = session, method, int(trail_frames)
+        self.markers = list(dense.markers) if dense is not None else _marker_list(session)
+        markers = _marker_list(session, self.markers)
+        index = {m: i for i, m in enumerate(markers)}
+        # LiveViewer's xyz follows self.markers; class ids follow the annotation context's order
+        self._order = np.array([index[m] for m in self.markers])
+        self._n_class = len(markers)
+        self._edges = _edges(session, markers)
+        self._history = np.full((max(self.trail_frames, 1), self._n_class, 3), np.nan)
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+        blueprint = default_blueprint(session)
+        if mode == "spawn":
+            _require_display("spawn the Rerun viewer")
+            try:
+                rr.spawn(port=port, recording=self.rec, executable_path=_rerun_executable(),
+                         default_blueprint=blueprint)
+            except ViewerUnavailable:
+                raise
+            except Exception as e:  # e.g. the binary fails to start
+                raise ViewerUnavailable(f"cannot spawn the Rerun viewer: {str(e).splitlines()[0]}") from None
+            if not _port_open(port):  # rr.spawn only warns when the viewer dies (e.g. a broken DISPLAY)
+                self.rec.disconnect()
+                raise ViewerUnavailable(f"the Rerun viewer did not start (nothing listens on port {port}); "
+                                        "is the display working? Use --viewer save instead")
+        elif mode == "connect":
+            self.rec.connect_grpc(url, default_blueprint=blueprint)
+        else:
+            if path is None:
+                raise ValueError("mode='save' needs a path")
+            self.rec.save(path, default_blueprint=blueprint)
+        self.rec.send_recording_name(session.name)
+        log_session(self.rec, session, dense)
+
+    def update(self, frame_index: int, xyz: np.ndarray, cov: np.ndarray | None = None) -> None:
+        """Log the estimate of one frame.
+
+        frame_index: the frame number (as in observations.csv).
+        xyz: positions of ``self.markers``, shape (M, 3) [m, world]; NaN rows are not drawn.
+        cov: their covariances, shape (M, 3, 3) [m^2], or None (no ellipsoids).
+        """
+        M = len(self.markers)
+        xyz = np.asarray(xyz, dtype=float)
+        if xyz.shape != (M, 3):
+            raise ValueError(f"xyz must have shape {(M, 3)}, got {xyz.shape}")
+        full = np.full((1, self._n_class, 3), np.nan)
+        full[0, self._order] = xyz
+        full_cov = np.full((1, self._n_class, 3, 3), np.nan)
+        if cov is not None:
+            cov = np.asarray(cov, dtype=float)
+            if cov.shape != (M, 3, 3):
+                raise ValueError(f"cov must have shape {(M, 3, 3)}, got {cov.shape}")
+            full_cov[0, self._order] = cov
+        self._history = np.concatenate([self._history[1:], full])
+        windows = self._history.transpose(1, 0, 2)[None] if self.trail_frames > 1 else None
+        _send_method_frames(self.rec, self.method, np.array([frame_index]), self.session.fps, full, full_cov,
+                            self._edges, windows)
+
+    def close(self) -> None:
+        """Flush what is buffered and close the connection or file.
+
+        A viewer window closed by the user is not an error of the reconstruction: it only warns.
+        """
+        try:
+            self.rec.flush()
+        except RuntimeError as e:
+            warnings.warn(f"Rerun viewer: {str(e).splitlines()[0]}", stacklevel=2)
+        finally:
+            self.rec.disconnect()
+
+    def __enter__(self) -> LiveViewer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_recording(path: str | os.PathLike, *, wait: bool = True) -> subprocess.Popen | int:
+    """Open a saved recording in the Rerun viewer (``batgraph view OUT_DIR``).
+
+    path: an output folder (its ``recording.rrd`` is opened) or an .rrd file.
+    wait: block until the viewer window is closed and return its exit code; False returns the
+        running process.
+    Raises :class:`InputError` if there is no recording, :class:`ViewerUnavailable` without a display.
+    """
+    path = Path(path)
+    rrd = path / RECORDING_NAME if path.is_dir() else path
+    if not rrd.is_file():
+        where = f"{path}: no {RECORDING_NAME} (run reconstruct with --viewer save)" if path.is_dir() else \
+            f"{path}: file not found"
+        raise InputError(where)
+    _require_display(f"open {rrd}")
+    proc = subprocess.Popen([_rerun_executable(), str(rrd)], env={**os.environ, "RERUN_APP_ONLY": "true"})
+    return proc.wait() if wait else proc
