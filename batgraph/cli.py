@@ -36,8 +36,9 @@ def _add_reconstruct(sub):
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
                    help="robust loss on projection factors (default huber)")
     p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
-    p.add_argument("--viewer", choices=["spawn", "save", "none"], default="save",
-                   help="Rerun: stream live (spawn), write recording.rrd (save, default), or nothing")
+    p.add_argument("--viewer", choices=["spawn", "save", "none"],
+                   help="Rerun: stream the filter live to a viewer window and save recording.rrd (spawn, the "
+                        "default with a display), only write recording.rrd (save, the default without one), or none")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
     p.set_defaults(func=_cmd_reconstruct)
 
@@ -69,11 +70,15 @@ def _cmd_reconstruct(args) -> int:
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
                       accel_psd_m2_s3=args.accel_psd, progress=not args.quiet)
     many = len(args.sessions) > 1
+    viewer = args.viewer
+    if viewer is None:
+        from .viewer import display_available
+        viewer = "spawn" if display_available() and not many else "save"
     failed = 0
     for s in args.sessions:
         out = Path(args.out) / Path(s).name if (many and args.out) else args.out
         try:
-            result = reconstruct(s, out, methods, options)
+            result = reconstruct(s, out, methods, options, viewer=viewer)
         except InputError as e:
             if not many:
                 raise
@@ -82,6 +87,9 @@ def _cmd_reconstruct(args) -> int:
             continue
         if not args.quiet:
             print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
+            print(f"  report: {result.out_dir / 'report.html'}")
+            if viewer != "none":
+                print(f"  3D viewer: rerun {result.out_dir / 'recording.rrd'}   (or: batgraph view {result.out_dir})")
             for w in result.session.warnings:
                 print(f"warning: {w}")
             print("\n".join(summary_lines(result.summary)))
@@ -163,6 +171,62 @@ def _add_import(sub):
     d.add_argument("--pixel-sigma", type=float, default=1.0, help="click noise std [px] (default 1)")
     d.set_defaults(func=_cmd_import_dltdv)
 
+    k = fmt.add_parser("deeplabcut", help="DeepLabCut 2D outputs (one .h5/.csv per camera) + calibration.toml")
+    k.add_argument("files", nargs="+", help="one DeepLabCut output file per camera")
+    k.add_argument("--calibration", required=True, help="aniposelib calibration.toml")
+    k.add_argument("--camera-names", nargs="+", help="camera of each file (default: matched from file names)")
+    k.add_argument("--threshold", type=float, default=0.6, help="drop points below this likelihood (default 0.6)")
+    k.add_argument("--individual", help="multi-animal DeepLabCut: which individual")
+    _common_import_args(k)
+    k.set_defaults(func=_cmd_import_keypoints)
+
+    a = fmt.add_parser("anipose", help="an Anipose project's pose-2d files + calibration.toml")
+    a.add_argument("project", help="Anipose project (or session) folder")
+    a.add_argument("--calibration", help="calibration.toml (default: found in the project)")
+    a.add_argument("--trial", help="which trial (default: the only one)")
+    a.add_argument("--threshold", type=float, help="likelihood threshold (default: the project's score_threshold)")
+    a.add_argument("--cam-regex", help="regex of the camera name in file names (default: the project's)")
+    _common_import_args(a)
+    a.set_defaults(func=_cmd_import_keypoints)
+
+    o = fmt.add_parser("pose2sim", help="Pose2Sim / OpenPose JSON folders (one per camera) + calibration")
+    o.add_argument("json_dirs", nargs="+", help="one folder of OpenPose JSON files per camera")
+    o.add_argument("--calibration", required=True, help="Pose2Sim Calib_*.toml (aniposelib format)")
+    o.add_argument("--keypoints", default="BODY_25B", help="keypoint model (default BODY_25B)")
+    o.add_argument("--camera-names", nargs="+", help="camera of each folder (default: matched from folder names)")
+    o.add_argument("--threshold", type=float, default=0.3, help="drop keypoints below this confidence (default 0.3)")
+    o.add_argument("--person", type=int, default=0, help="which person in each JSON file (default 0)")
+    _common_import_args(o)
+    o.set_defaults(func=_cmd_import_keypoints)
+
+
+def _common_import_args(p):
+    p.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
+    p.add_argument("--out", required=True, help="session folder to write")
+
+
+def _cmd_import_keypoints(args) -> int:
+    if args.fps <= 0:
+        raise InputError(f"--fps: must be > 0, got {args.fps}")
+    if args.format == "deeplabcut":
+        from .formats.deeplabcut import import_deeplabcut
+
+        session = import_deeplabcut(args.files, args.calibration, args.fps, args.out, camera_names=args.camera_names,
+                                    threshold=args.threshold, individual=args.individual)
+    elif args.format == "anipose":
+        from .formats.anipose import import_anipose
+
+        session = import_anipose(args.project, args.fps, args.out, calibration=args.calibration,
+                                 threshold=args.threshold, trial=args.trial, cam_regex=args.cam_regex)
+    else:
+        from .formats.pose2sim import import_pose2sim
+
+        session = import_pose2sim(args.json_dirs, args.calibration, args.fps, args.out, keypoints=args.keypoints,
+                                  threshold=args.threshold, camera_names=args.camera_names, person=args.person)
+    print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
+          f"{len(session.observations)} observations)")
+    return 0
+
 
 def _cmd_import_dltdv(args) -> int:
     from .formats.dltdv import import_dltdv
@@ -177,6 +241,62 @@ def _cmd_import_dltdv(args) -> int:
     return 0
 
 
+# ----- view, export ----------------------------------------------------------------------------
+def _add_view(sub):
+    p = sub.add_parser("view", help="open a saved result (recording.rrd) in the Rerun viewer")
+    p.add_argument("out_dir", metavar="OUT_DIR", help="a reconstruct output folder, or an .rrd file")
+    p.set_defaults(func=_cmd_view)
+
+
+def _cmd_view(args) -> int:
+    from .viewer import open_recording
+
+    open_recording(args.out_dir)
+    return 0
+
+
+def _add_export(sub):
+    p = sub.add_parser("export", help="write a result in another tool's format",
+                       description="Convert a reconstruct output folder for DLTdv/Argus, C3D readers or OpenSim.")
+    p.add_argument("format", choices=["dltdv", "c3d", "trc"])
+    p.add_argument("out_dir", metavar="OUT_DIR", help="a reconstruct output folder")
+    p.add_argument("--method", help="which method (default: smoother if present, else the first)")
+    p.add_argument("--to", help="dltdv: file prefix (default OUT_DIR/<method>_); c3d/trc: file path")
+    p.add_argument("--fps", type=float, help="c3d/trc frame rate [Hz] (default: from summary.json)")
+    p.set_defaults(func=_cmd_export)
+
+
+def _cmd_export(args) -> int:
+    import json
+
+    from .pipeline import read_result_tables
+
+    out = Path(args.out_dir)
+    traj, reproj = read_result_tables(out)
+    methods = list(dict.fromkeys(traj["method"]))
+    method = args.method or ("smoother" if "smoother" in methods else methods[0])
+    if method not in methods:
+        raise InputError(f"{out / 'trajectories.csv'}: no method {method!r} (has: {', '.join(methods)})")
+    if args.format == "dltdv":
+        from .formats.dltdv import export_dltdv
+
+        paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method)
+    else:
+        from .formats.c3d_trc import write_c3d, write_trc
+
+        fps = args.fps
+        if fps is None:
+            summary = out / "summary.json"
+            if not summary.is_file():
+                raise InputError(f"{summary}: file not found (give --fps)")
+            fps = json.loads(summary.read_text())["fps"]
+        dest = Path(args.to or out / f"{method}.{args.format}")
+        one = traj[traj["method"] == method]
+        paths = [(write_c3d if args.format == "c3d" else write_trc)(dest, one, fps)]
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
@@ -184,6 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reconstruct(sub)
     _add_simulate(sub)
     _add_import(sub)
+    _add_export(sub)
+    _add_view(sub)
     return parser
 
 

@@ -69,6 +69,7 @@ class Result:
     summary: dict
     estimates: dict[str, Estimate] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
+    dense: object = None
 
 
 def _json_default(o):
@@ -94,15 +95,19 @@ def _clean(o):
     return o
 
 
-def run_methods(session: Session, methods: list[str], options: Options) -> Result:
-    """Run ``methods`` on a loaded session; returns tables and summary (nothing written)."""
+def run_methods(session: Session, methods: list[str], options: Options, live=None) -> Result:
+    """Run ``methods`` on a loaded session; returns tables and summary (nothing written).
+
+    live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes.
+    """
     dense = dense_observations(session)
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
     estimates, trajs, reprojs, per_method = {}, [], [], {}
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
         run = _estimator(name)
         t0 = time.perf_counter()
-        est = run(session, dense, ideal, options)
+        extra = {"on_frame": live.update} if (live is not None and name == "filter") else {}
+        est = run(session, dense, ideal, options, **extra)
         est.runtime_s = est.runtime_s or time.perf_counter() - t0
         traj = evaluate.trajectories_table(session, dense, est)
         reproj = evaluate.reprojection_table(session, dense, est)
@@ -117,26 +122,81 @@ def run_methods(session: Session, methods: list[str], options: Options) -> Resul
         "warnings": list(session.warnings), "methods": per_method,
     }
     return Result(session, Path(), pd.concat(trajs, ignore_index=True), pd.concat(reprojs, ignore_index=True),
-                  _clean(summary), estimates)
+                  _clean(summary), estimates, dense=dense)
 
 
-def write_outputs(result: Result, out_dir: Path) -> list[Path]:
-    """Write trajectories.csv, reprojection.csv and summary.json atomically into ``out_dir``."""
+def export_method(result: Result) -> str:
+    """The method whose trajectories go to C3D/TRC: the smoother when it ran, else the first method."""
+    methods = list(result.estimates)
+    return "smoother" if "smoother" in methods else methods[0]
+
+
+def write_outputs(result: Result, out_dir: Path, viewer: str = "save", options: Options | None = None) -> list[Path]:
+    """Write every output file of CONTRACT.md section 3 atomically into ``out_dir``.
+
+    viewer: "save" or "spawn" write recording.rrd; "none" skips it.
+    """
+    from .formats.c3d_trc import write_c3d, write_trc
+    from .report import write_report
+
     out_dir.mkdir(parents=True, exist_ok=True)
+    s = result.session
     files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
     atomic.write_text(files[0], result.trajectories.to_csv(index=False, float_format="%.9g"))
     atomic.write_text(files[1], result.reprojection.to_csv(index=False, float_format="%.6f"))
     atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
+    steps = [("report.html", lambda p: write_report(p, s, result.trajectories, result.reprojection, result.summary))]
+    method = export_method(result)
+    one = result.trajectories[result.trajectories["method"] == method]
+    steps += [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers)),
+              ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers))]
+    if viewer != "none":
+        from .viewer import RECORDING_NAME, write_recording
+        steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
+                                                                result.reprojection)))
+    progress = options.progress if options else False
+    for name, write in tqdm(steps, desc=f"{s.name}: writing", disable=not progress, leave=False):
+        write(out_dir / name)
+        files.append(out_dir / name)
     return files
 
 
 def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
-                methods: list[str] | None = None, options: Options | None = None) -> Result:
-    """The ``reconstruct`` command for one session folder. Raises InputError on bad input."""
+                methods: list[str] | None = None, options: Options | None = None,
+                viewer: str = "save") -> Result:
+    """The ``reconstruct`` command for one session folder. Raises InputError on bad input.
+
+    viewer: "spawn" streams the filter live to a Rerun window (and saves recording.rrd), "save"
+    writes recording.rrd, "none" neither.
+    """
     options = options or Options()
     session = read_session(session_dir)
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
-    result = run_methods(session, list(methods or DEFAULT_METHODS), options)
+    methods = list(methods or DEFAULT_METHODS)
+    if viewer == "spawn":
+        from .viewer import LiveViewer
+        with LiveViewer(session, dense_observations(session), method="filter") as live:
+            result = run_methods(session, methods, options, live=live)
+    else:
+        result = run_methods(session, methods, options)
     result.out_dir = out
-    result.files = write_outputs(result, out)
+    result.files = write_outputs(result, out, viewer, options)
     return result
+
+
+def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Read trajectories.csv and reprojection.csv of a reconstruct output folder (for ``export``)."""
+    from .evaluate import REPROJ_COLUMNS, TRAJ_COLUMNS
+
+    out_dir = Path(out_dir)
+    tables = []
+    for name, cols in (("trajectories.csv", TRAJ_COLUMNS), ("reprojection.csv", REPROJ_COLUMNS)):
+        path = out_dir / name
+        if not path.is_file():
+            raise InputError(f"{path}: file not found (is {out_dir} a reconstruct output folder?)")
+        df = pd.read_csv(path)
+        missing = [c for c in cols if c not in df.columns]
+        if missing:
+            raise InputError(f"{path}: missing column {missing[0]!r}")
+        tables.append(df)
+    return tables[0], tables[1]

@@ -426,3 +426,28 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
                       extra_toml={"import": provenance})
     write_session(session, out)
     return read_session(out)
+
+
+def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
+                 method: str) -> list[Path]:
+    """Write one method's result as DLTdv ``{prefix}xyzpts.csv`` and ``{prefix}xyzres.csv``.
+
+    Points are numbered in the table's marker order (pt1 = first marker); file row k is frame k
+    (rows before the first frame are NaN). The residual of a point is the RMS over cameras of its
+    reprojection error [px] (DLTdv's xyzres is its DLT residual, also in pixels).
+    """
+    traj = trajectories[trajectories["method"] == method]
+    if traj.empty:
+        raise InputError(f"trajectories.csv: no rows for method {method!r} "
+                         f"(methods: {', '.join(dict.fromkeys(trajectories['method']))})")
+    markers = list(dict.fromkeys(traj["marker"]))
+    index = {m: i for i, m in enumerate(markers)}
+    xyz = traj.assign(point_index=traj["marker"].map(index))
+    rep = reprojection[reprojection["method"] == method]
+    res = (rep.assign(e2=rep["err_px"] ** 2).groupby(["frame", "marker"], as_index=False)["e2"].mean()
+           .assign(residual=lambda d: np.sqrt(d["e2"]), point_index=lambda d: d["marker"].map(index)))
+    n_frames = int(traj["frame"].max()) + 1
+    paths = [Path(f"{prefix}xyzpts.csv"), Path(f"{prefix}xyzres.csv")]
+    write_xyzpts(paths[0], xyz, n_points=len(markers), n_frames=n_frames)
+    write_xyzres(paths[1], res, n_points=len(markers), n_frames=n_frames)
+    return paths
