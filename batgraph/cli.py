@@ -196,6 +196,8 @@ def _add_import(sub):
     o.add_argument("--camera-names", nargs="+", help="camera of each folder (default: matched from folder names)")
     o.add_argument("--threshold", type=float, default=0.3, help="drop keypoints below this confidence (default 0.3)")
     o.add_argument("--person", type=int, default=0, help="which person in each JSON file (default 0)")
+    o.add_argument("--reference-trc", help="Pose2Sim's own 3D (.trc), kept for comparison in reports")
+    o.add_argument("--pixel-sigma", type=float, default=5.0, help="keypoint noise std [px] (default 5)")
     _common_import_args(o)
     o.set_defaults(func=_cmd_import_keypoints)
 
@@ -222,7 +224,8 @@ def _cmd_import_keypoints(args) -> int:
         from .formats.pose2sim import import_pose2sim
 
         session = import_pose2sim(args.json_dirs, args.calibration, args.fps, args.out, keypoints=args.keypoints,
-                                  threshold=args.threshold, camera_names=args.camera_names, person=args.person)
+                                  threshold=args.threshold, camera_names=args.camera_names, person=args.person,
+                                  reference_trc=args.reference_trc, pixel_sigma_px=args.pixel_sigma)
     print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.observations)} observations)")
     return 0

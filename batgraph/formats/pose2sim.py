@@ -21,9 +21,11 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from ..errors import InputError
 from ..session import Session
+from .c3d_trc import read_trc
 from .keypoints2d import check_fps, load_rig, make_session, match_cameras, observations_from_arrays
 
 _COCO17 = ["Nose", "LEye", "REye", "LEar", "REar", "LShoulder", "RShoulder", "LElbow", "RElbow",
@@ -115,7 +117,8 @@ def read_openpose_folder(folder: str | Path, names: list[str], person: int = 0,
 
 def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str | Path, fps: float,
                     out: str | Path | None, keypoints: str | list[str] = "BODY_25B", threshold: float = 0.3,
-                    camera_names: list[str] | None = None, person: int = 0, name: str | None = None) -> Session:
+                    camera_names: list[str] | None = None, person: int = 0, name: str | None = None,
+                    reference_trc: str | Path | None = None, pixel_sigma_px: float = 5.0) -> Session:
     """Import per-camera folders of OpenPose JSON (Pose2Sim's pose/ or pose-associated/) into a session.
 
     json_dirs: one folder per camera, or one folder whose sub-folders (sorted) are the cameras.
@@ -124,6 +127,10 @@ def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str |
     threshold: minimum confidence kept (Pose2Sim's likelihood_threshold_triangulation is 0.3).
     camera_names: calibration camera of each folder; None = matched from folder names
         (:mod:`batgraph.formats.keypoints2d`). person: index in ``people`` (0 = first / only).
+    reference_trc: Pose2Sim's own 3D (pose-3d/*.trc), kept as the session's reference_xyz.csv so
+        reports compare against it. Pose2Sim writes Y-up TRCs (its zup2yup); batgraph's world is the
+        calibration's (Z-up): world = trc[..., [2, 0, 1]]. TRC Frame# n is JSON frame n - 1.
+    pixel_sigma_px: keypoint noise [px]; markerless detectors are far noisier than markers (5 px default).
     """
     fps = check_fps(fps)
     names = keypoint_names(keypoints)
@@ -146,4 +153,13 @@ def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str |
         frames, uv, conf = read_openpose_folder(d, names, person)
         tables.append(observations_from_arrays(cam, frames, names, uv, conf, threshold))
     label = name or (Path(out).name if out is not None else dirs[0].parent.name)
-    return make_session(label, fps, rig, tables, names, out, ", ".join(map(str, dirs)))
+    reference = None
+    if reference_trc is not None:
+        trc = read_trc(reference_trc)
+        xyz = trc.xyz_m[..., [2, 0, 1]]  # undo Pose2Sim's zup2yup
+        F, M = xyz.shape[:2]
+        reference = pd.DataFrame({"frame": np.repeat(trc.frame - 1, M), "marker": np.tile(trc.markers, F),
+                                  "x": xyz[..., 0].ravel(), "y": xyz[..., 1].ravel(), "z": xyz[..., 2].ravel()})
+        reference = reference.dropna().reset_index(drop=True)
+    return make_session(label, fps, rig, tables, names, out, ", ".join(map(str, dirs)), reference=reference,
+                        pixel_sigma_px=pixel_sigma_px)
