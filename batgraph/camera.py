@@ -184,7 +184,12 @@ class Camera:
             for _ in range(2):
                 resid = distort_normalized(xy, self.dist) - flat[ok]
                 J = distortion_jacobian(xy, self.dist)
-                xy = xy - np.linalg.solve(J, resid[..., None])[..., 0]
+                with np.errstate(all="ignore"):
+                    step = xy - np.linalg.solve(J, resid[..., None])[..., 0]
+                    better = np.linalg.norm(distort_normalized(step, self.dist) - flat[ok], axis=-1)
+                # A noisy pixel just beyond the lens's largest distorted radius has no preimage and
+                # OpenCV stops near the fold, where J is singular: keep only steps that help.
+                xy = np.where((better < np.linalg.norm(resid, axis=-1))[:, None], step, xy)
             out[ok] = xy
         elif ok.any():
             out[ok] = flat[ok]
