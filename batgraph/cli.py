@@ -244,6 +244,86 @@ def _cmd_import_dltdv(args) -> int:
     return 0
 
 
+# ----- calibrate -------------------------------------------------------------------------------
+def _add_calibrate(sub):
+    p = sub.add_parser("calibrate", help="refine the rig by bundle adjustment (pycolmap) of all cameras at once",
+                       description="Bundle-adjust the whole rig from the session's own observations (or a wand) "
+                                   "and write a calibration.toml with pose covariances.")
+    p.add_argument("session", metavar="SESSION")
+    p.add_argument("--out", help="calibration file to write (default SESSION/out/calibration.toml)")
+    p.add_argument("--gauge", choices=["camera0", "input"], default="camera0",
+                   help="origin and axes from the reference camera (default) or fitted to the input rig")
+    p.add_argument("--ref-camera", type=int, default=0, help="index of the reference camera (default 0)")
+    p.add_argument("--wand", nargs=3, metavar=("END_A", "END_B", "LENGTH_M"),
+                   help="two markers a known distance apart [m] (default: session.toml [wand])")
+    p.add_argument("--from-scratch", action="store_true",
+                   help="ignore the input poses: essential matrix + PnP, then bundle adjustment")
+    p.add_argument("--refine-intrinsics", action="store_true", help="also refine focal lengths, principal points")
+    p.add_argument("--refine-distortion", action="store_true", help="also refine distortion")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_calibrate)
+
+    q = sub.add_parser("calibrate-intrinsics", help="intrinsics of one camera from checkerboard/ChArUco images",
+                       description="OpenCV intrinsic calibration from board images or videos.")
+    q.add_argument("sources", nargs="+", help="images or videos of the board")
+    q.add_argument("--board", choices=["checkerboard", "charuco"], required=True)
+    q.add_argument("--cols", type=_positive_int, required=True,
+                   help="checkerboard: inner corners along x; ChArUco: squares along x")
+    q.add_argument("--rows", type=_positive_int, required=True, help="as --cols, along y")
+    q.add_argument("--square-m", type=float, required=True, help="square side [m]")
+    q.add_argument("--marker-m", type=float, default=0.0, help="ChArUco marker side [m]")
+    q.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco dictionary (default DICT_4X4_50)")
+    q.add_argument("--name", default="cam1", help="camera name (default cam1)")
+    q.add_argument("--dist-model", choices=["k1k2p1p2k3", "k1k2p1p2"], default="k1k2p1p2k3")
+    q.add_argument("--every-nth", type=_positive_int, default=1, help="use every n-th video frame")
+    q.add_argument("--out", required=True, help="calibration.toml to write")
+    q.set_defaults(func=_cmd_calibrate_intrinsics)
+
+
+def _cmd_calibrate(args) -> int:
+    from .calibrate import calibrate_session, write_calibration
+    from .session import read_session
+
+    session = read_session(args.session)
+    wand = None
+    if args.wand:
+        try:
+            wand = (args.wand[0], args.wand[1], float(args.wand[2]))
+        except ValueError:
+            raise InputError(f"--wand: LENGTH_M must be a number, got {args.wand[2]!r}") from None
+    rig, report = calibrate_session(session, gauge=args.gauge, ref_camera=args.ref_camera, wand=wand,
+                                    initial="scratch" if args.from_scratch else "auto",
+                                    refine_intrinsics=args.refine_intrinsics,
+                                    refine_distortion=args.refine_distortion, progress=not args.quiet)
+    out = Path(args.out) if args.out else Path(args.session) / "out" / "calibration.toml"
+    write_calibration(out, rig)
+    if not args.quiet:
+        truth = session.true_rig is not None
+        print(f"{'camera':<10}{'RMS before px':>14}{'RMS after px':>13}{'used':>8}{'rejected':>9}"
+              f"{'moved mm':>9}{'turned deg':>11}" + (f"{'error mm':>9}{'error deg':>10}" if truth else ""))
+        for name, c in report["cameras"].items():
+            line = (f"{name:<10}{c['rms_before_px']:>14.2f}{c['rms_after_px']:>13.2f}{c['n_used']:>8}"
+                    f"{c['n_rejected']:>9}{c['moved_mm']:>9.2f}{c['turned_deg']:>11.3f}")
+            if truth and c.get("error_mm") is not None:
+                line += f"{c['error_mm']:>9.2f}{c['error_deg']:>10.3f}"
+            print(line)
+    print(f"wrote {out}")
+    return 0
+
+
+def _cmd_calibrate_intrinsics(args) -> int:
+    from .calibrate import write_calibration
+    from .camera import Rig
+    from .intrinsics import Board, calibrate_intrinsics
+
+    board = Board(args.board, args.cols, args.rows, args.square_m, args.marker_m, args.dictionary)
+    cam, report = calibrate_intrinsics(args.sources, board, name=args.name, dist_model=args.dist_model,
+                                       every_nth=args.every_nth)
+    write_calibration(args.out, Rig([cam]))
+    print(f"{args.name}: {report['n_views']} views, RMS {report['rms_px']:.3f} px; wrote {args.out}")
+    return 0
+
+
 # ----- view, export ----------------------------------------------------------------------------
 def _add_view(sub):
     p = sub.add_parser("view", help="open a saved result (recording.rrd) in the Rerun viewer")
@@ -307,6 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reconstruct(sub)
     _add_simulate(sub)
     _add_import(sub)
+    _add_calibrate(sub)
     _add_export(sub)
     _add_view(sub)
     return parser

@@ -383,8 +383,8 @@ def read_session(folder: str | Path) -> Session:
     true_rig = (read_calibration(folder / "calibration_true.toml")
                 if (folder / "calibration_true.toml").exists() else None)
     mislabels = None
-    if (folder / "truth_mislabels.csv").exists():
-        mislabels, _ = _read_table(folder / "truth_mislabels.csv", ["frame", "camera", "marker"], "rows")
+    if (folder / "truth_mislabels.csv").exists():  # header-only is fine: a clean simulation
+        mislabels = pd.read_csv(folder / "truth_mislabels.csv", dtype={"camera": str, "marker": str})
         mislabels = mislabels.assign(frame=mislabels["frame"].astype(np.int64))
     extra = {k: v for k, v in cfg.items() if k not in ("session", "motion", "noise", "markers")}
     return Session(
