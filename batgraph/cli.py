@@ -24,7 +24,7 @@ def _positive_int(text: str) -> int:
 def _add_reconstruct(sub):
     p = sub.add_parser("reconstruct", help="3D trajectories of every marker on every frame, with covariance",
                        description="Reconstruct 3D marker trajectories from a session folder (or several).")
-    p.add_argument("sessions", nargs="+", metavar="SESSION", help="session folder(s)")
+    p.add_argument("sessions", nargs="+", metavar="SESSION", help="session folder(s) or glob pattern(s)")
     p.add_argument("--out", help="output folder (default SESSION/out; with several sessions OUT/<session>)")
     p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
                                      "(default smoother,filter)")
@@ -39,6 +39,10 @@ def _add_reconstruct(sub):
     p.add_argument("--viewer", choices=["spawn", "save", "none"],
                    help="Rerun: stream the filter live to a viewer window and save recording.rrd (spawn, the "
                         "default with a display), only write recording.rrd (save, the default without one), or none")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the sessions on an existing Dask cluster (default: a local cluster for several)")
+    p.add_argument("--workers", type=_positive_int, help="local Dask workers (default: one per core)")
+    p.add_argument("--verbose", action="store_true", help="with several sessions: tracebacks of crashed ones")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
     p.set_defaults(func=_cmd_reconstruct)
 
@@ -63,39 +67,38 @@ def summary_lines(summary: dict) -> list[str]:
 
 
 def _cmd_reconstruct(args) -> int:
+    from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
     from .pipeline import parse_methods, reconstruct
     from .result import Options
 
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
                       accel_psd_m2_s3=args.accel_psd, progress=not args.quiet)
-    many = len(args.sessions) > 1
+    batch = is_batch(args.sessions) or args.scheduler is not None
     viewer = args.viewer
     if viewer is None:
         from .viewer import display_available
-        viewer = "spawn" if display_available() and not many else "save"
-    failed = 0
-    for s in args.sessions:
-        out = Path(args.out) / Path(s).name if (many and args.out) else args.out
-        try:
-            result = reconstruct(s, out, methods, options, viewer=viewer)
-        except InputError as e:
-            if not many:
-                raise
-            print(f"batgraph: error: {e}", file=sys.stderr)
-            failed += 1
-            continue
-        if not args.quiet:
-            print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
-            print(f"  report: {result.out_dir / 'report.html'}")
-            if viewer != "none":
-                print(f"  3D viewer: rerun {result.out_dir / 'recording.rrd'}   (or: batgraph view {result.out_dir})")
-            for w in result.session.warnings:
-                print(f"warning: {w}")
-            print("\n".join(summary_lines(result.summary)))
-    if many and not args.quiet:
-        print(f"{len(args.sessions) - failed} of {len(args.sessions)} sessions done, {failed} failed")
-    return 2 if failed else 0
+        viewer = "spawn" if display_available() and not batch else "save"
+    if batch:
+        items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
+                                 n_workers=args.workers, progress=not args.quiet, viewer=viewer)
+        if args.quiet:
+            for it in items:
+                if it.status != "ok":
+                    print(f"batgraph: {it.status}: {it.message}", file=sys.stderr)
+        else:
+            print(format_batch_table(items, verbose=args.verbose))
+        return exit_code(items)
+    result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer)
+    if not args.quiet:
+        print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
+        for w in result.session.warnings:
+            print(f"warning: {w}")
+        print("\n".join(summary_lines(result.summary)))
+        print(f"report: {result.out_dir / 'report.html'}")
+        if viewer != "none":
+            print(f"3D viewer: rerun {result.out_dir / 'recording.rrd'}   (or: batgraph view {result.out_dir})")
+    return 0
 
 
 # ----- simulate --------------------------------------------------------------------------------

@@ -2,4 +2,5 @@
 """`python scripts/import.py ...` is `batgraph import ...` (see `--help`)."""
 from batgraph.cli import run_script
 
-run_script("import")
+if __name__ == "__main__":  # Dask's local cluster re-imports the main script in its workers
+    run_script("import")

@@ -2,4 +2,5 @@
 """`python scripts/reconstruct.py ...` is `batgraph reconstruct ...` (see `--help`)."""
 from batgraph.cli import run_script
 
-run_script("reconstruct")
+if __name__ == "__main__":  # Dask's local cluster re-imports the main script in its workers
+    run_script("reconstruct")

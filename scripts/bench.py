@@ -1,0 +1,321 @@
+"""Speed and memory of batgraph's estimators on the paper-scale flight (30 cameras, 180 markers, 160 frames).
+
+Prints a table and ratios measured in this run (medians over repeats); nothing here is asserted. Run by
+``make bench``; BENCHMARKS.md records a run. Sections:
+(a) the smoother's fast path (batgraph.graph.fast) against a straightforward GTSAM build-and-solve of
+    the same graph (one Python loop adding factors, LM, gtsam.Marginals for every point), checking
+    that both reach the same optimum;
+(b) the iSAM2 filter's frames per second; (c) per-frame triangulation time;
+(d) how the paper's stacked EKF's time and memory grow with the number of markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import platform
+import statistics
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from batgraph.graph import factors, fast, noise  # noqa: E402
+from batgraph.measurement import IdealObservations, ideal_observations  # noqa: E402
+from batgraph.result import Options  # noqa: E402
+from batgraph.session import Session, dense_observations  # noqa: E402
+from batgraph.simulate import simulate_flight  # noqa: E402
+from batgraph.triangulate import triangulate_ideal  # noqa: E402
+
+EKF_MARKERS = (10, 20, 45, 90, 180)
+
+
+def machine() -> dict:
+    """nproc, CPU model and RAM of this machine, from /proc."""
+    cpu = platform.processor() or "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+        mem_kb = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
+                      if line.startswith("MemTotal"))
+    except OSError:
+        mem_kb = 0
+    return {"nproc": os.cpu_count(), "cpu": cpu, "ram_gib": mem_kb / 2**20, "python": platform.python_version(),
+            "numpy": np.__version__}
+
+
+def timed(fn, repeats: int):
+    """(median wall time [s], all times, last result) of ``fn()`` over ``repeats`` runs."""
+    times, out = [], None
+    for _ in range(repeats):
+        gc.collect()
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times, out
+
+
+def subset(ideal: IdealObservations, markers: np.ndarray) -> IdealObservations:
+    """The observations of ``markers`` only (C, F, M', ...)."""
+    return IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
+
+
+# ----- (a) the smoother ------------------------------------------------------------------------------
+def gtsam_straightforward(session: Session, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                          model: str, level: float, robust: str, robust_k: float) -> dict:
+    """The baseline: build the smoother's graph in one Python loop, default LM (spec tolerances), Marginals.
+
+    Same factors as batgraph.graph.smoother (TriangulationFactorCal3_S2 with the mapped pixel noise and
+    GTSAM's robust model, BetweenFactorPoint3 or the constant-velocity factor, weak priors), but built
+    the obvious way: a loop over markers, frames and cameras, one factor at a time. LM parameters are
+    GTSAM's defaults except the stopping rule, which the cost spec fixes (relative decrease 1e-12).
+    Returns xyz (F, M, 3), cov (F, M, 3, 3), and the time of each stage.
+    """
+    import gtsam
+
+    t0 = time.perf_counter()
+    C, F, M = ideal.seen.shape
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    mm = factors.MotionModel(model, 1.0 / session.fps, sigma_m=level if model == "random_walk" else None,
+                             accel_psd_m2_s3=level if model == "constant_velocity" else None)
+    motion = factors.MotionFactors(mm)
+    cams = [factors.gtsam_camera(c) for c in session.rig]
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for m in np.flatnonzero(estimated):
+        m = int(m)
+        for f in factors.prior_factors(mm, m, 0, p_init[0, m]):
+            graph.push_back(f)
+        for k in range(F):
+            values.insert(factors.p_key(m, k), p_init[k, m])
+            if mm.has_velocity:  # the graph's velocity variable is u = v dt [m per frame] (factors.v_key)
+                values.insert(factors.v_key(m, k), v_init[k, m] * mm.dt_s)
+            if k + 1 < F:
+                graph.push_back(motion.between(m, k))
+            for c in np.flatnonzero(ideal.seen[:, k, m]):
+                graph.push_back(gtsam.TriangulationFactorCal3_S2(
+                    cams[c], ideal.uv_px[c, k, m], factors.pixel_noise(ideal.cov_px2[c, k, m], robust, robust_k),
+                    factors.p_key(m, k)))
+    t1 = time.perf_counter()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-15)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    sol = optimizer.optimize()
+    t2 = time.perf_counter()
+    marginals = gtsam.Marginals(graph, sol)
+    xyz = np.full((F, M, 3), np.nan)
+    cov = np.full((F, M, 3, 3), np.nan)
+    for m in np.flatnonzero(estimated):
+        for k in range(F):
+            key = factors.p_key(int(m), k)
+            xyz[k, m] = sol.atPoint3(key)
+            cov[k, m] = marginals.marginalCovariance(key)
+    t3 = time.perf_counter()
+    return {"xyz": xyz, "cov": cov, "build_s": t1 - t0, "solve_s": t2 - t1, "marginals_s": t3 - t2,
+            "total_s": t3 - t0, "iterations": int(optimizer.iterations()), "error": graph.error(sol),
+            "n_factors": int(graph.size()), "graph": graph}
+
+
+def gtsam_marginals_at(graph, xyz: np.ndarray, velocity: np.ndarray | None, markers: np.ndarray,
+                       dt_s: float) -> tuple[np.ndarray, float]:
+    """gtsam.Marginals of every p[m, k] with the graph linearised at a given solution, (F, M, 3, 3)."""
+    import gtsam
+
+    F, M = xyz.shape[:2]
+    values = gtsam.Values()
+    for m in markers:
+        for k in range(F):
+            values.insert(factors.p_key(int(m), k), xyz[k, m])
+            if velocity is not None:
+                values.insert(factors.v_key(int(m), k), velocity[k, m] * dt_s)
+    marginals = gtsam.Marginals(graph, values)
+    cov = np.full((F, M, 3, 3), np.nan)
+    for m in markers:
+        for k in range(F):
+            cov[k, m] = marginals.marginalCovariance(factors.p_key(int(m), k))
+    return cov, graph.error(values)
+
+
+def fast_smoother(session: Session, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                  model: str, level: float, robust: str, robust_k: float) -> dict:
+    """The fast path on the same problem from the same initial track."""
+    xyz, cov, info = fast.solve_fast(session.rig, ideal, p_init, model, level, session.fps, robust, robust_k,
+                                     v_init=v_init)
+    return {"xyz": xyz, "cov": cov, "velocity": info["velocity"], "iterations": info["iterations"],
+            "error": info["cost"]}
+
+
+def rel_cov_diff(cov: np.ndarray, ref: np.ndarray) -> float:
+    """Largest |cov - ref| relative to each 3x3 block's largest entry."""
+    return float(np.nanmax(np.abs(cov - ref) / np.abs(ref).max(axis=(-1, -2), keepdims=True)))
+
+
+def bench_smoother(session: Session, dense, ideal: IdealObservations, args) -> list[tuple[str, str, str]]:
+    """(a): the fast path vs the straightforward GTSAM baseline, same graph, same initial track."""
+    C, F, M = ideal.seen.shape
+    opt = Options(progress=False)
+    model = session.motion.model
+    rows = []
+    t_init, _, tri = timed(lambda: triangulate_ideal(session.rig, ideal)[0], 1)
+    p_init, v_init, estimated = factors.initial_track(tri, session.fps)
+    markers = np.flatnonzero(estimated)
+    if model == "constant_velocity":
+        t_q, _, (level, _) = timed(lambda: fast.choose_accel_psd_fast(
+            session.rig, ideal, p_init, v_init, markers, session.fps, opt.robust, opt.robust_k), 1)
+        rows.append(("smoother: choose q (fast path, 8 markers, ~18 solves)", f"{t_q:.2f} s",
+                     f"q = {level:.4g} m^2/s^3, used by both solvers below"))
+    else:
+        level = noise.motion_choice(session, opt)[1]
+    print(f"(a) smoother: {model}, {'q' if model == 'constant_velocity' else 'sigma_m'} = {level:.4g}, "
+          f"robust {opt.robust} k = {opt.robust_k}; initial track (triangulation + interpolation) {t_init:.2f} s")
+    args_ = (model, level, opt.robust, opt.robust_k)
+    t_fast, times, a = timed(lambda: fast_smoother(session, ideal, p_init, v_init, *args_), args.repeats)
+    print(f"    fast path, all {len(markers)} markers: {t_fast:.2f} s (median of {args.repeats}: "
+          f"{', '.join(f'{t:.2f}' for t in times)}), {a['iterations']} iterations")
+    rows.append((f"smoother fast path: {len(markers)} markers, solve + covariances", f"{t_fast:.2f} s",
+                 f"median of {args.repeats}; {a['iterations']} LM iterations (max over markers)"))
+    sub = markers if args.baseline_markers is None else markers[
+        np.unique(np.linspace(0, len(markers) - 1, args.baseline_markers).round().astype(int))]
+    nan_other = np.full_like(p_init, np.nan)
+    p_sub, v_sub = nan_other.copy(), nan_other.copy()
+    p_sub[:, sub], v_sub[:, sub] = p_init[:, sub], v_init[:, sub]
+    t_base, _, b = timed(lambda: gtsam_straightforward(session, ideal, p_sub, v_sub, *args_), 1)
+    if len(sub) < len(markers):
+        t_fast_sub, _, a_sub = timed(lambda: fast_smoother(session, ideal, p_sub, v_sub, *args_), args.repeats)
+    else:
+        t_fast_sub, a_sub = t_fast, a
+    dx = float(np.nanmax(np.abs(a_sub["xyz"][:, sub] - b["xyz"][:, sub])))
+    dcov = rel_cov_diff(a_sub["cov"][:, sub], b["cov"][:, sub])
+    print(f"    GTSAM straightforward, {len(sub)} markers: {t_base:.1f} s = build {b['build_s']:.1f} + LM "
+          f"{b['solve_s']:.1f} ({b['iterations']} iterations, {b['n_factors']} factors) + Marginals "
+          f"{b['marginals_s']:.1f}; fast path on the same markers {t_fast_sub:.2f} s")
+    cov_at, err_at = gtsam_marginals_at(b["graph"], a_sub["xyz"], a_sub["velocity"], sub, 1.0 / session.fps)
+    dcov_at = rel_cov_diff(a_sub["cov"][:, sub], cov_at[:, sub])
+    print(f"    same optimum: max |xyz_fast - xyz_gtsam| = {dx:.2e} m (goal <= 1e-6); GTSAM's error at its "
+          f"solution {b['error']:.12g}, at the fast one {err_at:.12g}")
+    print(f"    covariances: fast vs GTSAM at GTSAM's solution {dcov:.1e} relative; vs gtsam.Marginals at the "
+          f"fast solution {dcov_at:.1e} relative")
+    rows.append((f"smoother GTSAM straightforward: {len(sub)} markers", f"{t_base:.1f} s",
+                 f"1 run; build {b['build_s']:.1f} + LM {b['solve_s']:.1f} + Marginals {b['marginals_s']:.1f} s"))
+    rows.append((f"  ratio GTSAM / fast ({len(sub)} markers)", f"{t_base / t_fast_sub:.0f}x",
+                 f"goal >= 5x; max position diff {dx:.1e} m; cov diff {dcov_at:.0e} rel at the same point"))
+    t_meth, _, est = timed(lambda: fast.run_smoother_fast(session, dense, ideal, opt), 1)
+    rows.append(("smoother method end to end (fast path: init + choose q + solve)", f"{t_meth:.2f} s",
+                 f"1 run; q = {est.info.get('accel_psd_m2_s3', float('nan')):.4g}"))
+    return rows
+
+
+def _subset_markers(dense, ideal: IdealObservations, markers: np.ndarray, n_frames: int | None = None):
+    """DenseObservations and IdealObservations of ``markers`` (and the first ``n_frames`` frames)."""
+    from batgraph.session import DenseObservations
+
+    fr = slice(None) if n_frames is None else slice(0, n_frames)
+    d = DenseObservations(dense.cameras, dense.frames[fr], [dense.markers[m] for m in markers],
+                          dense.uv_px[:, fr][:, :, markers], dense.weight[:, fr][:, :, markers])
+    return d, IdealObservations(ideal.uv_px[:, fr][:, :, markers], ideal.cov_px2[:, fr][:, :, markers])
+
+
+def bench_filter(session: Session, dense, ideal: IdealObservations) -> list[tuple[str, str, str]]:
+    """(b): the iSAM2 filter's frames per second over the whole scene (includes its triangulation)."""
+    try:
+        from batgraph.graph.filter import run_filter
+    except ImportError:
+        return [("filter (iSAM2)", "n/a", "batgraph.graph.filter not present")]
+    F = ideal.seen.shape[1]
+    t, _, est = timed(lambda: run_filter(session, dense, ideal, Options(progress=False)), 1)
+    print(f"(b) filter: {F} frames in {t:.2f} s = {F / t:.1f} frames/s")
+    return [(f"filter (iSAM2): {ideal.seen.shape[2]} markers, {F} frames", f"{F / t:.1f} fr/s",
+             f"1 run, {t:.1f} s; goal >= 120 frames/s (camera rate)")]
+
+
+def bench_triangulate(session: Session, ideal: IdealObservations, repeats: int) -> list[tuple[str, str, str]]:
+    """(c): per-frame multi-view DLT over all frames and markers."""
+    C, F, M = ideal.seen.shape
+    t, _, _ = timed(lambda: triangulate_ideal(session.rig, ideal), repeats)
+    print(f"(c) triangulation: {F} frames in {t:.2f} s = {1000 * t / F:.1f} ms per frame")
+    return [(f"triangulation (DLT + covariance): {M} markers, per frame", f"{1000 * t / F:.1f} ms",
+             f"median of {repeats}; {F / t:.0f} frames/s")]
+
+
+def bench_ekf(args) -> list[tuple[str, str, str]]:
+    """(d): the stacked EKF's time per frame and peak memory against the number of markers."""
+    try:
+        from batgraph.filters.ekf import run_ekf
+    except ImportError:
+        return [("EKF", "n/a", "batgraph.filters.ekf not present")]
+    rows = []
+    session = simulate_flight(np.random.default_rng(0), n_cameras=args.cameras, n_markers=max(EKF_MARKERS),
+                              n_frames=args.ekf_frames)
+    dense = dense_observations(session)
+    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    M = ideal.seen.shape[2]
+    for n in EKF_MARKERS:
+        if n > M:
+            break
+        ms = np.unique(np.linspace(0, M - 1, n).round().astype(int))
+        d, i = _subset_markers(dense, ideal, ms)
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        run_ekf(session, d, i, Options(progress=False))
+        t = time.perf_counter() - t0
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        per_frame = t / args.ekf_frames
+        print(f"(d) EKF, {n} markers: {1000 * per_frame:.1f} ms per frame, peak memory {peak / 2**20:.0f} MiB")
+        rows.append((f"EKF (stacked state 3n = {3 * n}): {n} markers, per frame", f"{1000 * per_frame:.1f} ms",
+                     f"{1 / per_frame:.1f} frames/s; peak traced memory {peak / 2**20:.0f} MiB"))
+        if per_frame > args.ekf_limit_s:
+            rows.append(("EKF: stopped", "", f"{per_frame:.1f} s per frame > {args.ekf_limit_s} s: impractical"))
+            break
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cameras", type=int, default=30)
+    ap.add_argument("--markers", type=int, default=180)
+    ap.add_argument("--frames", type=int, default=160)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--baseline-markers", type=int, default=None,
+                    help="run the GTSAM baseline on this many markers (default: all, or a subset if too slow)")
+    ap.add_argument("--ekf-frames", type=int, default=6, help="frames per EKF run in section (d)")
+    ap.add_argument("--ekf-limit-s", type=float, default=20.0, help="stop (d) when one frame takes longer")
+    ap.add_argument("--skip", default="", help="comma list of sections to skip: smoother,filter,triangulate,ekf")
+    args = ap.parse_args(argv)
+    skip = set(filter(None, args.skip.split(",")))
+    info = machine()
+    print(f"machine: {info['nproc']} cores, {info['cpu']}, {info['ram_gib']:.1f} GiB RAM, "
+          f"Python {info['python']}, numpy {info['numpy']}")
+    t0 = time.perf_counter()
+    session = simulate_flight(np.random.default_rng(0), n_cameras=args.cameras, n_markers=args.markers,
+                              n_frames=args.frames)
+    dense = dense_observations(session)
+    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    C, F, M = ideal.seen.shape
+    print(f"scene: simulate_flight(default_rng(0)): {C} cameras x {M} markers x {F} frames, "
+          f"{int(ideal.seen.sum())} observations ({time.perf_counter() - t0:.1f} s to simulate)")
+    rows = []
+    if "smoother" not in skip:
+        rows += bench_smoother(session, dense, ideal, args)
+    if "filter" not in skip:
+        rows += bench_filter(session, dense, ideal)
+    if "triangulate" not in skip:
+        rows += bench_triangulate(session, ideal, args.repeats)
+    if "ekf" not in skip:
+        rows += bench_ekf(args)
+    print()
+    print(f"{'what':58s} {'time':>12s}  notes")
+    for what, value, notes in rows:
+        print(f"{what:58s} {value:>12s}  {notes}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
