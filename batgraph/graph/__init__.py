@@ -1,0 +1,13 @@
+"""GTSAM factor graphs for marker trajectories: the batch smoother and the iSAM2 filter.
+
+Modules: :mod:`.factors` (keys, projection / motion / prior factors, camera variables),
+:mod:`.smoother` (batch Levenberg-Marquardt + marginals), :mod:`.filter` (iSAM2, frame by frame),
+:mod:`.noise` (motion noise: given, or the constant-velocity q chosen from the data).
+
+The cost (shared with any fast path), per estimated marker m and frame k of the session's range:
+projection factors on ideal pixels whitened by the mapped pixel covariance (Huber / Cauchy / none);
+a random-walk (paper eq. 3-5) or constant-velocity motion factor between consecutive frames; weak
+gauge priors p[m, 0] ~ N(p_init, (10 m)^2), v[m, 0] ~ N(0, (10 m/s)^2). A marker is estimated when
+it is triangulated (>= 2 views) on at least one frame. Nothing is imported here, so importing the
+package does not load GTSAM.
+"""
