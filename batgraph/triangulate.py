@@ -45,7 +45,7 @@ def triangulate_ideal(rig: Rig, ideal: IdealObservations) -> tuple[np.ndarray, n
     ok = n_views >= 2
     xyz = np.full((F, M, 3), np.nan)
     if ok.any():
-        _, _, vt = np.linalg.svd(A[ok].reshape(-1, 2 * C, 4))
+        _, _, vt = np.linalg.svd(A[ok].reshape(-1, 2 * C, 4), full_matrices=False)
         X = vt[:, -1, :]
         with np.errstate(divide="ignore", invalid="ignore"):
             xyz[ok] = X[:, :3] / X[:, 3:4]

@@ -1,0 +1,439 @@
+"""Exact batch smoother for a fixed rig: every marker's block-tridiagonal Gauss-Newton system solved at once.
+
+It minimises exactly the smoother's cost (projection factors with GTSAM's robust losses, random-walk or
+constant-velocity motion factors, weak first-frame priors; the graph of batgraph.graph.factors) and
+returns the marginal covariances ``gtsam.Marginals`` gives at the minimiser, but it deliberately handles
+no camera uncertainty: with fixed cameras the markers are independent and each marker's chain is block
+tridiagonal, which is what makes a vectorised numpy solver exact and fast. Rigs with pose covariances
+go to the GTSAM smoother.
+
+Layout: the state is ``x`` of shape (F, M, d) [m], frames first so that one frame of every marker is a
+contiguous (M, d) slice for the sweeps over frames. d = 3 (random walk: position) or 6 (constant
+velocity: position and u = v dt, the displacement per frame, as in factors.v_key, so both halves are in
+metres and every 6x6 block is well conditioned); results are reported in the spec's units (v in m/s).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Rig
+from ..measurement import IdealObservations
+from ..motion import constant_velocity_Q
+from ..result import Estimate, Options
+from ..session import DenseObservations, Session
+from ..triangulate import triangulate_ideal
+from . import factors, noise
+
+MODELS = factors.MOTION_MODELS
+ROBUST = factors.ROBUST_LOSSES
+PRIOR_SIGMA_P_M = factors.PRIOR_POSITION_SIGMA_M  # weak gauge prior on p[m, 0] [m] (cost spec, factor 3)
+PRIOR_SIGMA_V_MPS = factors.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m, 0] [m/s]
+# Convergence: the spec asks for a relative cost decrease < 1e-12 or a step < 1e-10 m. Near the
+# minimum a 1e-12 relative decrease still allows ~1e-8 m, to which the IRLS weights of robust factors
+# (and so the covariances) are sensitive at 1e-6 relative; stopping on the step (or on a decrease at
+# rounding level) costs one or two more quadratically convergent iterations and lands on the minimiser.
+REL_COST_TOL = 1e-15
+STEP_TOL_M = 1e-10  # largest step component [m]
+
+
+def robust_loss(d2: np.ndarray, robust: str, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's m-estimators on the whitened norm |r| = sqrt(d2): (rho, IRLS weight rho'(|r|)/|r|).
+
+    d2: squared whitened residual norms, any shape. ``huber``: rho = 0.5 d2 if |r| <= k else
+    k|r| - 0.5 k^2, w = min(1, k/|r|); ``cauchy``: rho = 0.5 k^2 log(1 + d2/k^2), w = k^2/(k^2 + d2);
+    ``none``: rho = 0.5 d2, w = 1. This is gtsam.noiseModel.mEstimator's loss() and weight().
+    """
+    if robust == "none":
+        return 0.5 * d2, np.ones_like(d2)
+    if robust == "huber":
+        r = np.sqrt(d2)
+        inside = r <= k
+        with np.errstate(divide="ignore"):
+            return np.where(inside, 0.5 * d2, k * r - 0.5 * k * k), np.where(inside, 1.0, k / r)
+    if robust == "cauchy":
+        return 0.5 * k * k * np.log1p(d2 / (k * k)), k * k / (k * k + d2)
+    raise ValueError(f"robust must be one of {ROBUST}, got {robust!r}")
+
+
+@dataclass
+class _Observations:
+    """Projection factors, flattened over (camera, frame, marker); n rows, component-major for speed.
+
+    f, m: frame index and column of the marker in the state being solved, (n,) int.
+    P: K [R | t] of the observing camera, (3, 4, n) (ideal pixels; the third row gives the depth).
+    uv: ideal pixels, (2, n). Linv: whitening L^-1 = [[a, 0], [b, c]], L = chol(cov_px2), as
+    (3, n) = (a, b, c) [1/px]. behind_px: GTSAM's residual when the point is behind the camera, 2 fx.
+    """
+
+    f: np.ndarray
+    m: np.ndarray
+    P: np.ndarray
+    uv: np.ndarray
+    Linv: np.ndarray
+    behind_px: np.ndarray
+
+    def of_markers(self, keep: np.ndarray) -> _Observations:
+        """The rows of the markers where ``keep`` (bool over current columns), columns renumbered."""
+        col = np.cumsum(keep) - 1
+        rows = np.flatnonzero(keep[self.m])
+        return _Observations(self.f[rows], col[self.m[rows]], self.P[:, :, rows], self.uv[:, rows],
+                             self.Linv[:, rows], self.behind_px[rows])
+
+    def residuals(self, x: np.ndarray, jacobian: bool):
+        """Whitened residuals r (2, n) at x (F, M', d) and, if asked, whitened Jacobians Jw (2, 3, n) [1/m].
+
+        r = L^-1 (pi(p) - uv) in front of the camera (depth > 0); behind it r = L^-1 (2 fx, 2 fx) with a
+        zero Jacobian, which is what GTSAM's TriangulationFactor returns on a cheirality exception
+        (an initial track can put a single-view point behind its camera).
+        """
+        F, M = x.shape[:2]
+        p = np.moveaxis(x[..., :3], -1, 0).reshape(3, F * M)[:, self.f * M + self.m]  # (3, n), contiguous
+        P = self.P
+        uvw = P[:, 0] * p[0] + P[:, 1] * p[1] + P[:, 2] * p[2] + P[:, 3]  # (3, n)
+        front = uvw[2] > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv_depth = np.where(front, 1.0 / uvw[2], 0.0)
+        uv = uvw[:2] * inv_depth
+        e = np.where(front, uv - self.uv, self.behind_px)
+        a, b, c = self.Linv
+        r = np.stack([a * e[0], b * e[0] + c * e[1]])
+        if not jacobian:
+            return r, None
+        J0 = (P[0, :3] - uv[0] * P[2, :3]) * inv_depth  # d u / d p, (3, n) [px/m]
+        J1 = (P[1, :3] - uv[1] * P[2, :3]) * inv_depth
+        return r, np.stack([a * J0, b * J0 + c * J1])
+
+
+def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> _Observations:
+    """Every observation of the ``estimated`` markers (bool (M,)) as :class:`_Observations`."""
+    seen = ideal.seen & estimated[None, None, :]
+    c, f, m = np.nonzero(seen)
+    P = np.stack([cam.P for cam in rig], axis=-1)[:, :, c]
+    L = np.linalg.cholesky(ideal.cov_px2[c, f, m])
+    Linv = np.stack([1 / L[:, 0, 0], -L[:, 1, 0] / (L[:, 0, 0] * L[:, 1, 1]), 1 / L[:, 1, 1]])
+    behind = np.array([2.0 * cam.K[0, 0] for cam in rig])[c]
+    return _Observations(f, m, np.ascontiguousarray(P), ideal.uv_px[c, f, m].T.copy(), Linv, behind)
+
+
+class _Problem:
+    """The cost of the shared spec for a set of markers at once, and its Gauss-Newton linearisation.
+
+    Motion in the (scaled) state: e_k = x[k+1] - A x[k] with information Qi, i.e. cost 0.5 e^T Qi e;
+    random walk: A = I3, Qi = I3 / sigma_m^2; constant velocity: A = [[I, I], [0, I]] and Qi the
+    inverse of Q(q, dt) expressed for the state [p, v dt]. The methods take the state x (F, M', d) of
+    M' markers, their prior means mu0 (M', d) and their observations.
+    """
+
+    def __init__(self, model: str, noise: float, fps: float, robust: str, robust_k: float):
+        self.robust, self.k = robust, robust_k
+        self.d = 3 if model == "random_walk" else 6
+        dt = 1.0 / fps
+        if model == "random_walk":
+            self.A = np.eye(3)
+            self.Qi = np.eye(3) / noise**2
+            self.P0 = np.eye(3) / PRIOR_SIGMA_P_M**2
+        else:
+            S = np.diag([1.0] * 3 + [dt] * 3)  # x_scaled = S [p; v]
+            self.A = np.block([[np.eye(3), np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+            self.Qi = np.linalg.inv(S @ constant_velocity_Q(noise, dt) @ S)
+            self.Qi = 0.5 * (self.Qi + self.Qi.T)
+            self.P0 = np.diag([PRIOR_SIGMA_P_M**-2] * 3 + [(PRIOR_SIGMA_V_MPS * dt) ** -2] * 3)
+        self.AtQiA = self.A.T @ self.Qi @ self.A
+        self.B = -self.Qi @ self.A  # the constant off-diagonal block H[k+1, k]
+
+    def cost(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations) -> np.ndarray:
+        """Total cost per marker, shape (M',) (inf where not finite)."""
+        M = x.shape[1]
+        r, _ = obs.residuals(x, jacobian=False)
+        rho, _ = robust_loss(r[0] * r[0] + r[1] * r[1], self.robust, self.k)
+        total = np.bincount(obs.m, weights=rho, minlength=M).astype(float)  # float even when empty
+        e = x[1:] - x[:-1] @ self.A.T
+        total += 0.5 * np.einsum("fmi,ij,fmj->m", e, self.Qi, e)
+        e0 = x[0] - mu0
+        total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
+        return np.where(np.isnan(total), np.inf, total)
+
+    def linearize(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations,
+                  irls: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton diagonal blocks D (F, M', d, d) and gradient g (F, M', d) at x.
+
+        irls=True: projection blocks ``w Jw^T Jw`` with the IRLS weight w at x (GTSAM's robust
+        whitening; what the marginal covariances use). irls=False: the robust loss's own curvature
+        in the whitened residual, ``w Jw^T (I - a r r^T / |r|^2) Jw`` (a = 1 beyond Huber's k,
+        a = min(1, 2|r|^2 / (k^2 + |r|^2)) for Cauchy, clamped so the block stays PSD), which makes the
+        iteration converge quadratically instead of IRLS's linear rate; same gradient, same minimiser.
+        The off-diagonal blocks are the constant ``self.B``.
+        """
+        F, M = x.shape[:2]
+        d = self.d
+        r, Jw = obs.residuals(x, jacobian=True)
+        d2 = r[0] * r[0] + r[1] * r[1]
+        _, w = robust_loss(d2, self.robust, self.k)
+        Jr = Jw[0] * r[0] + Jw[1] * r[1]  # Jw^T r, (3, n)
+        if not irls and self.robust != "none":
+            kk = self.k * self.k
+            a = (d2 > kk).astype(float) if self.robust == "huber" else np.minimum(1.0, 2 * d2 / (kk + d2))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                a = np.where(d2 > 0, a / d2, 0.0)
+        else:
+            a = None
+        # sum the per-observation blocks into their (frame, marker): one bincount per entry
+        flat = obs.f * M + obs.m
+        n_fm = F * M
+        D = np.zeros((F, M, d, d))
+        g = np.zeros((F, M, d))
+        for i in range(3):
+            g[..., i] = np.bincount(flat, weights=w * Jr[i], minlength=n_fm).reshape(F, M)
+            for j in range(i, 3):
+                Hij = Jw[0, i] * Jw[0, j] + Jw[1, i] * Jw[1, j]
+                if a is not None:
+                    Hij -= a * Jr[i] * Jr[j]
+                D[..., i, j] = np.bincount(flat, weights=w * Hij, minlength=n_fm).reshape(F, M)
+                D[..., j, i] = D[..., i, j]
+        e = x[1:] - x[:-1] @ self.A.T  # (F-1, M, d)
+        eQ = e @ self.Qi
+        g[:-1] -= eQ @ self.A
+        g[1:] += eQ
+        D[:-1] += self.AtQiA
+        D[1:] += self.Qi
+        D[0] += self.P0
+        g[0] += (x[0] - mu0) @ self.P0
+        return D, g
+
+
+def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Block elimination over frames: S_k^-1 (F, M, d, d) with S_0 = D_0, S_k = D_k - B S_{k-1}^-1 B^T."""
+    Sinv = np.empty_like(D)
+    Sinv[0] = np.linalg.inv(D[0])
+    BT = B.T
+    for k in range(1, len(D)):
+        Sinv[k] = np.linalg.inv(D[k] - B @ Sinv[k - 1] @ BT)
+    return Sinv
+
+
+def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant).
+
+    D: diagonal blocks (F, M, d, d); rhs (F, M, d). Returns dx (F, M, d).
+    """
+    Sinv = _forward(D, B)
+    y = rhs.copy()
+    for k in range(1, len(D)):
+        # L_k = B S_{k-1}^-1 ;  y_k -= L_k y_{k-1}
+        y[k] -= (B @ (Sinv[k - 1] @ y[k - 1][..., None]))[..., 0]
+    dx = np.empty_like(rhs)
+    dx[-1] = (Sinv[-1] @ y[-1][..., None])[..., 0]
+    for k in range(len(D) - 2, -1, -1):
+        dx[k] = (Sinv[k] @ (y[k] - dx[k + 1] @ B)[..., None])[..., 0]
+    return dx
+
+
+def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal blocks of H^-1 and log det H for block-tridiagonal H (RTS-style backward recursion).
+
+    D: diagonal blocks (F, M, d, d); B: the constant sub-diagonal block H[k+1, k], (d, d).
+    Returns Sigma (F, M, d, d) and logdet (M,). With S_k the forward Schur complements,
+    Sigma_{F-1} = S_{F-1}^-1 and Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T, G_k = S_k^-1 B^T
+    (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k.
+    """
+    Sinv = _forward(D, B)
+    _, logdet_inv = np.linalg.slogdet(Sinv)  # Sinv is SPD: the sign is +1
+    Sigma = np.empty_like(D)
+    Sigma[-1] = Sinv[-1]
+    for k in range(len(D) - 2, -1, -1):
+        G = Sinv[k] @ B.T
+        Sigma[k] = Sinv[k] + G @ Sigma[k + 1] @ np.swapaxes(G, -1, -2)
+    Sigma = 0.5 * (Sigma + np.swapaxes(Sigma, -1, -2))
+    return Sigma, -logdet_inv.sum(axis=0)
+
+
+def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: np.ndarray, model: str,
+               noise_level: float, fps: float, robust: str = "huber", robust_k: float = 2.0,
+               v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
+               ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
+
+    session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
+    ideal: ideal pixels (C, F, M, 2) and their covariances (C, F, M, 2, 2) (batgraph.measurement).
+    p_init: initial positions (F, M, 3) [m, world], finite on every frame of an estimated marker and
+        all NaN for a marker not estimated (see batgraph.graph.factors.initial_track); p_init[0] is the
+        mean of the weak position prior and p_init the starting point unless ``p_start`` is given.
+    model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]) or "constant_velocity"
+        (noise_level = q, acceleration PSD [m^2/s^3]).
+    fps: frame rate [Hz]; robust, robust_k: loss on projection factors (see :func:`robust_loss`).
+    v_init: starting velocities (F, M, 3) [m/s] for constant_velocity; default np.gradient(p_init) * fps.
+    p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
+
+    Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
+    lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
+    largest step is < 1e-10 m (or the relative cost decrease < 1e-15). The steps use the robust loss's
+    curvature (see ``_Problem.linearize``), so robust problems converge in a few iterations.
+
+    Returns xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2] (marginal of each p[m, k] from the Gauss-Newton
+    Hessian at the minimiser, with the IRLS weights there), both NaN for markers not estimated, and
+    info: iterations (max over markers), iterations_per_marker (M,), converged (M,) bool, cost (total
+    at the minimiser), cost_per_marker (M,), logdet (log det of the whole Hessian in the spec's
+    variables [p m, v m/s]; sum over markers), logdet_per_marker (M,), velocity (F, M, 3) [m/s] or
+    None, estimated (M,) bool.
+    """
+    rig = session_or_rig.rig if isinstance(session_or_rig, Session) else session_or_rig
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if robust not in ROBUST:
+        raise ValueError(f"robust must be one of {ROBUST}, got {robust!r}")
+    C, F, M = ideal.seen.shape
+    if p_init.shape != (F, M, 3):
+        raise ValueError(f"p_init must have shape {(F, M, 3)}, got {p_init.shape}")
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    if np.isfinite(p_init[:, ~estimated]).any():
+        raise ValueError("p_init must be finite on every frame of a marker or NaN on all of them")
+    prob = _Problem(model, noise_level, fps, robust, robust_k)
+    dt = 1.0 / fps
+    d = prob.d
+    ms = np.flatnonzero(estimated)  # the state holds the estimated markers only
+    obs_all = _observations(rig, ideal, estimated).of_markers(estimated)
+    x = np.zeros((F, len(ms), d))
+    x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
+    if d == 6:
+        if v_init is None:
+            v_init = np.gradient(p_init, axis=0) * fps if F > 1 else np.zeros_like(p_init)
+        x[..., 3:] = v_init[:, ms] * dt
+    mu0 = np.zeros((len(ms), d))
+    mu0[:, :3] = p_init[0, ms]  # velocity prior mean 0
+
+    cost = prob.cost(x, mu0, obs_all)
+    lam = np.zeros(len(ms))
+    active = np.ones(len(ms), bool)
+    iters = np.zeros(len(ms), int)
+    converged = np.zeros(len(ms), bool)
+    diag = np.arange(d)
+    obs, cols, obs_cols = obs_all, np.arange(len(ms)), len(ms)
+    for _ in range(max_iterations):
+        if not active.any():
+            break
+        # converged markers drop out: solve only the active ones (most converge in a few iterations)
+        act = np.flatnonzero(active)
+        if len(act) < obs_cols:  # shrink the observation set along with the active markers
+            obs = obs.of_markers(active[cols])
+            cols, obs_cols = act, len(act)
+        xa = x[:, act]
+        D, g = prob.linearize(xa, mu0[act], obs, irls=False)
+        D[..., diag, diag] *= 1.0 + lam[act][None, :, None]
+        dx = _solve(D, prob.B, -g)
+        cost_new = prob.cost(xa + dx, mu0[act], obs)
+        ok = cost_new <= cost[act]
+        step = np.abs(dx).max(axis=(0, 2))
+        rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
+        x[:, act[ok]] = xa[:, ok] + dx[:, ok]
+        stuck = lam[act] > 1e12
+        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | stuck
+        converged[act] = done & ~stuck
+        iters[act] += 1
+        cost[act] = np.where(ok, cost_new, cost[act])
+        lam[act] = np.where(ok, np.where(lam[act] > 1e-9, lam[act] / 10, 0.0), np.maximum(lam[act] * 10, 1e-6))
+        active[act] = ~done
+
+    D, _ = prob.linearize(x, mu0, obs_all, irls=True)
+    Sigma_e, logdet_e = marginals(D, prob.B)
+    if d == 6:  # back to the spec's variables: v = x_v / dt, so H_v = H_x dt^2 per velocity axis
+        logdet_e = logdet_e + 2 * 3 * F * np.log(dt)
+    x_all = np.full((F, M, d), np.nan)
+    x_all[:, ms] = x
+    Sigma = np.full((F, M, d, d), np.nan)
+    Sigma[:, ms] = Sigma_e
+    x = x_all
+    xyz = x[..., :3]
+    cov = Sigma[..., :3, :3]
+    velocity = x[..., 3:] / dt if d == 6 else None
+
+    def per_marker(a, fill):
+        out = np.full(M, fill, dtype=np.asarray(a).dtype)
+        out[ms] = a
+        return out
+
+    info = {
+        "iterations": int(iters.max(initial=0)), "iterations_per_marker": per_marker(iters, 0),
+        "converged": per_marker(converged, False), "cost": float(cost.sum()),
+        "cost_per_marker": per_marker(cost, 0.0), "logdet": float(logdet_e.sum()),
+        "logdet_per_marker": per_marker(logdet_e, 0.0), "position": xyz, "velocity": velocity,
+        "estimated": estimated,
+    }
+    return xyz, cov, info
+
+
+def fit_markers(markers: np.ndarray, n_fit: int) -> np.ndarray:
+    """The markers the choice of q is fitted on: ``n_fit`` spread evenly over ``markers`` (int array).
+
+    Mirrors batgraph.graph.smoother.choose_accel_psd's subset so both paths choose the same q.
+    """
+    n_fit = min(n_fit, len(markers))
+    return markers[np.unique(np.linspace(0, len(markers) - 1, n_fit).round().astype(int))]
+
+
+def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                          markers: np.ndarray, fps: float, robust: str, robust_k: float,
+                          progress: bool = False) -> tuple[float, dict]:
+    """Maximum-marginal-likelihood q [m^2/s^3], batgraph.graph.noise's rule, scored with :func:`solve_fast`.
+
+    Same subset of markers, same search and the same warm starts as the GTSAM smoother's
+    choose_accel_psd; the score's cost and log det come from the fast solver (log det of the
+    Hessian in p [m], v [m/s], as batgraph.graph.smoother.posterior_logdet gives it).
+    """
+    from .smoother import FIT_MARKERS
+
+    fit = fit_markers(markers, FIT_MARKERS)
+    sub = IdealObservations(ideal.uv_px[:, :, fit], ideal.cov_px2[:, :, fit])
+    F = p_init.shape[0]
+    state = {"p": p_init[:, fit], "v": v_init[:, fit]}
+
+    def score(q: float) -> float:
+        _, _, info = solve_fast(rig, sub, p_init[:, fit], "constant_velocity", q, fps, robust, robust_k,
+                                v_init=state["v"], p_start=state["p"])
+        state["p"], state["v"] = info["position"], info["velocity"]
+        return noise.laplace_log_evidence(info["cost"], info["logdet"], q, 1.0 / fps, len(fit) * (F - 1))
+
+    q, trace = noise.maximise_log10(score, progress=progress)
+    return q, {"rule": "max Laplace marginal likelihood over log10 q in [0, 6] (grid + golden section)",
+               "fit_markers": [int(m) for m in fit],
+               "scores": [{"accel_psd_m2_s3": a, "log_evidence": s} for a, s in trace]}
+
+
+def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealObservations,
+                      options: Options) -> Estimate:
+    """The ``smoother`` method on the fast path (fixed rig); same answer as the GTSAM batch smoother.
+
+    Falls back to batgraph.graph.smoother.run_smoother when any camera has a pose covariance.
+    """
+    if any(cam.pose_cov is not None for cam in session.rig):
+        from .smoother import run_smoother
+
+        return run_smoother(session, dense, ideal, options)
+    t0 = time.perf_counter()
+    model, sigma_m, q = noise.motion_choice(session, options)
+    tri, _ = triangulate_ideal(session.rig, ideal)
+    p_init, v_init, estimated = factors.initial_track(tri, session.fps)
+    figures: dict = {"solver": "fast", "motion_model": model, "robust": options.robust,
+                     "robust_k": options.robust_k}
+    C, F, M = ideal.seen.shape
+    if not estimated.any():  # nothing triangulated anywhere: every output is NaN
+        return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
+                        np.zeros((C, F, M), bool), time.perf_counter() - t0, figures)
+    if model == "random_walk":
+        level = figures["sigma_m"] = sigma_m
+    else:
+        if q is None:
+            q, figures["accel_psd_selection"] = choose_accel_psd_fast(
+                session.rig, ideal, p_init, v_init, np.flatnonzero(estimated), session.fps, options.robust,
+                options.robust_k, options.progress)
+        figures["accel_psd_source"] = "data" if "accel_psd_selection" in figures else "given"
+        level = figures["accel_psd_m2_s3"] = q
+    xyz, cov, info = solve_fast(session.rig, ideal, p_init, model, level, session.fps, options.robust,
+                                options.robust_k, v_init=v_init)
+    outlier = factors.outlier_flags(session.rig, ideal, xyz)
+    figures.update(iterations=info["iterations"], final_error=info["cost"], logdet=info["logdet"],
+                   markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
+    return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)
