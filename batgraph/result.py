@@ -14,6 +14,9 @@ class Options:
     motion_model: "constant_velocity" or "random_walk"; None = the session's [motion] model.
     robust: loss on projection factors: "huber", "cauchy" or "none".
     robust_k: loss threshold in whitened units (sigmas).
+    outlier_rejection: with a robust loss, the smoother first solves with a Cauchy loss from the
+        triangulated track and drops the observations that solution flags before its final solve
+        (batgraph.graph.smoother); ignored when robust is "none".
     accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
     progress: show progress bars.
     """
@@ -21,6 +24,7 @@ class Options:
     motion_model: str | None = None
     robust: str = "huber"
     robust_k: float = 2.0
+    outlier_rejection: bool = True
     accel_psd_m2_s3: float | None = None
     progress: bool = True
 

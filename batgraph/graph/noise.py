@@ -11,7 +11,9 @@ E = the graph's total cost at its optimum x* for this q, Lambda_post = its Gauss
 chain (the prior over a chain is x0 times one transition per step; the frame-0 gauge priors do not
 depend on q). The search is on log10 q over 1 .. 1e6 m^2/s^3: a grid at every decade, then golden
 section around the best grid point. The score itself is computed by the caller (a GTSAM graph in
-:mod:`batgraph.graph.smoother`), so any solver of the same cost can reuse this search.
+:mod:`batgraph.graph.smoother`), so any solver of the same cost can reuse this search. With outlier
+rejection the smoother scores only the observations its Cauchy cleaning step kept (mislabels
+inflated q: 26 instead of 20 on the simulated flight with 5 % of them).
 
 Rule for the filter, which must not see the future: the session/option value if given, else
 :func:`causal_accel_psd` from the motion config alone. This module does not build graphs.

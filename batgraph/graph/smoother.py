@@ -3,6 +3,30 @@
 Solves the project's cost spec with GTSAM (the reference every fast path is tested against); graph
 construction is in :mod:`batgraph.graph.factors`, the choice of the constant-velocity noise in
 :mod:`batgraph.graph.noise`. Uses every frame, past and future, so it bridges occlusion gaps.
+
+Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast path must follow it):
+
+1. Cleaning: minimise the cost with the Cauchy loss (threshold ``robust_k``) from the initial track
+   (p_init, v_init) at q0 = the given q, else :func:`batgraph.graph.noise.causal_accel_psd` (the
+   random walk uses its sigma). The initial track interpolates >= 2-view triangulations only, so a
+   mislabel that is a frame's only observation does not attract it, and Cauchy's redescending
+   influence leaves it unfitted; Huber (bounded but not vanishing influence) would fit it whenever
+   the motion prior is cheaper to bend than k |r|, which corrupted single-view stretches and the
+   velocities that extrapolation relies on. (Huber first and Cauchy from the Huber solution does
+   not work: the Huber solution already sits in the mislabel's basin.)
+2. D = observations with |r|^2 > 25 (factors.REJECT_SQ_RESIDUAL, plain Gaussian whitening) at the
+   cleaning solution, kept in D only where its (frame, marker) is seen by one camera or has at
+   least one view not over 25 (:func:`batgraph.graph.factors.to_exclude`: a mislabel is a single
+   observation; a frame with every view rejected means the motion prior, not the data, is wrong).
+3. q (when not given): the marginal-likelihood search of :mod:`batgraph.graph.noise` with the chosen
+   loss on the observations not in D (outliers inflated it), warm-started from the cleaning solution.
+4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from the cleaning
+   solution; then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
+   REJECTION_ROUNDS solves in all), D = D' and re-solve warm. Covariances come from the last
+   solve's graph (D excluded); the outlier flags are, as always, |r|^2 > 13.8155 at the final
+   solution over all observations (so every excluded observation is flagged when the rounds converged).
+
+With ``robust="none"`` or rejection off, the answer is the single minimiser of the cost as before.
 """
 
 from __future__ import annotations
@@ -21,6 +45,8 @@ from .factors import MotionFactors, MotionModel, ObservationFactors
 
 MAX_ITERATIONS = 200
 FIT_MARKERS = 8  # markers used to choose q (evenly spread over the estimated ones); q is global
+CLEANING_LOSS = "cauchy"  # redescending: the loss of the rejection pre-solve (module docstring)
+REJECTION_ROUNDS = 3  # final solves at most, until the flagged set equals the excluded one
 
 
 # Why QR everywhere: GTSAM's Cholesky declares a clique indeterminate when the last two diagonal
@@ -82,20 +108,25 @@ def log_evidence(graph: gtsam.NonlinearFactorGraph, solution: gtsam.Values, q: f
 
 
 def choose_accel_psd(obs: ObservationFactors, p_init: np.ndarray, v_init: np.ndarray, markers: np.ndarray,
-                     dt_s: float, progress: bool = False) -> tuple[float, dict]:
+                     dt_s: float, progress: bool = False, start: gtsam.Values | None = None) -> tuple[float, dict]:
     """Maximum-marginal-likelihood q [m^2/s^3] on a subset of ``markers`` (noise.py's rule).
 
     The markers are independent given fixed cameras, so the evidence is a sum over markers and a
     spread subset (FIT_MARKERS, evenly over the index order) estimates the common q at a fraction
-    of the cost; with camera variables the subset is a sub-graph sharing the cameras. Each solve
-    is warm-started from the previous one. Returns (q, info for Estimate.info).
+    of the cost; with camera variables the subset is a sub-graph sharing the cameras. The first
+    solve starts from ``start`` (values holding at least the subset's p, v and the variable
+    cameras; default the initial track), each later one from the previous solution. The gauge
+    priors stay at p_init. Returns (q, info for Estimate.info).
     """
     n_fit = min(FIT_MARKERS, len(markers))
     fit = markers[np.unique(np.linspace(0, len(markers) - 1, n_fit).round().astype(int))]
     F = p_init.shape[0]
     base = factors.observation_graph(obs, fit, F)
     model0 = MotionModel("constant_velocity", dt_s, accel_psd_m2_s3=1.0)
-    state = {"values": factors.initial_values(obs, model0, p_init, v_init, fit)}
+    values = factors.initial_values(obs, model0, p_init, v_init, fit)
+    if start is not None:
+        values.update(_subset(start, values))
+    state = {"values": values}
 
     def score(q: float) -> float:
         graph = gtsam.NonlinearFactorGraph()
@@ -111,6 +142,42 @@ def choose_accel_psd(obs: ObservationFactors, p_init: np.ndarray, v_init: np.nda
                "scores": [{"accel_psd_m2_s3": a, "log_evidence": s} for a, s in trace]}
 
 
+def _subset(values: gtsam.Values, like: gtsam.Values) -> gtsam.Values:
+    """The entries of ``values`` at the keys of ``like``."""
+    out = gtsam.Values()
+    for key in like.keys():
+        if values.exists(key):
+            out.insert(key, values.atPoint3(key) if gtsam.Symbol(key).chr() != ord("c") else values.atPose3(key))
+    return out
+
+
+def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel, robust: str, robust_k: float,
+                p_init: np.ndarray, v_init: np.ndarray, markers: np.ndarray,
+                start: gtsam.Values | None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, ObservationFactors]:
+    """Minimise the cost on ``ideal``'s observations of ``markers`` from ``start`` (default the initial track).
+
+    Returns (graph, solution, iterations, its ObservationFactors).
+    """
+    F = p_init.shape[0]
+    obs = ObservationFactors(session.rig, ideal, robust, robust_k)
+    graph = factors.observation_graph(obs, markers, F)
+    graph.push_back(factors.motion_graph(MotionFactors(model), p_init, markers))
+    if start is None:
+        start = factors.initial_values(obs, model, p_init, v_init, markers)
+    solution, iterations = solve_batch(graph, start)
+    return graph, solution, iterations, obs
+
+
+def _flags(obs: ObservationFactors, ideal: IdealObservations, solution: gtsam.Values,
+           markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(outlier flags, rejected) (C, F, M) of every observation in ``ideal`` at ``solution``:
+    |r|^2 > 13.8155 (as factors.outlier_flags) and > 25 (as factors.rejected)."""
+    C, F, M = ideal.seen.shape
+    r2 = factors.whitened_sq_residuals(obs.solved_rig(solution), ideal, factors.positions(solution, markers, F, M))
+    r2 = np.nan_to_num(r2, nan=0.0)
+    return r2 > factors.CHI2_2DOF_999, r2 > factors.REJECT_SQ_RESIDUAL
+
+
 def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObservations,
                  options: Options) -> Estimate:
     """The ``smoother`` method: batch LM over every frame, marginal covariances, outlier flags.
@@ -118,6 +185,8 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     ideal: ideal pixels (C, F, M, 2) and covariances (C, F, M, 2, 2) of ``dense`` (batgraph.measurement).
     Returns Estimate(method="smoother"): xyz_m (F, M, 3), cov_m2 (F, M, 3, 3), NaN for markers never
     triangulated; outlier (C, F, M) where |r|^2 > 13.8155 at the solution (plain Gaussian whitening).
+    With a robust loss and ``options.outlier_rejection``, the solution is the final solve of the
+    rejection schedule (module docstring); the observations it left out are among the flagged ones.
     """
     t0 = time.perf_counter()
     C, F, M = ideal.seen.shape
@@ -126,30 +195,62 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     tri, _ = triangulate_ideal(session.rig, ideal)
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
-    obs = ObservationFactors(session.rig, ideal, options.robust, options.robust_k)
+    reject = options.outlier_rejection and options.robust != "none"
     info: dict = {"solver": "gtsam", "motion_model": model_name, "robust": options.robust,
-                  "robust_k": options.robust_k, "camera_variables": int(obs.variable.sum())}
+                  "robust_k": options.robust_k, "outlier_rejection": reject,
+                  "camera_variables": int(sum(c.pose_cov is not None for c in session.rig))}
     xyz = np.full((F, M, 3), np.nan)
     cov = np.full((F, M, 3, 3), np.nan)
     if len(markers) == 0:
         return Estimate("smoother", xyz, cov, np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
+
+    def motion(q_: float | None) -> MotionModel:
+        if model_name == "random_walk":
+            return MotionModel("random_walk", dt, sigma_m=sigma_m)
+        return MotionModel("constant_velocity", dt, accel_psd_m2_s3=q_)
+
+    excluded = np.zeros((C, F, M), bool)
+    start = None
+    if reject:  # steps 1-2: Cauchy from the initial track at q0, flags there
+        q0 = q if q is not None else noise.causal_accel_psd(session)
+        graph, start, iterations, obs = _solve_cost(session, ideal, motion(q0), CLEANING_LOSS, options.robust_k,
+                                                    p_init, v_init, markers, None)
+        excluded = factors.to_exclude(_flags(obs, ideal, start, markers)[1], ideal.seen)
+        info["cleaning"] = {"loss": CLEANING_LOSS, "robust_k": options.robust_k, "iterations": iterations,
+                            "n_flagged": int(excluded.sum())}
+        if model_name == "constant_velocity":
+            info["cleaning"]["accel_psd_m2_s3"] = q0
     if model_name == "random_walk":
-        model = MotionModel("random_walk", dt, sigma_m=sigma_m)
         info["sigma_m"] = sigma_m
+    elif q is None:  # step 3: q on the observations left
+        kept = ObservationFactors(session.rig, factors.without_observations(ideal, excluded), options.robust,
+                                  options.robust_k)
+        q, info["accel_psd_selection"] = choose_accel_psd(kept, p_init, v_init, markers, dt, options.progress, start)
+        info["accel_psd_source"] = "data"
     else:
-        if q is None:
-            q, info["accel_psd_selection"] = choose_accel_psd(obs, p_init, v_init, markers, dt, options.progress)
-            info["accel_psd_source"] = "data"
-        else:
-            info["accel_psd_source"] = "given"
-        model = MotionModel("constant_velocity", dt, accel_psd_m2_s3=q)
+        info["accel_psd_source"] = "given"
+    if model_name == "constant_velocity":
         info["accel_psd_m2_s3"] = q
-    graph = factors.observation_graph(obs, markers, F)
-    graph.push_back(factors.motion_graph(MotionFactors(model), p_init, markers))
-    solution, info["iterations"] = solve_batch(graph, factors.initial_values(obs, model, p_init, v_init, markers))
+    model = motion(q)
+    rounds = []
+    n_rounds = REJECTION_ROUNDS if reject else 1
+    for r in range(n_rounds):  # step 4: final solves until the flags are the excluded set
+        graph, solution, iterations, obs = _solve_cost(session, factors.without_observations(ideal, excluded),
+                                                       model, options.robust, options.robust_k, p_init, v_init,
+                                                       markers, start)
+        rounds.append(iterations)
+        outlier, again = _flags(obs, ideal, solution, markers)
+        again = factors.to_exclude(again, ideal.seen)
+        if r == n_rounds - 1 or (again == excluded).all():
+            break
+        excluded, start = again, solution
+    info["iterations"] = sum(rounds)
+    if reject:
+        info["iterations_per_round"] = rounds
+        info["rejected"] = int(excluded.sum())
+        info["rejection_converged"] = bool((again == excluded).all())
     info["final_error"] = float(graph.error(solution))
     xyz = factors.positions(solution, markers, F, M)
     keys = [factors.p_key(int(m), k) for k in range(F) for m in markers]
     cov[:, markers] = marginal_covariances(graph, solution, keys).reshape(F, len(markers), 3, 3)
-    outlier = factors.outlier_flags(obs.solved_rig(solution), ideal, xyz)
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, info)
