@@ -1,0 +1,328 @@
+"""Fast online filter for a fixed rig: per-marker iterated (Gauss-Newton) Kalman updates, vectorised across markers.
+
+It answers what the iSAM2 filter (:mod:`batgraph.graph.filter`) answers after each frame k: each
+marker's latest state given frames <= k, with the same factors (projections to ideal pixels with the
+mapped noise and GTSAM's robust losses, the filter's motion model and noise, the weak priors at the
+joining frame), the same joining rule (a marker joins at its first frame with a finite triangulation,
+>= 2 views, and is NaN before), the same outlier gate (with a robust loss and
+``options.outlier_rejection``: up to GATE_ROUNDS times per frame, each marker's worst observation with
+|r|^2 > 13.8155 at the frame's estimate is removed and the frame re-solved, as filter._gate_frame
+does) and the same outlier flags. With fixed cameras the markers are independent, so each marker's
+filtering posterior is a Gaussian on its latest state: predict it with the motion model, then take the
+MAP under that Gaussian and frame k's observations (Levenberg-Marquardt per marker to convergence,
+robust losses as in GTSAM), covariance from the Gauss-Newton information with GTSAM's IRLS weights at
+the MAP. On a linear-Gaussian problem this is the Kalman filter, which iSAM2 equals exactly; on
+projections it differs from iSAM2 only in that iSAM2 also relinearises past states (and re-weights
+their robust factors) with later frames (tests/test_fast_filter.py measures it).
+Deliberately no camera uncertainty: a rig with any ``pose_cov`` goes to :func:`run_filter`.
+
+State per marker (as in batgraph.graph.fast): x = p [m] (random walk) or x = [p, u], u = v dt [m per
+frame] (constant velocity; factors.v_key's variable), so both halves share a unit.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..measurement import IdealObservations
+from ..motion import constant_velocity_Q
+from ..result import Estimate, Options
+from ..session import DenseObservations, Session
+from ..triangulate import triangulate_ideal
+from . import factors
+from .factors import MotionModel
+from .fast import _Observations, robust_loss
+
+MAX_ITERATIONS = 100  # per frame; measured 2-8 on the simulated flight (Huber, the loss's own curvature)
+STEP_TOL_M = 1e-10  # stop when a marker's largest step component is below this [m] (cost spec)
+REL_COST_TOL = 1e-15  # ... or its cost decreases by less than this, relatively (rounding level)
+
+
+def motion_matrices(model: MotionModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Transition A (d, d), process covariance Q (d, d) and the joining prior's covariance P0 (d, d).
+
+    In the filter's state (module docstring): random walk d = 3, A = I, Q = sigma_m^2 I,
+    P0 = (10 m)^2 I; constant velocity d = 6, A = [[I, I], [0, I]], Q = S Q(q, dt) S with
+    S = diag(I, dt I) (batgraph.motion.constant_velocity_Q in [p, v]), P0 = diag((10 m)^2 I, (10 m/s dt)^2 I).
+    """
+    if not model.has_velocity:
+        return np.eye(3), model.sigma_m**2 * np.eye(3), factors.PRIOR_POSITION_SIGMA_M**2 * np.eye(3)
+    dt = model.dt_s
+    S = np.diag([1.0] * 3 + [dt] * 3)
+    A = np.block([[np.eye(3), np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+    P0 = np.diag([factors.PRIOR_POSITION_SIGMA_M**2] * 3 + [(factors.PRIOR_VELOCITY_SIGMA_MPS * dt) ** 2] * 3)
+    return A, S @ constant_velocity_Q(model.accel_psd_m2_s3, dt) @ S, P0
+
+
+def predict(mean: np.ndarray, cov: np.ndarray, A: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One motion step of n markers: mean (n, d) -> A mean, cov (n, d, d) -> A cov A^T + Q."""
+    return mean @ A.T, A @ cov @ A.T + Q
+
+
+def _robust_curvature(d2: np.ndarray, robust: str, k: float) -> np.ndarray | None:
+    """a / |r|^2 of the robust loss's curvature ``w Jw^T (I - a r r^T / |r|^2) Jw`` (None for "none").
+
+    The same Newton-type term as batgraph.graph.fast's steps (a = 1 beyond Huber's k; Cauchy
+    a = min(1, 2|r|^2 / (k^2 + |r|^2)), clamped so the block stays PSD): quadratic convergence instead of
+    IRLS's linear rate, same gradient, same minimiser. Covariances never use it (GTSAM's IRLS weights).
+    """
+    if robust == "none":
+        return None
+    kk = k * k
+    a = (d2 > kk).astype(float) if robust == "huber" else np.minimum(1.0, 2 * d2 / (kk + d2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(d2 > 0, a / d2, 0.0)
+
+
+def _blocks(n: int, rows, r: np.ndarray, Jw: np.ndarray, weight: np.ndarray,
+            a: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Sum of each marker's observation terms: gradient (n, 3) = sum w Jw^T r, and the 3x3 blocks (n, 3, 3)
+    sum w Jw^T Jw (minus the robust curvature term when ``a`` is given); one bincount per entry."""
+    Jr = Jw[0] * r[0] + Jw[1] * r[1]  # Jw^T r, (3, n_rows)
+    g = np.stack([np.bincount(rows.m, weights=weight * Jr[i], minlength=n) for i in range(3)], axis=-1).astype(float)
+    H = np.empty((n, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            Hij = Jw[0, i] * Jw[0, j] + Jw[1, i] * Jw[1, j]
+            if a is not None:
+                Hij = Hij - a * Jr[i] * Jr[j]
+            H[:, i, j] = H[:, j, i] = np.bincount(rows.m, weights=weight * Hij, minlength=n)
+    return g, H
+
+
+def iterated_update(mean: np.ndarray, cov: np.ndarray, rows, robust: str = "huber", robust_k: float = 2.0,
+                    p_start: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MAP of n markers' states under the prior N(mean, cov) and their observations, and its covariance.
+
+    mean: (n, d) [m] (d = 3: p; d = 6: [p, u = v dt]); cov: (n, d, d) [m^2].
+    rows: the observations, any object with ``m`` (n_rows,) int (the marker's row in ``mean``) and
+        ``residuals(x (1, n, 3), jacobian: bool) -> (r (2, n_rows), Jw (2, 3, n_rows) or None)``, the
+        whitened residuals L^-1 (h(p) - z) and their Jacobians in p [1/m] (batgraph.graph.fast's
+        projection rows; a linear h works too).
+    p_start: where the iteration starts, (n, 3) [m]; default the prior mean (iSAM2's predicted value).
+    Minimises 0.5 (p - mu_p)^T P_pp^-1 (p - mu_p) + sum rho(|r|) over p, per marker (Levenberg-Marquardt,
+    vectorised, each marker with its own damping) until its step is < 1e-10 m. Observations see p only,
+    so the rest of the state follows from the prior's conditional u | p: with G = P_up P_pp^-1,
+    u = mu_u + G (p - mu_p) and the joint covariance is [[S, S G^T], [G S, P_uu - G P_pu + G S G^T]],
+    S = (P_pp^-1 + sum w Jw^T Jw)^-1 with GTSAM's IRLS weights w at the MAP.
+    Returns mean (n, d), cov (n, d, d) and the iterations per marker (n,).
+    """
+    n, d = mean.shape
+    mu = mean[:, :3]
+    Ppp = cov[:, :3, :3]
+    Lp = np.linalg.inv(Ppp)
+
+    def evaluate(p: np.ndarray, rows_, ms: np.ndarray):  # markers ms at p (len(ms), 3): cost, r, Jw
+        r, Jw = rows_.residuals(p[None], jacobian=True)
+        rho, _ = robust_loss(r[0] * r[0] + r[1] * r[1], robust, robust_k)
+        e = p - mu[ms]
+        total = 0.5 * np.einsum("ni,nij,nj->n", e, Lp[ms], e) + np.bincount(rows_.m, weights=rho, minlength=len(ms))
+        return np.where(np.isnan(total), np.inf, total), r, Jw
+
+    p = (mu if p_start is None else p_start).copy()
+    # one residual + Jacobian pass per iteration: the trial point's Jacobians are kept for the next
+    # step when it is accepted (the usual case); r_all, J_all hold every row's at the current p
+    c, r_all, J_all = evaluate(p, rows, np.arange(n))
+    lam = np.zeros(n)
+    active = np.ones(n, bool)
+    newton = np.zeros(n, bool)  # take the robust loss's curvature (else IRLS) in this marker's next step
+    iterations = np.zeros(n, int)
+    diag = np.arange(3)
+    sub, cols, idx = rows, np.arange(n), np.arange(len(rows.m))  # active markers' rows (idx: into rows)
+    r, Jw = r_all, J_all
+    for _ in range(max_iterations):
+        if not active.any():
+            break
+        act = np.flatnonzero(active)
+        if len(act) < len(cols):  # converged markers drop out (most converge in a few iterations)
+            keep = active[cols][sub.m]
+            sub, cols, idx = sub.of_markers(active[cols]), act, idx[keep]
+            r, Jw = r[:, keep], Jw[:, :, keep]
+        pa = p[act]
+        d2 = r[0] * r[0] + r[1] * r[1]
+        _, w = robust_loss(d2, robust, robust_k)
+        a = _robust_curvature(d2, robust, robust_k)
+        g, H = _blocks(len(act), sub, r, Jw, w, None if a is None else a * newton[act][sub.m])
+        g += (Lp[act] @ (pa - mu[act])[..., None])[..., 0]
+        H += Lp[act]
+        H[:, diag, diag] *= 1.0 + lam[act, None]
+        dp = -np.linalg.solve(H, g[..., None])[..., 0]
+        c_new, r_new, J_new = evaluate(pa + dp, sub, act)
+        ok = c_new <= c[act]
+        step = np.abs(dp).max(axis=1)
+        rel = (c[act] - c_new) / np.maximum(c[act], np.finfo(float).tiny)
+        p[act[ok]] = pa[ok] + dp[ok]
+        row_ok = ok[sub.m]
+        r, Jw = np.where(row_ok, r_new, r), np.where(row_ok, J_new, Jw)
+        r_all[:, idx], J_all[:, :, idx] = r, Jw
+        stuck = lam[act] > 1e12
+        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | stuck
+        iterations[act] += 1
+        c[act] = np.where(ok, c_new, c[act])
+        # far from the minimum (e.g. most residuals beyond Huber's k at the prediction) the curvature
+        # step can overshoot: a rejected curvature step is retried as an IRLS step before damping grows
+        retry = ~ok & newton[act]
+        lam[act] = np.where(ok, np.where(lam[act] > 1e-9, lam[act] / 10, 0.0),
+                            np.where(retry, lam[act], np.maximum(lam[act] * 10, 1e-6)))
+        newton[act] = ok
+        active[act] = ~done
+    r, Jw = r_all, J_all
+    _, w = robust_loss(r[0] * r[0] + r[1] * r[1], robust, robust_k)
+    S = np.linalg.inv(Lp + _blocks(n, rows, r, Jw, w, None)[1])
+    S = 0.5 * (S + np.swapaxes(S, -1, -2))
+    out_mean = mean.copy()
+    out_cov = np.empty_like(cov)
+    out_mean[:, :3] = p
+    out_cov[:, :3, :3] = S
+    if d > 3:
+        G = cov[:, 3:, :3] @ Lp  # (n, 3, 3)
+        GS = G @ S
+        out_mean[:, 3:] += (G @ (p - mu)[..., None])[..., 0]
+        out_cov[:, 3:, :3] = GS
+        out_cov[:, :3, 3:] = np.swapaxes(GS, -1, -2)
+        Puu = cov[:, 3:, 3:] - G @ cov[:, :3, 3:] + GS @ np.swapaxes(G, -1, -2)
+        out_cov[:, 3:, 3:] = 0.5 * (Puu + np.swapaxes(Puu, -1, -2))
+    return out_mean, out_cov, iterations
+
+
+def _take(rows: _Observations, idx: np.ndarray) -> _Observations:
+    """The rows ``idx`` (int array) of ``rows``."""
+    return _Observations(rows.f[idx], rows.m[idx], rows.P[:, :, idx], rows.uv[:, idx], rows.Linv[:, idx],
+                         rows.behind_px[idx])
+
+
+def worst_outliers(rows: _Observations, p: np.ndarray) -> np.ndarray:
+    """Per marker, its observation with the largest |r|^2 > 13.8155 at p (n, 3): row indices, int array.
+
+    |r|^2 with the plain Gaussian whitening (factors.whitened_sq_residuals); a point behind the camera
+    has no projection there (NaN, never flagged), so neither here. The filter's gate
+    (batgraph.graph.filter._gate_frame) removes these, one per marker and round.
+    """
+    r, _ = rows.residuals(p[None], jacobian=False)
+    q = p[rows.m]  # (n_rows, 3)
+    depth = rows.P[2, 0] * q[:, 0] + rows.P[2, 1] * q[:, 1] + rows.P[2, 2] * q[:, 2] + rows.P[2, 3]
+    d2 = r[0] * r[0] + r[1] * r[1]
+    bad = np.flatnonzero((depth > 0) & (d2 > factors.CHI2_2DOF_999))
+    order = bad[np.lexsort((d2[bad], rows.m[bad]))]  # by marker, then ascending |r|^2
+    return order[np.r_[rows.m[order][1:] != rows.m[order][:-1], True]] if len(order) else order  # each one's last
+
+
+def frame_rows(rig, ideal: IdealObservations, join: np.ndarray) -> _Observations:
+    """Every observation of a marker from its joining frame ``join`` (M,) on, as batgraph.graph.fast's
+    projection rows sorted by frame (so each frame's rows are one contiguous slice); ``m`` is the marker.
+
+    Same rows as fast._observations (P = K [R | t], ideal pixels, whitening L^-1 of chol(cov_px2) as
+    (a, b, c), GTSAM's behind-camera residual 2 fx), built frame-major with a closed-form 2x2 Cholesky
+    and np.take (a fancy index over the last axis of (3, 4, n) copies strided memory, 10x slower).
+    """
+    F = ideal.seen.shape[1]
+    use = ideal.seen & (join >= 0) & (np.arange(F)[:, None] >= join)  # (C, F, M)
+    f, c, m = np.nonzero(use.transpose(1, 0, 2))
+    P = np.take(np.stack([cam.P for cam in rig], axis=-1), c, axis=2)  # (3, 4, n)
+    S = ideal.cov_px2[c, f, m]  # (n, 2, 2)
+    a = np.sqrt(S[:, 0, 0])
+    b = S[:, 1, 0] / a
+    d = np.sqrt(S[:, 1, 1] - b * b)
+    uv = ideal.uv_px[c, f, m]
+    behind = np.array([2.0 * cam.K[0, 0] for cam in rig])[c]
+    return _Observations(f, m, P, np.stack([uv[:, 0], uv[:, 1]]), np.stack([1 / a, -b / (a * d), 1 / d]), behind)
+
+
+def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
+    """Each marker's joining frame index (M,) int (-1: never joins) and its triangulation there (M, 3) [m].
+
+    The filter's rule: the first frame whose triangulation (batgraph.triangulate.triangulate_ideal) is
+    finite; only the candidate frames are triangulated (a point's DLT does not depend on the others').
+    """
+    multi = ideal.seen.sum(axis=0) >= 2  # (F, M): where a triangulation can be finite
+    M = multi.shape[1]
+    join = np.full(M, -1)
+    tri = np.full((M, 3), np.nan)
+    todo = multi.any(axis=0)
+    while todo.any():
+        ms = np.flatnonzero(todo)
+        ks = multi[:, ms].argmax(axis=0)
+        sub = IdealObservations(ideal.uv_px[:, ks, ms][:, None], ideal.cov_px2[:, ks, ms][:, None])
+        xyz = triangulate_ideal(rig, sub)[0][0]  # (n, 3)
+        ok = np.isfinite(xyz).all(axis=-1)
+        join[ms[ok]], tri[ms[ok]] = ks[ok], xyz[ok]
+        multi[ks[~ok], ms[~ok]] = False  # degenerate DLT: try the marker's next multi-view frame
+        todo[ms[ok]] = False
+        todo &= multi.any(axis=0)
+    return join, tri
+
+
+def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,
+                    on_frame: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> Estimate:
+    """The ``filter`` method on the fast path (fixed rig); the iSAM2 filter's answer, frame by frame.
+
+    ideal: ideal pixels (C, F, M, 2) and covariances (C, F, M, 2, 2) (batgraph.measurement).
+    on_frame(k_index, xyz (M, 3) [m], cov (M, 3, 3) [m^2]): called after each frame's update, NaN for
+        markers that have not joined (as batgraph.graph.filter.run_filter).
+    Returns Estimate(method="filter"): xyz_m (F, M, 3), cov_m2 (F, M, 3, 3) right after frame k's update;
+    outlier (C, F, M) from those per-frame estimates (|r|^2 > 13.8155, plain Gaussian whitening).
+    Falls back to run_filter (iSAM2) when any camera has a pose covariance.
+    """
+    from .filter import GATE_ROUNDS, filter_motion, run_filter
+
+    if any(cam.pose_cov is not None for cam in session.rig):
+        return run_filter(session, dense, ideal, options, on_frame)
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    C, F, M = ideal.seen.shape
+    model, info = filter_motion(session, options)
+    A, Q, P0 = motion_matrices(model)
+    d = A.shape[0]
+    join, tri = join_frames(session.rig, ideal)
+    obs = frame_rows(session.rig, ideal, join)
+    bounds = np.searchsorted(obs.f, np.arange(F + 1))
+    mean, cov = np.zeros((M, d)), np.zeros((M, d, d))
+    xyz = np.full((F, M, 3), np.nan)
+    cov_out = np.full((F, M, 3, 3), np.nan)
+    col = np.zeros(M, int)  # marker -> its row among the active markers of the current frame
+    iterations = 0
+    gate = options.outlier_rejection and options.robust != "none"
+    n_gated = 0
+    for k in tqdm(range(F), desc="filter (fast)", disable=not options.progress, leave=False):
+        old = np.flatnonzero((join >= 0) & (join < k))
+        mean[old], cov[old] = predict(mean[old], cov[old], A, Q)
+        new = np.flatnonzero(join == k)
+        mean[new] = 0.0
+        mean[new, :3] = tri[new]
+        cov[new] = P0
+        act = np.flatnonzero((join >= 0) & (join <= k))
+        if len(act):
+            col[act] = np.arange(len(act))
+            a, b = bounds[k], bounds[k + 1]
+            rows = _Observations(np.zeros(b - a, int), col[obs.m[a:b]], obs.P[:, :, a:b], obs.uv[:, a:b],
+                                 obs.Linv[:, a:b], obs.behind_px[a:b])
+            prior = mean[act], cov[act]
+            mean[act], cov[act], it = iterated_update(*prior, rows, options.robust, options.robust_k)
+            iterations = max(iterations, int(it.max()))
+            for _ in range(GATE_ROUNDS if gate else 0):  # the iSAM2 filter's outlier gate, frame k's data only
+                drop = worst_outliers(rows, mean[act, :3])
+                if not len(drop):
+                    break
+                hit = np.zeros(len(act), bool)
+                hit[rows.m[drop]] = True  # only these markers' problems changed: re-solve them, warm-started
+                keep = np.ones(len(rows.m), bool)
+                keep[drop] = False
+                rows = _take(rows, np.flatnonzero(keep))
+                ms = act[hit]
+                mean[ms], cov[ms], _ = iterated_update(prior[0][hit], prior[1][hit], rows.of_markers(hit),
+                                                       options.robust, options.robust_k, p_start=mean[ms, :3])
+                n_gated += len(drop)
+            xyz[k, act] = mean[act, :3]
+            cov_out[k, act] = cov[act, :3, :3]
+        if on_frame is not None:
+            on_frame(k, xyz[k], cov_out[k])
+    outlier = factors.outlier_flags(session.rig, ideal, xyz)
+    info.update({"solver": "fast", "motion_model": model.name, "robust": options.robust,
+                 "robust_k": options.robust_k, "camera_variables": 0, "max_iterations_per_frame": iterations,
+                 "outlier_rejection": gate, "gated": n_gated,
+                 "cpu_s": time.process_time() - cpu0})
+    return Estimate("filter", xyz, cov_out, outlier, time.perf_counter() - t0, info)
