@@ -1,0 +1,277 @@
+"""Tests of batgraph.report: mm-at-depth and truth metrics on exact cases, and the HTML's structure.
+
+The scene is built by hand (cameras from camera.py, a few markers moving like a flapping wing, a
+few occlusion gaps); the methods' trajectories are truth plus seeded noise, so the report's numbers
+can be checked against what went in.
+"""
+
+from __future__ import annotations
+
+import base64
+import re
+from html.parser import HTMLParser
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+
+from batgraph.camera import Camera, Rig
+from batgraph.report import (
+    CHI2_3DOF_95,
+    camera_error_stats,
+    point_errors,
+    render_report,
+    reprojection_in_mm,
+    status_metrics,
+    write_report,
+)
+from batgraph.session import Session
+
+MARKERS = ["body2", "shoulder_r", "elbow_r", "wrist_r", "digit3_r", "tail"]
+
+
+def look_at_camera(name: str, centre: np.ndarray, target=(0.0, 0.0, 0.0), f_px: float = 1000.0,
+                   size_wh=(1280, 720)) -> Camera:
+    """A distortion-free camera at ``centre`` [m, world] looking at ``target``; world z is up."""
+    fwd = np.asarray(target, float) - centre
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])  # rows: camera axes in world (x right, y down, z forward)
+    K = [[f_px, 0, size_wh[0] / 2 - 0.5], [0, f_px, size_wh[1] / 2 - 0.5], [0, 0, 1]]
+    return Camera(name, size_wh, K, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=-R @ centre)
+
+
+def make_scene(n_cams=3, n_frames=48, markers=MARKERS, fps=120.0, methods=("smoother", "ekf", "ukf"),
+               seed=0, name="flight_test"):
+    """A session plus trajectories/reprojection tables as the pipeline would hand them to the report.
+
+    Markers: a body moving along -x at 3 m/s and wing points flapping at 4 Hz. Occlusion: wrist_r is
+    seen by one camera on frames 10-17 and by none on 18-25. Each method = truth + N(0, sigma) with
+    its own sigma and its covariance set to sigma^2 I; triangulate has no estimate off 2+ views.
+    """
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, n_cams, endpoint=False)
+    rig = Rig([look_at_camera(f"cam{i + 1}", np.array([3 * np.cos(a), 3 * np.sin(a), 0.8]))
+               for i, a in enumerate(ang)])
+    frames = np.arange(n_frames)
+    t = frames / fps
+    M = len(markers)
+    span = np.linspace(0, 0.25, M)  # distance of each marker from the body along the wing [m]
+    flap = np.sin(2 * np.pi * 4.0 * t)[:, None] * span[None, :] * 0.8
+    xyz = np.stack([np.broadcast_to(0.2 - 3.0 * t[:, None], (n_frames, M)) + 0.01 * np.arange(M),
+                    np.broadcast_to(-span, (n_frames, M)), flap], axis=-1)  # (F, M, 3) [m]
+    truth = pd.DataFrame({"frame": np.repeat(frames, M), "marker": np.tile(markers, n_frames),
+                          "x": xyz[..., 0].ravel(), "y": xyz[..., 1].ravel(), "z": xyz[..., 2].ravel()})
+    uv = rig.project(xyz)  # (C, F, M, 2)
+    seen = np.isfinite(uv[..., 0])
+    if "wrist_r" in markers:
+        j = markers.index("wrist_r")
+        seen[1:, 10:18, j] = False
+        seen[:, 18:26, j] = False
+    uv_obs = uv + rng.normal(0, 0.5, uv.shape)
+    c_i, f_i, m_i = np.nonzero(seen)
+    obs = pd.DataFrame({"frame": frames[f_i], "camera": np.array(rig.names)[c_i],
+                        "marker": np.array(markers)[m_i], "u": uv_obs[c_i, f_i, m_i, 0],
+                        "v": uv_obs[c_i, f_i, m_i, 1], "weight": 1.0})
+    n_views = seen.sum(axis=0)
+    status = np.where(n_views >= 2, "observed", np.where(n_views == 1, "single_view", "unobserved"))
+    trajs, reps = [], []
+    for k, m in enumerate(methods):
+        sigma = (0.002 + 0.001 * k) * np.where(status == "observed", 1.0, 4.0)  # (F, M) [m]
+        est = xyz + rng.normal(size=xyz.shape) * sigma[..., None]
+        if m == "triangulate":
+            est[n_views < 2] = np.nan
+        var = np.where(np.isfinite(est[..., 0]), sigma**2, np.nan)
+        trajs.append(pd.DataFrame({
+            "method": m, "frame": np.repeat(frames, M), "time_s": np.repeat(t, M),
+            "marker": np.tile(markers, n_frames), "x": est[..., 0].ravel(), "y": est[..., 1].ravel(),
+            "z": est[..., 2].ravel(), "cov_xx": var.ravel(), "cov_xy": 0.0, "cov_xz": 0.0,
+            "cov_yy": var.ravel(), "cov_yz": 0.0, "cov_zz": var.ravel(), "n_views": n_views.ravel(),
+            "status": status.ravel()}))
+        uv_hat = rig.project(est)[c_i, f_i, m_i]
+        rep = obs[["frame", "camera", "marker", "u", "v"]].assign(
+            method=m, u_hat=uv_hat[:, 0], v_hat=uv_hat[:, 1])
+        rep["err_px"] = np.hypot(rep["u_hat"] - rep["u"], rep["v_hat"] - rep["v"])
+        rep["outlier"] = False
+        rep.loc[rep.index[:2], "outlier"] = True
+        reps.append(rep)
+    session = Session(name=name, fps=fps, rig=rig, observations=obs, marker_names=list(markers),
+                      skeleton=list(zip(markers[:-1], markers[1:], strict=True)), truth=truth)
+    summary = {"session": name, "methods": {m: {"runtime_s": 0.1 * (k + 1)} for k, m in enumerate(methods)}}
+    return session, pd.concat(trajs, ignore_index=True), pd.concat(reps, ignore_index=True), summary
+
+
+class _Collector(HTMLParser):
+    """Collects images, links, sections, table rows (as lists of cell texts) from the report."""
+
+    def __init__(self):
+        super().__init__()
+        self.imgs, self.hrefs, self.srcs, self.sections, self.tables = [], [], [], [], []
+        self._row, self._cell, self._depth = None, None, 0
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.imgs.append(a.get("src", ""))
+        if "src" in a:
+            self.srcs.append(a["src"])
+        if "href" in a:
+            self.hrefs.append(a["href"])
+        if tag == "section":
+            self.sections.append(a.get("id"))
+        if tag == "table":
+            self.tables.append((a.get("class"), []))
+        if tag == "tr":
+            self._row = []
+        if tag in ("td", "th"):
+            self._cell = []
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._row is not None:
+            self._row.append("".join(self._cell or []).strip())
+            self._cell = None
+        if tag == "tr" and self._row is not None:
+            self.tables[-1][1].append(self._row)
+            self._row = None
+
+
+def parse(text: str) -> _Collector:
+    p = _Collector()
+    p.feed(text)
+    return p
+
+
+def table(p: _Collector, cls: str) -> list[list[str]]:
+    rows = [rows for c, rows in p.tables if c == cls]
+    assert len(rows) == 1, f"expected one table of class {cls!r}"
+    return rows[0]
+
+
+# ----------------------------------------------------------------------------------------------
+def test_mm_at_depth_is_exact_on_the_optical_axis():
+    """A point 2 m in front of an f = 1000 px camera: 1 px = 2 mm, so 5 px (3, 4) -> 10 mm (6, 8)."""
+    cam = Camera("c", (1280, 720), [[1000, 0, 640], [0, 1000, 360], [0, 0, 1]])
+    rig = Rig([cam])
+    traj = pd.DataFrame({"method": ["a", "b"], "frame": [0, 0], "marker": ["m", "m"],
+                         "x": [0.0, np.nan], "y": [0.0, np.nan], "z": [2.0, np.nan]})
+    rep = pd.DataFrame({"method": ["a", "b", "a"], "frame": [0, 0, 0], "camera": ["c", "c", "nope"],
+                        "marker": ["m", "m", "m"], "u": [640.0, 640.0, 640.0], "v": [360.0] * 3,
+                        "u_hat": [643.0] * 3, "v_hat": [364.0] * 3, "err_px": [5.0] * 3, "outlier": False})
+    out = reprojection_in_mm(rep, traj, rig)
+    assert out["depth_m"].iloc[0] == pytest.approx(2.0, abs=1e-12)
+    assert out[["err_mm", "du_mm", "dv_mm"]].iloc[0].tolist() == pytest.approx([10.0, 6.0, 8.0], abs=1e-9)
+    # no estimate (method b) and a camera missing from the rig give NaN, not an exception
+    assert out["err_mm"].iloc[1:].isna().all()
+    stats = camera_error_stats(out).set_index(["method", "camera"])
+    assert stats.loc[("a", "c"), "mean_mm_at_depth"] == pytest.approx(10.0)
+    assert stats.loc[("a", "c"), "rms_px"] == pytest.approx(5.0)
+
+
+def test_truth_metrics_on_a_known_offset():
+    """Every estimate off by exactly 3 mm in x: RMSE = 3 mm; d^2 = (3/sigma)^2 is 9 for sigma = 1 mm
+    (outside the 95 % ellipsoid, 7.815) and 2.25 for sigma = 2 mm (inside); no tolerance needed
+    beyond float rounding."""
+    pts = pd.DataFrame({"frame": [0, 1, 2, 3], "marker": "m", "x": 0.0, "y": 0.0, "z": 1.0})
+    rows = []
+    for meth, sd in (("tight", 0.001), ("loose", 0.002)):
+        rows.append(pts.assign(method=meth, x=0.003, cov_xx=sd**2, cov_xy=0.0, cov_xz=0.0, cov_yy=sd**2,
+                               cov_yz=0.0, cov_zz=sd**2,
+                               status=["observed", "observed", "single_view", "unobserved"]))
+    traj = pd.concat(rows, ignore_index=True)
+    traj.loc[3, ["x", "y", "z"]] = np.nan  # one missing estimate is skipped, not counted as an error
+    err = point_errors(traj, pts)
+    assert len(err) == 7
+    assert err["d2"].to_numpy() == pytest.approx(np.where(err["method"] == "tight", 9.0, 2.25))
+    assert 9.0 > CHI2_3DOF_95 > 2.25
+    m = status_metrics(err).set_index(["method", "status"])
+    assert m["rmse_m"].to_numpy() == pytest.approx(0.003)
+    assert m.loc[("tight", "all"), "coverage95"] == 0.0
+    assert m.loc[("loose", "all"), "coverage95"] == 1.0
+    assert m.loc[("tight", "all"), "n"] == 3 and m.loc[("loose", "all"), "n"] == 4
+    assert m.loc[("loose", "observed"), "n"] == 2
+
+
+def test_full_report_has_every_section_and_is_self_contained(tmp_path):
+    """Truth and a reference present: 6 figures, per-camera rows, paper figures, no external links."""
+    session, traj, rep, summary = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
+    session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)  # a DLTdv-like reference
+    path = write_report(tmp_path / "out" / "report.html", session, traj, rep, summary)
+    text = path.read_text(encoding="utf-8")
+    assert list(tmp_path.joinpath("out").iterdir()) == [path]  # atomic: no temporary left behind
+    p = parse(text)
+    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table", "truth",
+                          "reference"]
+    assert len(p.imgs) == 6
+    for src in p.imgs:
+        assert src.startswith("data:image/png;base64,")
+        png = base64.b64decode(src.split(",", 1)[1])
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    # self-contained: only embedded data and in-page anchors
+    assert all(s.startswith("data:") for s in p.srcs)
+    assert all(h.startswith("#") for h in p.hrefs)
+    assert not re.search(r"<(script|link|iframe)\b", text, re.I)
+    assert not re.search(r"(https?:)?//[a-z]", re.sub(r"data:[^\"]+", "", text), re.I)
+
+    cams = table(p, "cameras")
+    header, body = cams[0], cams[1:]
+    assert "mean [mm at depth]" in header and "paper (published)" in header
+    cam_rows = [r for r in body if r[0] in session.rig.names]  # first row of each camera's group
+    assert [r[0] for r in cam_rows] == session.rig.names
+    assert len(body) == 3 * 4  # every (camera, method) pair
+    assert cam_rows[0][-1] == "< 3 mm" and all(r[-1] == "< 20 mm" for r in cam_rows[1:])
+    # the computed pixel statistics match the table built from the same rows
+    stats = camera_error_stats(reprojection_in_mm(rep, traj, session.rig)).set_index(["camera", "method"])
+    assert cam_rows[0][2] == f"{stats.loc[('cam1', 'smoother'), 'n']}"
+    assert cam_rows[0][4] == f"{stats.loc[('cam1', 'smoother'), 'mean_px']:.2f}"
+    paper = table(p, "paper")
+    assert any("< 20 mm" in c for r in paper for c in r) and any("within 1 mm" in c for r in paper for c in r)
+
+    status_tables = [rows for c, rows in p.tables if c == "status"]
+    assert len(status_tables) == 2
+    truth_rows = {r[0]: r for r in status_tables[0][1:]}
+    assert set(truth_rows) == {"smoother", "ekf", "ukf", "triangulate"}
+    err = point_errors(traj, session.truth)
+    ref = status_metrics(err).set_index(["method", "status"])
+    assert truth_rows["smoother"][2] == f"{ref.loc[('smoother', 'all'), 'rmse_m'] * 1000:.2f}"
+    # triangulate has no estimate without 2 views, so its unobserved cell is empty
+    assert truth_rows["triangulate"][-3] == "0"
+    ref_rows = {r[0]: r for r in status_tables[1][1:]}
+    assert ref_rows["ekf"][0] == "ekf" and ref_rows["ekf"][1] == str(len(err[err["method"] == "ekf"]))
+
+
+def test_report_without_truth_or_reference_omits_those_sections(tmp_path):
+    """No truth, no reference, an empty summary and a method with no estimate at all still render."""
+    session, traj, rep, _ = make_scene(n_cams=2, methods=("filter", "triangulate"), name="ear_session")
+    session.truth = None
+    traj.loc[traj["method"] == "triangulate", ["x", "y", "z"]] = np.nan
+    rep = rep[rep["method"] == "filter"]
+    text = write_report(tmp_path / "report.html", session, traj, rep, {}).read_text(encoding="utf-8")
+    p = parse(text)
+    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table"]
+    assert len(p.imgs) == 4
+    assert "Errors against truth" not in text and "reference reconstruction" not in text.split("</nav>")[0]
+    cams = table(p, "cameras")[1:]
+    assert [r[0] for r in cams] == ["cam1", "cam2"] and all(r[-1] == "≤ 5 px (≈ 2 mm)" for r in cams)
+    runs = {r[0]: r for r in table(p, "runs")[1:]}
+    assert runs["triangulate"][1] == "–" and runs["triangulate"][2].startswith("0 / ")
+
+
+def test_summary_values_take_precedence(tmp_path):
+    """Numbers present in summary.json are shown as given; missing ones are computed."""
+    session, traj, rep, summary = make_scene(methods=("smoother", "ukf"))
+    summary["methods"]["smoother"]["reprojection"] = {"cam2": {"mean_px": 123.456}}
+    summary["methods"]["ukf"]["truth"] = {"rmse_m": {"all": 0.04321}, "coverage95": {"observed": 0.5}}
+    p = parse(render_report(session, traj, rep, summary))
+    cams = table(p, "cameras")[1:]
+    row = next(i for i, r in enumerate(cams) if r[0] == "cam2")
+    assert cams[row][1] == "smoother" and cams[row][4] == "123.46"
+    assert cams[row][5] != "–"  # median not in the summary: computed
+    truth = {r[0]: r for r in table(p, "status")[1:]}
+    assert truth["ukf"][2] == "43.21" and truth["ukf"][6] == "50.0 %"
