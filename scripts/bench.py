@@ -244,7 +244,7 @@ def bench_filter(session: Session, dense, ideal: IdealObservations, repeats: int
               f"{', '.join(f'{x:.2f}' for x in times)}); CPU {fast_est.info['cpu_s']:.2f} s")
         rows.append((f"fast filter: {M} markers, {F} frames", f"{F / t:.0f} fr/s",
                      f"median of {repeats} ({', '.join(f'{F / x:.0f}' for x in times)}); {cpu:.0f} fr/s by CPU "
-                     f"time; goal >= 120; {fast_est.info['gated']} gated"))
+                     f"time; goal >= 120"))
         s5 = simulate_flight(np.random.default_rng(0), n_cameras=5, n_frames=F)
         d5 = dense_observations(s5)
         i5 = ideal_observations(s5.rig, d5, s5.pixel_sigma_px)

@@ -4,11 +4,8 @@ It answers what the iSAM2 filter (:mod:`batgraph.graph.filter`) answers after ea
 marker's latest state given frames <= k, with the same factors (projections to ideal pixels with the
 mapped noise and GTSAM's robust losses, the filter's motion model and noise, the weak priors at the
 joining frame), the same joining rule (a marker joins at its first frame with a finite triangulation,
->= 2 views, and is NaN before), the same outlier gate (with a robust loss and
-``options.outlier_rejection``: up to GATE_ROUNDS times per frame, each marker's worst observation with
-|r|^2 > 13.8155 at the frame's estimate is removed and the frame re-solved, as filter._gate_frame
-does) and the same outlier flags. With fixed cameras the markers are independent, so each marker's
-filtering posterior is a Gaussian on its latest state: predict it with the motion model, then take the
+>= 2 views, and is NaN before) and the same outlier flags. With fixed cameras the markers are
+independent, so each marker's filtering posterior is a Gaussian on its latest state: predict it with the motion model, then take the
 MAP under that Gaussian and frame k's observations (Levenberg-Marquardt per marker to convergence,
 robust losses as in GTSAM), covariance from the Gauss-Newton information with GTSAM's IRLS weights at
 the MAP. On a linear-Gaussian problem this is the Kalman filter, which iSAM2 equals exactly; on
@@ -190,28 +187,6 @@ def iterated_update(mean: np.ndarray, cov: np.ndarray, rows, robust: str = "hube
     return out_mean, out_cov, iterations
 
 
-def _take(rows: _Observations, idx: np.ndarray) -> _Observations:
-    """The rows ``idx`` (int array) of ``rows``."""
-    return _Observations(rows.f[idx], rows.m[idx], rows.P[:, :, idx], rows.uv[:, idx], rows.Linv[:, idx],
-                         rows.behind_px[idx])
-
-
-def worst_outliers(rows: _Observations, p: np.ndarray) -> np.ndarray:
-    """Per marker, its observation with the largest |r|^2 > 13.8155 at p (n, 3): row indices, int array.
-
-    |r|^2 with the plain Gaussian whitening (factors.whitened_sq_residuals); a point behind the camera
-    has no projection there (NaN, never flagged), so neither here. The filter's gate
-    (batgraph.graph.filter._gate_frame) removes these, one per marker and round.
-    """
-    r, _ = rows.residuals(p[None], jacobian=False)
-    q = p[rows.m]  # (n_rows, 3)
-    depth = rows.P[2, 0] * q[:, 0] + rows.P[2, 1] * q[:, 1] + rows.P[2, 2] * q[:, 2] + rows.P[2, 3]
-    d2 = r[0] * r[0] + r[1] * r[1]
-    bad = np.flatnonzero((depth > 0) & (d2 > factors.CHI2_2DOF_999))
-    order = bad[np.lexsort((d2[bad], rows.m[bad]))]  # by marker, then ascending |r|^2
-    return order[np.r_[rows.m[order][1:] != rows.m[order][:-1], True]] if len(order) else order  # each one's last
-
-
 def frame_rows(rig, ideal: IdealObservations, join: np.ndarray) -> _Observations:
     """Every observation of a marker from its joining frame ``join`` (M,) on, as batgraph.graph.fast's
     projection rows sorted by frame (so each frame's rows are one contiguous slice); ``m`` is the marker.
@@ -268,7 +243,7 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
     outlier (C, F, M) from those per-frame estimates (|r|^2 > 13.8155, plain Gaussian whitening).
     Falls back to run_filter (iSAM2) when any camera has a pose covariance.
     """
-    from .filter import GATE_ROUNDS, filter_motion, run_filter
+    from .filter import filter_motion, run_filter
 
     if any(cam.pose_cov is not None for cam in session.rig):
         return run_filter(session, dense, ideal, options, on_frame)
@@ -285,8 +260,6 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
     cov_out = np.full((F, M, 3, 3), np.nan)
     col = np.zeros(M, int)  # marker -> its row among the active markers of the current frame
     iterations = 0
-    gate = options.outlier_rejection and options.robust != "none"
-    n_gated = 0
     for k in tqdm(range(F), desc="filter (fast)", disable=not options.progress, leave=False):
         old = np.flatnonzero((join >= 0) & (join < k))
         mean[old], cov[old] = predict(mean[old], cov[old], A, Q)
@@ -303,19 +276,6 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
             prior = mean[act], cov[act]
             mean[act], cov[act], it = iterated_update(*prior, rows, options.robust, options.robust_k)
             iterations = max(iterations, int(it.max()))
-            for _ in range(GATE_ROUNDS if gate else 0):  # the iSAM2 filter's outlier gate, frame k's data only
-                drop = worst_outliers(rows, mean[act, :3])
-                if not len(drop):
-                    break
-                hit = np.zeros(len(act), bool)
-                hit[rows.m[drop]] = True  # only these markers' problems changed: re-solve them, warm-started
-                keep = np.ones(len(rows.m), bool)
-                keep[drop] = False
-                rows = _take(rows, np.flatnonzero(keep))
-                ms = act[hit]
-                mean[ms], cov[ms], _ = iterated_update(prior[0][hit], prior[1][hit], rows.of_markers(hit),
-                                                       options.robust, options.robust_k, p_start=mean[ms, :3])
-                n_gated += len(drop)
             xyz[k, act] = mean[act, :3]
             cov_out[k, act] = cov[act, :3, :3]
         if on_frame is not None:
@@ -323,6 +283,5 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
     outlier = factors.outlier_flags(session.rig, ideal, xyz)
     info.update({"solver": "fast", "motion_model": model.name, "robust": options.robust,
                  "robust_k": options.robust_k, "camera_variables": 0, "max_iterations_per_frame": iterations,
-                 "outlier_rejection": gate, "gated": n_gated,
                  "cpu_s": time.process_time() - cpu0})
     return Estimate("filter", xyz, cov_out, outlier, time.perf_counter() - t0, info)
