@@ -1,12 +1,14 @@
-"""Fast online filter for a fixed rig: per-marker iterated (Gauss-Newton) Kalman updates, vectorised across markers.
+"""Fast online filter for a fixed rig: per-marker iterated (Gauss-Newton) Kalman updates, vectorised across
+markers.
 
 It answers what the iSAM2 filter (:mod:`batgraph.graph.filter`) answers after each frame k: each
 marker's latest state given frames <= k, with the same factors (projections to ideal pixels with the
 mapped noise and GTSAM's robust losses, the filter's motion model and noise, the weak priors at the
 joining frame), the same joining rule (a marker joins at its first frame with a finite triangulation,
 >= 2 views, and is NaN before) and the same outlier flags. With fixed cameras the markers are
-independent, so each marker's filtering posterior is a Gaussian on its latest state: predict it with the motion model, then take the
-MAP under that Gaussian and frame k's observations (Levenberg-Marquardt per marker to convergence,
+independent, so each marker's filtering posterior is a Gaussian on its latest state: predict it with
+the motion model, then take the MAP under that Gaussian and frame k's observations
+(Levenberg-Marquardt per marker to convergence,
 robust losses as in GTSAM), covariance from the Gauss-Newton information with GTSAM's IRLS weights at
 the MAP. On a linear-Gaussian problem this is the Kalman filter, which iSAM2 equals exactly; on
 projections it differs from iSAM2 only in that iSAM2 also relinearises past states (and re-weights
