@@ -36,6 +36,9 @@ def _add_reconstruct(sub):
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
                    help="robust loss on projection factors (default huber)")
     p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--solver", choices=["fast", "gtsam"], default="fast",
+                   help="smoother/filter solver: batgraph's vectorised per-marker solvers (fast, default; same "
+                        "problem, tested against GTSAM) or GTSAM's LM / iSAM2 directly (gtsam)")
     p.add_argument("--viewer", choices=["spawn", "save", "none"],
                    help="Rerun: stream the filter live to a viewer window and save recording.rrd (spawn, the "
                         "default with a display), only write recording.rrd (save, the default without one), or none")
@@ -73,7 +76,7 @@ def _cmd_reconstruct(args) -> int:
 
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet)
+                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet, solver=args.solver)
     batch = is_batch(args.sessions) or args.scheduler is not None
     viewer = args.viewer
     if viewer is None:

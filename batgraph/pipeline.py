@@ -27,14 +27,23 @@ DEFAULT_METHODS = ("smoother", "filter")
 ALL_METHODS = ("smoother", "filter", "ekf", "ukf", "triangulate")
 
 
-def _estimator(name: str) -> Callable:
-    """The run function of a method, imported lazily so that a slow import is paid only when used."""
+def _estimator(name: str, solver: str = "fast") -> Callable:
+    """The run function of a method, imported lazily so that a slow import is paid only when used.
+
+    solver: "fast" or "gtsam" for the smoother and filter (see Options.solver).
+    """
     if name == "smoother":
-        from .graph.smoother import run_smoother
-        return run_smoother
+        if solver == "gtsam":
+            from .graph.smoother import run_smoother
+            return run_smoother
+        from .graph.fast import run_smoother_fast
+        return run_smoother_fast
     if name == "filter":
-        from .graph.filter import run_filter
-        return run_filter
+        if solver == "gtsam":
+            from .graph.filter import run_filter
+            return run_filter
+        from .graph.fast_filter import run_filter_fast
+        return run_filter_fast
     if name == "ekf":
         from .filters.ekf import run_ekf
         return run_ekf
@@ -104,7 +113,7 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
     estimates, trajs, reprojs, per_method = {}, [], [], {}
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
-        run = _estimator(name)
+        run = _estimator(name, options.solver)
         t0 = time.perf_counter()
         extra = {"on_frame": live.update} if (live is not None and name == "filter") else {}
         est = run(session, dense, ideal, options, **extra)

@@ -19,6 +19,9 @@ class Options:
         (batgraph.graph.smoother); ignored when robust is "none".
     accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
     progress: show progress bars.
+    solver: "fast" (default) solves the smoother and filter with batgraph's vectorised per-marker
+        solvers when every camera is fixed (they solve the GTSAM graph's problem and are tested against
+        it); "gtsam" always uses GTSAM (LM / iSAM2) directly. Cameras with pose covariances always use GTSAM.
     """
 
     motion_model: str | None = None
@@ -27,6 +30,7 @@ class Options:
     outlier_rejection: bool = True
     accel_psd_m2_s3: float | None = None
     progress: bool = True
+    solver: str = "fast"
 
 
 @dataclass
