@@ -632,10 +632,9 @@ def _metrics_table(metrics: pd.DataFrame, methods, with_coverage: bool) -> str:
         row = [(html.escape(m), 'class="l"')]
         for st in STATUSES:
             r = mi.loc[(m, st)] if (m, st) in mi.index else None
-            g = (lambda c, r=r: None if r is None else r.get(c))
-            row += [_fmt(g("n") if r is not None else 0, 0), _fmt(None if g("rmse_m") is None else g("rmse_m") * 1000)]
+            n, rmse, cov = (None, None, None) if r is None else (r.get("n"), r.get("rmse_m"), r.get("coverage95"))
+            row += [_fmt(n if r is not None else 0, 0), _fmt(None if rmse is None else rmse * 1000)]
             if with_coverage:
-                cov = g("coverage95")
                 row.append(_fmt(None if cov is None else 100 * cov, 1) + (" %" if _fmt(cov) != "–" else ""))
             else:
                 row += [_fmt(None if g("mean_m") is None else g("mean_m") * 1000),

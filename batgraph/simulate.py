@@ -225,7 +225,8 @@ def tunnel_rig(rng: np.random.Generator, n_cameras: int) -> Rig:
     for i in range(n):
         # lens slightly inside the wall; aimed at the axis a little toward the tunnel's middle so the
         # end cameras also cover the path beyond them
-        center = np.array([xs[i], 0.95 * TUNNEL_RADIUS_M * np.cos(angles[i]), 0.95 * TUNNEL_RADIUS_M * np.sin(angles[i])])
+        r = 0.95 * TUNNEL_RADIUS_M
+        center = np.array([xs[i], r * np.cos(angles[i]), r * np.sin(angles[i])])
         target = np.array([0.85 * xs[i], 0.0, 0.0])
         rvec, tvec = look_at(center, target, np.array([1.0, 0.0, 0.0]))
         f = GOPRO_F_PX * (1 + 0.01 * rng.standard_normal())

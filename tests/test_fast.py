@@ -341,9 +341,13 @@ def test_marginals_match_dense_inverse():
 
 def test_huber_downweights_planted_outliers(scene):
     """The two 40 px outliers of m2 are flagged (chi-square 2 DOF 99.9 %) and Huber keeps m2's track
-    closer to the other inliers than plain least squares does (its IRLS weight there is ~2/|r| << 1)."""
+    closer to the other inliers than plain least squares does (its IRLS weight there is ~2/|r| << 1).
+
+    Rejection off: this is Huber alone (with rejection this stiff random walk also excludes 12 inlier
+    views of m1 next to its gap, measured; the schedule is tested below)."""
     session, dense, ideal, p_init = scene
-    est = fast.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", robust="huber"))
+    est = fast.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", robust="huber",
+                                                                outlier_rejection=False))
     c = session.rig.index("cam3")
     assert est.outlier[c, 7, 2] and est.outlier[c, 15, 2]
     assert est.outlier.sum() <= 4  # the two planted ones, and at most two chance 99.9 % exceedances
@@ -352,6 +356,58 @@ def test_huber_downweights_planted_outliers(scene):
     err_huber = np.linalg.norm(est.xyz_m[[7, 15], 2] - truth[[7, 15], 2], axis=-1).max()
     err_none = np.linalg.norm(xyz_none[[7, 15], 2] - truth[[7, 15], 2], axis=-1).max()
     assert err_huber < err_none
+
+
+def single_view_mislabels() -> tuple[Session, list[tuple[str, int, str]]]:
+    """make_session with two mislabels, each the only view of its (frame, marker): the detection of
+    another marker in the same camera and frame, so the initial track (>= 2 views) ignores it.
+
+    m0 frame 5 (single-view, cam1) takes m2's cam1 pixels; m2 frame 11 is left to cam1 alone, which
+    sees m0's pixels there. Returns (session, [(camera, frame, marker) of each mislabel]).
+    """
+    session = make_session()
+    obs = session.observations
+    obs = obs[~((obs.marker == "m2") & (obs.frame == 11) & (obs.camera != "cam1"))].reset_index(drop=True)
+    planted = [("cam1", 5, "m0", "m2"), ("cam1", 11, "m2", "m0")]
+    for cam, frame, marker, other in planted:
+        at = (obs.camera == cam) & (obs.frame == frame)
+        obs.loc[at & (obs.marker == marker), ["u", "v"]] = obs.loc[at & (obs.marker == other), ["u", "v"]].to_numpy()
+    return dataclasses.replace(session, observations=obs), [p[:3] for p in planted]
+
+
+@pytest.mark.parametrize("model", ["random_walk", "constant_velocity"])
+def test_rejection_schedule_matches_run_smoother(model):
+    """Default options (Huber + outlier rejection; constant velocity with q chosen from the data) on
+    two single-view mislabels: both paths exclude the same set D (converged rounds, so D is the
+    |r|^2 > 25 set at the solution through factors.to_exclude), which holds both mislabels, flag the
+    same observations, pick the same q, and agree on positions to 1e-6 m (measured 1.3e-7 m random
+    walk, 4e-9 m constant velocity; GTSAM stops at a 1e-12 relative error decrease) and covariances
+    to 1e-4 relative (measured 1.2e-5, 2.4e-7; as the Huber case above). D: 15 (random walk, which
+    also drops inliers of m1 next to its gap) and 4 (the two mislabels and m2's two 40 px outliers).
+    Without the schedule the answer moves by > 1 mm (measured 52 mm, 18 mm), so each check can fail."""
+    session, planted = single_view_mislabels()
+    session = dataclasses.replace(session, motion=dataclasses.replace(session.motion, accel_psd_m2_s3=None))
+    dense = dense_observations(session)
+    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    opt = Options(motion_model=model, progress=False)
+    a = fast.run_smoother_fast(session, dense, ideal, opt)
+    b = run_smoother(session, dense, ideal, opt)
+    D = [factors.to_exclude(np.nan_to_num(factors.whitened_sq_residuals(session.rig, ideal, e.xyz_m)) >
+                            factors.REJECT_SQ_RESIDUAL, ideal.seen) for e in (a, b)]
+    where = tuple(np.array([(session.rig.index(c), int(np.searchsorted(dense.frames, f)), dense.markers.index(m))
+                            for c, f, m in planted]).T)
+    assert a.info["rejection_converged"] and b.info["rejection_converged"]
+    assert a.info["rejected"] == b.info["rejected"] == D[0].sum()
+    np.testing.assert_array_equal(D[0], D[1])
+    assert D[0][where].all() and a.outlier[where].all()
+    np.testing.assert_array_equal(a.outlier, b.outlier)
+    np.testing.assert_allclose(a.xyz_m, b.xyz_m, rtol=0, atol=1e-6)
+    assert _rel_cov_error(a.cov_m2, b.cov_m2) < 1e-4
+    if model == "constant_velocity":
+        assert a.info["accel_psd_m2_s3"] == b.info["accel_psd_m2_s3"]
+    off = fast.run_smoother_fast(session, dense, ideal, Options(motion_model=model, outlier_rejection=False,
+                                                                   progress=False))
+    assert np.nanmax(np.abs(off.xyz_m - b.xyz_m)) > 1e-3
 
 
 def test_rejects_bad_input(scene):

@@ -290,7 +290,7 @@ def test_robust_loss_flags_planted_outliers_and_keeps_rmse():
 
 def test_q_selection_and_logdet():
     """Marker tracks drawn from the constant-velocity model with q = 30 m^2/s^3: the marginal-likelihood
-    rule picks q within a factor 3 (measured 26.1), and the smoother's posterior log-determinant equals
+    rule picks each marker's q within a factor 3 (measured 21-33), and the smoother's posterior log-determinant equals
     numpy's slogdet of the dense Hessian in m, m/s units (measured rel. diff 1e-13)."""
     rng = np.random.default_rng(7)
     q_true, n, M = 30.0, 60, 4
@@ -310,9 +310,9 @@ def test_q_selection_and_logdet():
     dense = dense_observations(session)
     ideal = ideal_observations(rig, dense, 0.5)
     est = run_smoother(session, dense, ideal, Options(robust="none", progress=False))
-    q = est.info["accel_psd_m2_s3"]
-    print(f"chosen q {q:.1f} (truth {q_true})", est.info["accel_psd_selection"]["scores"][:3])
-    assert q_true / 3 < q < q_true * 3
+    q = np.array(list(est.info["accel_psd_m2_s3"].values()))  # one per marker (fixed cameras)
+    print(f"chosen q {q} (truth {q_true})")
+    assert np.all((q_true / 3 < q) & (q < q_true * 3))
     # log-determinant against a dense Hessian, on one marker and 8 frames
     tri, _ = triangulate_ideal(rig, ideal)
     p_init, v_init, _ = factors.initial_track(tri[:8], FPS)

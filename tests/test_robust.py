@@ -91,15 +91,17 @@ def test_rejection_does_not_touch_clean_data(scenes):
 
 
 def test_q_choice_ignores_mislabels():
-    """Marginal-likelihood q on the observations the Cauchy cleaning keeps: with 5 % mislabels it is
-    within 10 % of the clean scene's (measured equal, 26.1) while choosing it with the mislabels in
-    (rejection off) inflates it (measured 27.9, the next golden-section point; +29 % on the 160-frame
-    seed-0 flight). 40 frames to keep it fast."""
+    """Marginal-likelihood q (one per marker) on the observations the Cauchy cleaning keeps: with 5 %
+    mislabels each marker's is within 15 % of the clean scene's (measured <= 10 %, i.e. within one
+    golden-section tolerance of 0.05 decade = 12 %; median +2 %) while choosing it with the mislabels in
+    (rejection off) inflates it more (measured median +9 %, up to +25 %). 40 frames to keep it fast."""
     picks = {}
     for rate, rej in ((0.0, True), (0.05, True), (0.05, False)):
         s, dense, ideal, _, _ = flight(rate, n_frames=40)
         est = run_smoother(s, dense, ideal, Options(outlier_rejection=rej, progress=False))
-        picks[rate, rej] = est.info["accel_psd_m2_s3"]
+        picks[rate, rej] = np.array(list(est.info["accel_psd_m2_s3"].values()))  # per marker
     print(picks)
-    assert abs(picks[0.05, True] / picks[0.0, True] - 1) < 0.1
-    assert picks[0.05, False] > picks[0.0, True]
+    ratio = picks[0.05, True] / picks[0.0, True]
+    print("ratios", ratio, picks[0.05, False] / picks[0.0, True])
+    assert np.all(np.abs(ratio - 1) < 0.15)
+    assert np.median(picks[0.05, False] / picks[0.0, True]) > np.median(ratio)

@@ -16,6 +16,7 @@ same k3 = 0 scene both ways and bounds their difference.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import gtsam
@@ -355,17 +356,20 @@ def observation_graph(obs: ObservationFactors, markers: np.ndarray, n_frames: in
     return graph
 
 
-def motion_graph(motion: MotionFactors, p_init: np.ndarray, markers: np.ndarray) -> gtsam.NonlinearFactorGraph:
+def motion_graph(motion: MotionFactors | Mapping[int, MotionFactors], p_init: np.ndarray,
+                 markers: np.ndarray) -> gtsam.NonlinearFactorGraph:
     """Gauge priors on frame 0 (at p_init[0, m]) and the motion chain over every frame of ``markers``.
 
-    p_init: initial positions (F, M, 3) [m].
+    motion: one MotionFactors for every marker, or a mapping marker index -> its own (a per-marker
+    noise level, e.g. the constant-velocity q chosen per marker). p_init: initial positions (F, M, 3) [m].
     """
     graph = gtsam.NonlinearFactorGraph()
     frames = range(p_init.shape[0])
     for m in markers:
-        for f in prior_factors(motion.model, int(m), 0, p_init[0, m]):
+        mf = motion[int(m)] if isinstance(motion, Mapping) else motion
+        for f in prior_factors(mf.model, int(m), 0, p_init[0, m]):
             graph.push_back(f)
-        for f in motion.chain(int(m), frames):
+        for f in mf.chain(int(m), frames):
             graph.push_back(f)
     return graph
 

@@ -126,24 +126,42 @@ class _Problem:
     random walk: A = I3, Qi = I3 / sigma_m^2; constant velocity: A = [[I, I], [0, I]] and Qi the
     inverse of Q(q, dt) expressed for the state [p, v dt]. The methods take the state x (F, M', d) of
     M' markers, their prior means mu0 (M', d) and their observations.
+
+    ``noise`` (sigma_m [m] or q [m^2/s^3]) is a scalar or one value per marker (M',): both noises are
+    a scale of a unit one (Q(q) = q Q(1), sigma_m^2 I), so Qi = ``wq`` Qi1 with the per-marker weight
+    wq = 1 / q (or 1 / sigma_m^2), shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d).
     """
 
-    def __init__(self, model: str, noise: float, fps: float, robust: str, robust_k: float):
+    def __init__(self, model: str, noise: float | np.ndarray, fps: float, robust: str, robust_k: float):
         self.robust, self.k = robust, robust_k
         self.d = 3 if model == "random_walk" else 6
         dt = 1.0 / fps
+        noise = np.asarray(noise, float)
         if model == "random_walk":
             self.A = np.eye(3)
-            self.Qi = np.eye(3) / noise**2
+            self.Qi1 = np.eye(3)
+            self.wq = 1.0 / noise**2
             self.P0 = np.eye(3) / PRIOR_SIGMA_P_M**2
         else:
             S = np.diag([1.0] * 3 + [dt] * 3)  # x_scaled = S [p; v]
             self.A = np.block([[np.eye(3), np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
-            self.Qi = np.linalg.inv(S @ constant_velocity_Q(noise, dt) @ S)
-            self.Qi = 0.5 * (self.Qi + self.Qi.T)
+            self.Qi1 = np.linalg.inv(S @ constant_velocity_Q(1.0, dt) @ S)
+            self.Qi1 = 0.5 * (self.Qi1 + self.Qi1.T)
+            self.wq = 1.0 / noise
             self.P0 = np.diag([PRIOR_SIGMA_P_M**-2] * 3 + [(PRIOR_SIGMA_V_MPS * dt) ** -2] * 3)
+        w3 = self.wq[..., None, None]  # (1, 1) or (M', 1, 1)
+        self.Qi = w3 * self.Qi1
         self.AtQiA = self.A.T @ self.Qi @ self.A
-        self.B = -self.Qi @ self.A  # the constant off-diagonal block H[k+1, k]
+        self.B = -self.Qi @ self.A  # the off-diagonal block H[k+1, k], constant over frames
+
+    def of_markers(self, keep: np.ndarray) -> _Problem:
+        """The problem of the markers where ``keep`` (bool over current columns): per-marker noise subset."""
+        if self.wq.ndim == 0:
+            return self
+        out = object.__new__(_Problem)
+        out.__dict__.update(self.__dict__)
+        out.wq, out.Qi, out.AtQiA, out.B = self.wq[keep], self.Qi[keep], self.AtQiA[keep], self.B[keep]
+        return out
 
     def cost(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations) -> np.ndarray:
         """Total cost per marker, shape (M',) (inf where not finite)."""
@@ -152,7 +170,7 @@ class _Problem:
         rho, _ = robust_loss(r[0] * r[0] + r[1] * r[1], self.robust, self.k)
         total = np.bincount(obs.m, weights=rho, minlength=M).astype(float)  # float even when empty
         e = x[1:] - x[:-1] @ self.A.T
-        total += 0.5 * np.einsum("fmi,ij,fmj->m", e, self.Qi, e)
+        total += 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
         e0 = x[0] - mu0
         total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
         return np.where(np.isnan(total), np.inf, total)
@@ -166,7 +184,7 @@ class _Problem:
         in the whitened residual, ``w Jw^T (I - a r r^T / |r|^2) Jw`` (a = 1 beyond Huber's k,
         a = min(1, 2|r|^2 / (k^2 + |r|^2)) for Cauchy, clamped so the block stays PSD), which makes the
         iteration converge quadratically instead of IRLS's linear rate; same gradient, same minimiser.
-        The off-diagonal blocks are the constant ``self.B``.
+        The off-diagonal blocks are ``self.B`` (constant over frames).
         """
         F, M = x.shape[:2]
         d = self.d
@@ -195,7 +213,7 @@ class _Problem:
                 D[..., i, j] = np.bincount(flat, weights=w * Hij, minlength=n_fm).reshape(F, M)
                 D[..., j, i] = D[..., i, j]
         e = x[1:] - x[:-1] @ self.A.T  # (F-1, M, d)
-        eQ = e @ self.Qi
+        eQ = (e @ self.Qi1) * self.wq[..., None]
         g[:-1] -= eQ @ self.A
         g[1:] += eQ
         D[:-1] += self.AtQiA
@@ -209,16 +227,16 @@ def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Block elimination over frames: S_k^-1 (F, M, d, d) with S_0 = D_0, S_k = D_k - B S_{k-1}^-1 B^T."""
     Sinv = np.empty_like(D)
     Sinv[0] = np.linalg.inv(D[0])
-    BT = B.T
+    BT = np.swapaxes(B, -1, -2)
     for k in range(1, len(D)):
         Sinv[k] = np.linalg.inv(D[k] - B @ Sinv[k - 1] @ BT)
     return Sinv
 
 
 def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant).
+    """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant over frames).
 
-    D: diagonal blocks (F, M, d, d); rhs (F, M, d). Returns dx (F, M, d).
+    D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d). Returns dx (F, M, d).
     """
     Sinv = _forward(D, B)
     y = rhs.copy()
@@ -228,14 +246,15 @@ def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     dx = np.empty_like(rhs)
     dx[-1] = (Sinv[-1] @ y[-1][..., None])[..., 0]
     for k in range(len(D) - 2, -1, -1):
-        dx[k] = (Sinv[k] @ (y[k] - dx[k + 1] @ B)[..., None])[..., 0]
+        dx[k] = (Sinv[k] @ (y[k][..., None] - np.swapaxes(B, -1, -2) @ dx[k + 1][..., None]))[..., 0]
     return dx
 
 
 def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal blocks of H^-1 and log det H for block-tridiagonal H (RTS-style backward recursion).
 
-    D: diagonal blocks (F, M, d, d); B: the constant sub-diagonal block H[k+1, k], (d, d).
+    D: diagonal blocks (F, M, d, d); B: the sub-diagonal block H[k+1, k], constant over frames, (d, d)
+    or per marker (M, d, d).
     Returns Sigma (F, M, d, d) and logdet (M,). With S_k the forward Schur complements,
     Sigma_{F-1} = S_{F-1}^-1 and Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T, G_k = S_k^-1 B^T
     (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k.
@@ -245,14 +264,14 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Sigma = np.empty_like(D)
     Sigma[-1] = Sinv[-1]
     for k in range(len(D) - 2, -1, -1):
-        G = Sinv[k] @ B.T
+        G = Sinv[k] @ np.swapaxes(B, -1, -2)
         Sigma[k] = Sinv[k] + G @ Sigma[k + 1] @ np.swapaxes(G, -1, -2)
     Sigma = 0.5 * (Sigma + np.swapaxes(Sigma, -1, -2))
     return Sigma, -logdet_inv.sum(axis=0)
 
 
 def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: np.ndarray, model: str,
-               noise_level: float, fps: float, robust: str = "huber", robust_k: float = 2.0,
+               noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
                ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
@@ -263,7 +282,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         all NaN for a marker not estimated (see batgraph.graph.factors.initial_track); p_init[0] is the
         mean of the weak position prior and p_init the starting point unless ``p_start`` is given.
     model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]) or "constant_velocity"
-        (noise_level = q, acceleration PSD [m^2/s^3]).
+        (noise_level = q, acceleration PSD [m^2/s^3]); noise_level is one value for every marker or
+        one per marker, shape (M,) (entries of markers not estimated are ignored and may be NaN).
     fps: frame rate [Hz]; robust, robust_k: loss on projection factors (see :func:`robust_loss`).
     v_init: starting velocities (F, M, 3) [m/s] for constant_velocity; default np.gradient(p_init) * fps.
     p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
@@ -291,10 +311,13 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     estimated = np.isfinite(p_init).all(axis=(0, 2))
     if np.isfinite(p_init[:, ~estimated]).any():
         raise ValueError("p_init must be finite on every frame of a marker or NaN on all of them")
-    prob = _Problem(model, noise_level, fps, robust, robust_k)
+    if np.ndim(noise_level) not in (0, 1) or np.ndim(noise_level) == 1 and np.shape(noise_level) != (M,):
+        raise ValueError(f"noise_level must be a scalar or have shape {(M,)}, got {np.shape(noise_level)}")
+    ms = np.flatnonzero(estimated)  # the state holds the estimated markers only
+    level = np.asarray(noise_level, float)
+    prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k)
     dt = 1.0 / fps
     d = prob.d
-    ms = np.flatnonzero(estimated)  # the state holds the estimated markers only
     obs_all = _observations(rig, ideal, estimated).of_markers(estimated)
     x = np.zeros((F, len(ms), d))
     x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
@@ -311,20 +334,20 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     iters = np.zeros(len(ms), int)
     converged = np.zeros(len(ms), bool)
     diag = np.arange(d)
-    obs, cols, obs_cols = obs_all, np.arange(len(ms)), len(ms)
+    obs, cols, obs_cols, prob_a = obs_all, np.arange(len(ms)), len(ms), prob
     for _ in range(max_iterations):
         if not active.any():
             break
         # converged markers drop out: solve only the active ones (most converge in a few iterations)
         act = np.flatnonzero(active)
         if len(act) < obs_cols:  # shrink the observation set along with the active markers
-            obs = obs.of_markers(active[cols])
+            obs, prob_a = obs.of_markers(active[cols]), prob_a.of_markers(active[cols])
             cols, obs_cols = act, len(act)
         xa = x[:, act]
-        D, g = prob.linearize(xa, mu0[act], obs, irls=False)
+        D, g = prob_a.linearize(xa, mu0[act], obs, irls=False)
         D[..., diag, diag] *= 1.0 + lam[act][None, :, None]
-        dx = _solve(D, prob.B, -g)
-        cost_new = prob.cost(xa + dx, mu0[act], obs)
+        dx = _solve(D, prob_a.B, -g)
+        cost_new = prob_a.cost(xa + dx, mu0[act], obs)
         ok = cost_new <= cost[act]
         step = np.abs(dx).max(axis=(0, 2))
         rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
@@ -376,19 +399,23 @@ def fit_markers(markers: np.ndarray, n_fit: int) -> np.ndarray:
 
 def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
                           markers: np.ndarray, fps: float, robust: str, robust_k: float,
-                          progress: bool = False) -> tuple[float, dict]:
+                          progress: bool = False, p_start: np.ndarray | None = None,
+                          v_start: np.ndarray | None = None) -> tuple[float, dict]:
     """Maximum-marginal-likelihood q [m^2/s^3], batgraph.graph.noise's rule, scored with :func:`solve_fast`.
 
     Same subset of markers, same search and the same warm starts as the GTSAM smoother's
-    choose_accel_psd; the score's cost and log det come from the fast solver (log det of the
-    Hessian in p [m], v [m/s], as batgraph.graph.smoother.posterior_logdet gives it).
+    choose_accel_psd: the first solve starts from ``p_start`` (F, M, 3) [m] and ``v_start`` (F, M, 3)
+    [m/s] (default the initial track p_init, v_init), each later one from the previous solution; the
+    gauge priors stay at p_init[0]. The score's cost and log det come from the fast solver (log det of
+    the Hessian in p [m], v [m/s], as batgraph.graph.smoother.posterior_logdet gives it).
     """
     from .smoother import FIT_MARKERS
 
     fit = fit_markers(markers, FIT_MARKERS)
     sub = IdealObservations(ideal.uv_px[:, :, fit], ideal.cov_px2[:, :, fit])
     F = p_init.shape[0]
-    state = {"p": p_init[:, fit], "v": v_init[:, fit]}
+    state = {"p": (p_init if p_start is None else p_start)[:, fit],
+             "v": (v_init if v_start is None else v_start)[:, fit]}
 
     def score(q: float) -> float:
         _, _, info = solve_fast(rig, sub, p_init[:, fit], "constant_velocity", q, fps, robust, robust_k,
@@ -397,43 +424,89 @@ def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
         return noise.laplace_log_evidence(info["cost"], info["logdet"], q, 1.0 / fps, len(fit) * (F - 1))
 
     q, trace = noise.maximise_log10(score, progress=progress)
-    return q, {"rule": "max Laplace marginal likelihood over log10 q in [0, 6] (grid + golden section)",
+    return q, {"rule": noise.GLOBAL_RULE,
                "fit_markers": [int(m) for m in fit],
                "scores": [{"accel_psd_m2_s3": a, "log_evidence": s} for a, s in trace]}
+
+
+def _rejected(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
+    """What the rejection schedule leaves out at ``xyz_m`` (F, M, 3) [m]: observations of ``ideal`` with
+    |r|^2 > factors.REJECT_SQ_RESIDUAL (plain Gaussian whitening) through factors.to_exclude, (C, F, M)."""
+    r2 = np.nan_to_num(factors.whitened_sq_residuals(rig, ideal, xyz_m), nan=0.0)
+    return factors.to_exclude(r2 > factors.REJECT_SQ_RESIDUAL, ideal.seen)
 
 
 def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealObservations,
                       options: Options) -> Estimate:
     """The ``smoother`` method on the fast path (fixed rig); same answer as the GTSAM batch smoother.
 
-    Falls back to batgraph.graph.smoother.run_smoother when any camera has a pose covariance.
+    Follows batgraph.graph.smoother.run_smoother step by step, including its outlier-rejection
+    schedule (Cauchy cleaning solve, exclusion set D, q chosen per marker without D by
+    noise.choose_accel_psd_per_marker, final rounds until D is stable; see that module's docstring),
+    each solve being :func:`solve_fast` with the same start.
+    Falls back to run_smoother when any camera has a pose covariance.
     """
-    if any(cam.pose_cov is not None for cam in session.rig):
-        from .smoother import run_smoother
+    from .smoother import CLEANING_LOSS, REJECTION_ROUNDS, run_smoother
 
+    if any(cam.pose_cov is not None for cam in session.rig):
         return run_smoother(session, dense, ideal, options)
     t0 = time.perf_counter()
+    rig, fps, robust, k = session.rig, session.fps, options.robust, options.robust_k
     model, sigma_m, q = noise.motion_choice(session, options)
-    tri, _ = triangulate_ideal(session.rig, ideal)
-    p_init, v_init, estimated = factors.initial_track(tri, session.fps)
-    figures: dict = {"solver": "fast", "motion_model": model, "robust": options.robust,
-                     "robust_k": options.robust_k}
+    tri, _ = triangulate_ideal(rig, ideal)
+    p_init, v_init, estimated = factors.initial_track(tri, fps)
+    reject = options.outlier_rejection and robust != "none"
+    figures: dict = {"solver": "fast", "motion_model": model, "robust": robust, "robust_k": k,
+                     "outlier_rejection": reject}
     C, F, M = ideal.seen.shape
     if not estimated.any():  # nothing triangulated anywhere: every output is NaN
         return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
                         np.zeros((C, F, M), bool), time.perf_counter() - t0, figures)
+
+    def level(q_: float | np.ndarray | None) -> float | np.ndarray:  # q_: one value or (M,) per marker
+        return sigma_m if model == "random_walk" else q_
+
+    excluded = np.zeros((C, F, M), bool)
+    p_start, v_start = p_init, v_init  # where the next solve starts (a warm start after cleaning)
+    if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
+        q0 = q if q is not None else noise.causal_accel_psd(session)
+        xyz0, _, info0 = solve_fast(rig, ideal, p_init, model, level(q0), fps, CLEANING_LOSS, k, v_init=v_init)
+        excluded = _rejected(rig, ideal, xyz0)
+        p_start = xyz0
+        v_start = v_init if info0["velocity"] is None else info0["velocity"]
+        figures["cleaning"] = {"loss": CLEANING_LOSS, "robust_k": k, "iterations": info0["iterations"],
+                               "n_flagged": int(excluded.sum())}
+        if model == "constant_velocity":
+            figures["cleaning"]["accel_psd_m2_s3"] = q0
     if model == "random_walk":
-        level = figures["sigma_m"] = sigma_m
+        figures["sigma_m"] = sigma_m
+    elif q is None:  # step 3: q per marker on the observations left, first solve from the cleaning solution
+        markers = np.flatnonzero(estimated)
+        q, figures["accel_psd_selection"] = noise.choose_accel_psd_per_marker(
+            rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
+            p_start, v_start, q_start=figures.get("cleaning", {}).get("accel_psd_m2_s3"), progress=options.progress)
+        figures["accel_psd_source"] = "data"
+        figures["accel_psd_rule"] = noise.PER_MARKER_RULE
+        figures["accel_psd_m2_s3"] = {dense.markers[m]: float(q[m]) for m in markers}
     else:
-        if q is None:
-            q, figures["accel_psd_selection"] = choose_accel_psd_fast(
-                session.rig, ideal, p_init, v_init, np.flatnonzero(estimated), session.fps, options.robust,
-                options.robust_k, options.progress)
-        figures["accel_psd_source"] = "data" if "accel_psd_selection" in figures else "given"
-        level = figures["accel_psd_m2_s3"] = q
-    xyz, cov, info = solve_fast(session.rig, ideal, p_init, model, level, session.fps, options.robust,
-                                options.robust_k, v_init=v_init)
-    outlier = factors.outlier_flags(session.rig, ideal, xyz)
-    figures.update(iterations=info["iterations"], final_error=info["cost"], logdet=info["logdet"],
+        figures["accel_psd_source"] = "given"
+        figures["accel_psd_rule"] = "given (options or session), one q for all markers"
+        figures["accel_psd_m2_s3"] = q
+    rounds = []
+    n_rounds = REJECTION_ROUNDS if reject else 1
+    for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
+        xyz, cov, info = solve_fast(rig, factors.without_observations(ideal, excluded), p_init, model, level(q),
+                                    fps, robust, k, v_init=v_start, p_start=p_start)
+        rounds.append(info["iterations"])
+        again = _rejected(rig, ideal, xyz)
+        if r == n_rounds - 1 or (again == excluded).all():
+            break
+        excluded, p_start, v_start = again, xyz, v_start if info["velocity"] is None else info["velocity"]
+    outlier = factors.outlier_flags(rig, ideal, xyz)
+    figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
+    if reject:
+        figures["iterations_per_round"] = rounds
+        figures["rejected"] = int(excluded.sum())
+        figures["rejection_converged"] = bool((again == excluded).all())
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)

@@ -9,11 +9,19 @@ maximiser of the Laplace approximation of the marginal likelihood (type-II maxim
 E = the graph's total cost at its optimum x* for this q, Lambda_post = its Gauss-Newton information
 (from GTSAM's elimination), and log det Lambda_prior(q) = -n_steps log det Q(q) + const per marker
 chain (the prior over a chain is x0 times one transition per step; the frame-0 gauge priors do not
-depend on q). The search is on log10 q over 1 .. 1e6 m^2/s^3: a grid at every decade, then golden
-section around the best grid point. The score itself is computed by the caller (a GTSAM graph in
-:mod:`batgraph.graph.smoother`), so any solver of the same cost can reuse this search. With outlier
-rejection the smoother scores only the observations its Cauchy cleaning step kept (mislabels
-inflated q: 26 instead of 20 on the simulated flight with 5 % of them).
+depend on q). The search is on log10 q over 0.01 .. 1e6 m^2/s^3: a grid at every decade, then golden
+section around the best grid point. With outlier rejection the smoother scores only the observations
+its Cauchy cleaning step kept (mislabels inflated q: 26 instead of 20 on the simulated flight with 5 %
+of them).
+
+With fixed cameras q is chosen PER MARKER (:func:`choose_accel_psd_per_marker`): the markers are then
+independent, so the evidence is a sum of per-marker terms and each marker's q maximises its own term
+exactly (wing tips accelerate far more than the body: on the simulated flight body markers get
+q ~ 0.03-1, elbows ~3, wrists ~18, digit tips 30-56 m^2/s^3). One global q (~20) made the body's
+extrapolation at the sequence ends too loose and the tips' too tight (95 % coverage of single-view
+points at the ends 75-78 %). With camera variables the markers share the cameras and q stays global:
+:func:`maximise_log10` with a score computed by the caller (a GTSAM graph in
+:mod:`batgraph.graph.smoother`), so any solver of the same cost can reuse that search.
 
 Rule for the filter, which must not see the future: the session/option value if given, else
 :func:`causal_accel_psd` from the motion config alone. This module does not build graphs.
@@ -27,12 +35,19 @@ from collections.abc import Callable
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..camera import Rig
+from ..measurement import IdealObservations
 from ..motion import random_walk_sigma_m
 from ..result import Options
 from ..session import Session
 from .factors import MOTION_MODELS
 
-LOG10_Q_RANGE = (0.0, 6.0)  # plausible accel PSD 1 .. 1e6 m^2/s^3
+LOG10_Q_RANGE = (-2.0, 6.0)  # plausible accel PSD 0.01 (a gliding body) .. 1e6 m^2/s^3
+CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
+GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
+               " (decade grid + golden section), one q for all markers")
+PER_MARKER_RULE = (f"max Laplace marginal likelihood per marker over log10 q in [{LOG10_Q_RANGE[0]:g}, "
+                   f"{LOG10_Q_RANGE[1]:g}] (shared decade grid + per-marker golden section)")
 LOG10_Q_TOL = 0.05  # golden-section stops when the bracket is this narrow (12 % in q; the peak is flat)
 _GOLDEN = (math.sqrt(5) - 1) / 2
 
@@ -50,17 +65,19 @@ def motion_choice(session: Session, options: Options) -> tuple[str, float | None
     return model, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
 
 
-def cv_logdet_Q(accel_psd_m2_s3: float, dt_s: float) -> float:
+def cv_logdet_Q(accel_psd_m2_s3: float | np.ndarray, dt_s: float) -> float | np.ndarray:
     """log det Q(q, dt) of one constant-velocity step, Q (6, 6) = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) I3.
 
-    det of the 2x2 per axis is q^2 dt^4 / 12, so log det Q = 3 log(q^2 dt^4 / 12).
+    det of the 2x2 per axis is q^2 dt^4 / 12, so log det Q = 3 log(q^2 dt^4 / 12). q: scalar or array.
     """
-    return 3.0 * math.log(accel_psd_m2_s3**2 * dt_s**4 / 12.0)
+    return 3.0 * np.log(np.square(accel_psd_m2_s3) * dt_s**4 / 12.0)
 
 
 def laplace_log_evidence(error: float, logdet_post: float, accel_psd_m2_s3: float, dt_s: float,
                          n_steps: int) -> float:
     """Laplace log marginal likelihood up to a q-independent constant (module docstring).
+
+    Every argument but dt_s may also be an array (per marker: error, logdet_post and q of each chain).
 
     error: total cost E(x*) (0.5 sum of squared whitened residuals, robust where robust).
     logdet_post: log det of the posterior information at x* (GTSAM's Bayes tree logDeterminant
@@ -115,8 +132,89 @@ def causal_accel_psd(session: Session) -> float:
     of PSD q changes it by 3 q dt per frame (3 axes); matching the two gives q = a^2 dt / 6.
     Steady flight adds no acceleration. Paper flight values (4 Hz, 90 deg, 0.5 m, 120 fps):
     q = 8.7 m^2/s^3; on the simulated flight the truth's own per-frame velocity changes give 9.2 and
-    the smoother's marginal likelihood 20. Without a flap (a = 0) q is the range's floor, 1.
+    the smoother's marginal likelihood 20. Without a flap (a = 0) q is CAUSAL_Q_FLOOR, 1 (not the
+    search range's floor 0.01: a filter that cannot check the data should not assume near-rigid motion).
     """
     m, fps = session.motion, session.fps
     a = 2 * math.pi * m.flap_hz * math.radians(m.flap_angle_deg) * m.span_m * m.flap_hz
-    return max(a * a / fps / 6.0, 10.0 ** LOG10_Q_RANGE[0])
+    return max(a * a / fps / 6.0, CAUSAL_Q_FLOOR)
+
+
+def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                                markers: np.ndarray, fps: float, robust: str, robust_k: float,
+                                p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
+                                q_start: float | None = None, progress: bool = False,
+                                ) -> tuple[np.ndarray, dict]:
+    """Each marker's maximum-Laplace-marginal-likelihood q [m^2/s^3] for a fixed rig (module docstring).
+
+    rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
+    (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
+    p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
+    p_start, v_start: where the first solve starts (F, M, 3) [m], [m/s] (default p_init, v_init), e.g.
+    the cleaning solution; q_start: the q that start was solved at (default 10): the decade grid over
+    LOG10_Q_RANGE is swept outwards from the decade nearest it, each solve warm-started from its
+    neighbour's solution (a stiff q far from the start would drag wing markers off their track).
+    Then a golden-section search per marker, vectorised (each step is one solve_fast with one q per
+    marker), in [best decade - 1, best decade + 1] until the bracket is LOG10_Q_TOL wide; the answer is
+    each marker's best q evaluated. Score per marker: laplace_log_evidence of its own chain (cost and
+    log det from :func:`batgraph.graph.fast.solve_fast`, which are exactly per marker).
+
+    Returns q (M,) [m^2/s^3] (NaN for markers not in ``markers``) and info: per_marker {index: q},
+    rule, n_solves.
+    """
+    from .fast import solve_fast  # fast imports this module
+
+    markers = np.asarray(markers, int)
+    F, M = p_init.shape[:2]
+    dt = 1.0 / fps
+    sub = IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
+    p0 = p_init[:, markers]
+    start = ((p_init if p_start is None else p_start)[:, markers], (v_init if v_start is None else v_start)[:, markers])
+    n_solves = 0
+
+    def solve(q: float | np.ndarray, from_: tuple[np.ndarray, np.ndarray]):
+        nonlocal n_solves
+        n_solves += 1
+        _, _, info = solve_fast(rig, sub, p0, "constant_velocity", q, fps, robust, robust_k,
+                                v_init=from_[1], p_start=from_[0])
+        score = laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], q, dt, F - 1)
+        return score, (info["position"], info["velocity"])
+
+    n_golden = math.ceil(math.log(LOG10_Q_TOL / 2.0) / math.log(_GOLDEN)) + 2
+    lo, hi = LOG10_Q_RANGE
+    grid = np.arange(math.ceil(lo), math.floor(hi) + 1, dtype=float)
+    bar = tqdm(total=len(grid) + n_golden, desc="choosing accel PSD per marker", disable=not progress, leave=False)
+    i0 = int(np.argmin(np.abs(grid - math.log10(10.0 if q_start is None else q_start))))
+    scores = np.empty((len(grid), len(markers)))
+    states: list = [None] * len(grid)
+    for i in [*range(i0, len(grid)), *range(i0 - 1, -1, -1)]:  # outwards from the start's decade
+        scores[i], states[i] = solve(10.0 ** grid[i], start if i == i0 else states[i + 1 if i < i0 else i - 1])
+        bar.update()
+    cols = np.arange(len(markers))
+    best = np.argmax(scores, axis=0)
+    x_best, s_best = grid[best], scores[best, cols]
+    state = tuple(np.stack([states[b][j][:, m] for m, b in enumerate(best)], axis=1) for j in range(2))
+
+    def f(x: np.ndarray) -> np.ndarray:
+        nonlocal state, x_best, s_best
+        s, state = solve(10.0**x, state)
+        better = s > s_best
+        x_best, s_best = np.where(better, x, x_best), np.where(better, s, s_best)
+        bar.update()
+        return s
+
+    a, b = np.maximum(lo, x_best - 1.0), np.minimum(hi, x_best + 1.0)
+    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
+    fc, fd = f(c), f(d)
+    while (b - a).max() > LOG10_Q_TOL:  # per marker the same step as maximise_log10; one solve each
+        left = fc >= fd  # the maximum is in [a, d]: next point c' = b' - g (b' - a)
+        a, b = np.where(left, a, c), np.where(left, d, b)
+        new = np.where(left, b - _GOLDEN * (b - a), a + _GOLDEN * (b - a))
+        c, d = np.where(left, new, d), np.where(left, c, new)
+        fn = f(new)
+        fc, fd = np.where(left, fn, fd), np.where(left, fc, fn)
+    bar.close()
+    q = np.full(M, np.nan)
+    q[markers] = 10.0**x_best
+    return q, {"rule": PER_MARKER_RULE, "per_marker": {int(m): float(q[m]) for m in markers},
+               "n_solves": n_solves}

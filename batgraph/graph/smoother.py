@@ -19,7 +19,10 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    least one view not over 25 (:func:`batgraph.graph.factors.to_exclude`: a mislabel is a single
    observation; a frame with every view rejected means the motion prior, not the data, is wrong).
 3. q (when not given): the marginal-likelihood search of :mod:`batgraph.graph.noise` with the chosen
-   loss on the observations not in D (outliers inflated it), warm-started from the cleaning solution.
+   loss on the observations not in D (outliers inflated it), warm-started from the cleaning solution:
+   with fixed cameras one q PER MARKER (noise.choose_accel_psd_per_marker, scored exactly with the
+   fast solver: the markers are independent), with camera variables one global q
+   (:func:`choose_accel_psd`, on a GTSAM sub-graph). A given q (options or session) is global.
 4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from the cleaning
    solution; then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
    REJECTION_ROUNDS solves in all), D = D' and re-solve warm. Covariances come from the last
@@ -137,7 +140,7 @@ def choose_accel_psd(obs: ObservationFactors, p_init: np.ndarray, v_init: np.nda
         return log_evidence(graph, state["values"], q, dt_s, len(fit) * (F - 1), len(fit) * F)
 
     q, trace = noise.maximise_log10(score, progress=progress)
-    return q, {"rule": "max Laplace marginal likelihood over log10 q in [0, 6] (grid + golden section)",
+    return q, {"rule": noise.GLOBAL_RULE,
                "fit_markers": [int(m) for m in fit],
                "scores": [{"accel_psd_m2_s3": a, "log_evidence": s} for a, s in trace]}
 
@@ -151,21 +154,37 @@ def _subset(values: gtsam.Values, like: gtsam.Values) -> gtsam.Values:
     return out
 
 
-def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel, robust: str, robust_k: float,
-                p_init: np.ndarray, v_init: np.ndarray, markers: np.ndarray,
+def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel | dict[int, MotionModel],
+                robust: str, robust_k: float, p_init: np.ndarray, v_init: np.ndarray, markers: np.ndarray,
                 start: gtsam.Values | None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, ObservationFactors]:
     """Minimise the cost on ``ideal``'s observations of ``markers`` from ``start`` (default the initial track).
 
+    model: one motion model, or one per marker index (the same kind, per-marker noise).
     Returns (graph, solution, iterations, its ObservationFactors).
     """
     F = p_init.shape[0]
     obs = ObservationFactors(session.rig, ideal, robust, robust_k)
     graph = factors.observation_graph(obs, markers, F)
-    graph.push_back(factors.motion_graph(MotionFactors(model), p_init, markers))
+    if isinstance(model, dict):
+        motion = {m: MotionFactors(mm) for m, mm in model.items()}
+        model = next(iter(model.values()))
+    else:
+        motion = MotionFactors(model)
+    graph.push_back(factors.motion_graph(motion, p_init, markers))
     if start is None:
         start = factors.initial_values(obs, model, p_init, v_init, markers)
     solution, iterations = solve_batch(graph, start)
     return graph, solution, iterations, obs
+
+
+def _velocities(values: gtsam.Values, markers: np.ndarray, n_frames: int, n_markers: int,
+                dt_s: float) -> np.ndarray:
+    """v of ``markers`` from ``values`` as (n_frames, n_markers, 3) [m/s] (stored as u = v dt); NaN elsewhere."""
+    v = np.full((n_frames, n_markers, 3), np.nan)
+    for m in markers:
+        for k in range(n_frames):
+            v[k, m] = factors.velocity_mps(values.atPoint3(factors.v_key(int(m), k)), dt_s)
+    return v
 
 
 def _flags(obs: ObservationFactors, ideal: IdealObservations, solution: gtsam.Values,
@@ -222,16 +241,33 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             info["cleaning"]["accel_psd_m2_s3"] = q0
     if model_name == "random_walk":
         info["sigma_m"] = sigma_m
-    elif q is None:  # step 3: q on the observations left
+    elif q is None and not any(c.pose_cov is not None for c in session.rig):  # step 3, per marker
+        p_start = v_start = None
+        if start is not None:
+            p_start = factors.positions(start, markers, F, M)
+            v_start = _velocities(start, markers, F, M, dt)
+        q_m, info["accel_psd_selection"] = noise.choose_accel_psd_per_marker(
+            session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
+            options.robust, options.robust_k, p_start, v_start, q_start=info.get("cleaning", {}).get(
+                "accel_psd_m2_s3"), progress=options.progress)
+        info["accel_psd_source"] = "data"
+        info["accel_psd_rule"] = noise.PER_MARKER_RULE
+        info["accel_psd_m2_s3"] = {dense.markers[m]: float(q_m[m]) for m in markers}
+    elif q is None:  # step 3 with camera variables: one global q on the observations left
         kept = ObservationFactors(session.rig, factors.without_observations(ideal, excluded), options.robust,
                                   options.robust_k)
         q, info["accel_psd_selection"] = choose_accel_psd(kept, p_init, v_init, markers, dt, options.progress, start)
         info["accel_psd_source"] = "data"
+        info["accel_psd_rule"] = noise.GLOBAL_RULE
     else:
         info["accel_psd_source"] = "given"
-    if model_name == "constant_velocity":
+        info["accel_psd_rule"] = "given (options or session), one q for all markers"
+    if model_name == "constant_velocity" and q is not None:
         info["accel_psd_m2_s3"] = q
-    model = motion(q)
+    if model_name == "constant_velocity" and q is None:  # per marker
+        model = {int(m): motion(float(q_m[m])) for m in markers}
+    else:
+        model = motion(q)
     rounds = []
     n_rounds = REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the flags are the excluded set
