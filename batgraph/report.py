@@ -632,8 +632,12 @@ def _metrics_table(metrics: pd.DataFrame, methods, with_coverage: bool) -> str:
         row = [(html.escape(m), 'class="l"')]
         for st in STATUSES:
             r = mi.loc[(m, st)] if (m, st) in mi.index else None
-            n, rmse, cov = (None, None, None) if r is None else (r.get("n"), r.get("rmse_m"), r.get("coverage95"))
-            row += [_fmt(n if r is not None else 0, 0), _fmt(None if rmse is None else rmse * 1000)]
+
+            def g(col, r=r):
+                return None if r is None else r.get(col)
+
+            rmse, cov = g("rmse_m"), g("coverage95")
+            row += [_fmt(g("n") if r is not None else 0, 0), _fmt(None if rmse is None else rmse * 1000)]
             if with_coverage:
                 row.append(_fmt(None if cov is None else 100 * cov, 1) + (" %" if _fmt(cov) != "–" else ""))
             else:
