@@ -88,6 +88,7 @@ def errors_against(traj: pd.DataFrame, points: pd.DataFrame) -> pd.DataFrame:
     j["err_m"] = np.linalg.norm(e, axis=1)
     cov = cov_matrices(j)
     ok = np.isfinite(e).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+    ok[ok] = np.linalg.eigvalsh(cov[ok])[:, 0] > 0  # a degenerate covariance has no ellipsoid: no coverage figure
     m2 = np.full(len(j), np.nan)
     if ok.any():
         m2[ok] = np.einsum("ni,ni->n", e[ok], np.linalg.solve(cov[ok], e[ok][..., None])[..., 0])
