@@ -128,6 +128,11 @@ def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame) -> dict:
             "max_m": float(d.max())}
 
 
+def focal_px(cam) -> float:
+    """The focal length [px] that turns a pixel error into millimetres at a depth: sqrt(fx fy)."""
+    return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+
+
 def reprojection_stats(session: Session, reproj: pd.DataFrame, traj: pd.DataFrame) -> dict:
     """Per camera: n, mean/median/rms/p95 error [px], the mean error in mm at the marker's depth
     (err_px * depth / focal), and the number flagged as outliers."""
@@ -142,7 +147,7 @@ def reprojection_stats(session: Session, reproj: pd.DataFrame, traj: pd.DataFram
             continue
         p = xyz.reindex(pd.MultiIndex.from_frame(r[["frame", "marker"]])).to_numpy(float)
         depth = cam.to_cam(p)[:, 2]
-        mm = e * depth / np.sqrt(cam.K[0, 0] * cam.K[1, 1]) * 1000
+        mm = e * depth / focal_px(cam) * 1000
         out[cam.name] = {
             "n": int(ok.sum()), "mean_px": float(e[ok].mean()), "median_px": float(np.median(e[ok])),
             "rms_px": float(np.sqrt(np.mean(e[ok] ** 2))), "p95_px": float(np.percentile(e[ok], 95)),

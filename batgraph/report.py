@@ -26,8 +26,9 @@ import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
-from . import atomic
+from . import atomic, evaluate
 from .camera import Rig
+from .motion import CHI2_3DOF_95
 
 METHOD_ORDER = ("smoother", "filter", "ekf", "ukf", "triangulate")
 # (colour, line style): the paper draws EKF dashed and UKF solid (Fig. 5); batgraph's own methods
@@ -44,7 +45,7 @@ EXTRA_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
 STATUSES = ("all", "observed", "single_view", "unobserved")
 CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square, 2 DOF (reprojection ellipses)
-CHI2_3DOF_95 = 7.814727903251178  # 95 % quantile of chi-square, 3 DOF (paper eq. 4; ellipsoids)
+
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
 MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs small and fast
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
@@ -55,8 +56,8 @@ DPI = 80
 # numbers (reusable by evaluate.py)
 # ----------------------------------------------------------------------------------------------
 def focal_px(rig: Rig) -> dict[str, float]:
-    """Per camera name, the focal length used to turn pixels into millimetres: mean of fx, fy [px]."""
-    return {c.name: 0.5 * (c.K[0, 0] + c.K[1, 1]) for c in rig}
+    """Per camera name, the focal length that turns pixels into millimetres (evaluate.focal_px) [px]."""
+    return {c.name: evaluate.focal_px(c) for c in rig}
 
 
 def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, rig: Rig) -> pd.DataFrame:
@@ -68,7 +69,7 @@ def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, r
     Returns a copy of ``reprojection`` with ``depth_m`` (z of that method's estimated point in the
     camera frame [m]), ``err_mm = err_px * depth_m / f_px * 1000``, and the signed components
     ``du_mm, dv_mm`` of ``(u_hat - u, v_hat - v)`` scaled the same way; NaN where the method has no
-    estimate or the camera is not in the rig. ``f_px`` is the mean of fx and fy; lens distortion's
+    estimate or the camera is not in the rig. ``f_px`` is sqrt(fx fy) (evaluate.focal_px); lens distortion's
     local scale change is ignored (a few per cent at the edge of a GoPro image).
     """
     rep = reprojection.copy()
@@ -133,24 +134,17 @@ def point_errors(trajectories: pd.DataFrame, points: pd.DataFrame) -> pd.DataFra
     points: frame, marker, x, y, z [m, world].
     Returns method, frame, marker, status, err_m (Euclidean distance [m]) and d2 (squared
     Mahalanobis distance under the estimate's covariance; NaN without a valid covariance), for the
-    (frame, marker) pairs both tables have and where the method gave an estimate.
+    (frame, marker) pairs both tables have and where the method gave an estimate. The arithmetic is
+    evaluate.errors_against's, so report and summary.json agree.
     """
-    pts = points[["frame", "marker", "x", "y", "z"]].rename(columns={c: f"{c}_ref" for c in "xyz"})
-    d = trajectories.merge(pts, on=["frame", "marker"], how="inner")
-    e = d[["x", "y", "z"]].to_numpy(float) - d[["x_ref", "y_ref", "z_ref"]].to_numpy(float)
-    ok = np.isfinite(e).all(axis=1)
-    d, e = d[ok], e[ok]
-    d2 = np.full(len(d), np.nan)
-    if all(c in d for c in COV_COLUMNS) and len(d):
-        xx, xy, xz, yy, yz, zz = (d[c].to_numpy(float) for c in COV_COLUMNS)
-        cov = np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=-1).reshape(-1, 3, 3)
-        good = np.isfinite(cov).all(axis=(1, 2)) & (np.linalg.eigvalsh(np.nan_to_num(cov))[:, 0] > 0)
-        if good.any():
-            d2[good] = np.einsum("ni,ni->n", e[good], np.linalg.solve(cov[good], e[good][..., None])[..., 0])
-    status = d["status"].astype(str).to_numpy() if "status" in d else np.full(len(d), "")
-    return pd.DataFrame({"method": d["method"].to_numpy(), "frame": d["frame"].to_numpy(),
-                         "marker": d["marker"].to_numpy(), "status": status,
-                         "err_m": np.linalg.norm(e, axis=1), "d2": d2})
+    traj = trajectories.assign(**{c: np.nan for c in COV_COLUMNS if c not in trajectories})
+    if "status" not in traj:
+        traj = traj.assign(status="")
+    j = evaluate.errors_against(traj, points)
+    j = j[np.isfinite(j["err_m"].to_numpy(float))]
+    return pd.DataFrame({"method": j["method"].to_numpy(), "frame": j["frame"].to_numpy(),
+                         "marker": j["marker"].to_numpy(), "status": j["status"].astype(str).to_numpy(),
+                         "err_m": j["err_m"].to_numpy(float), "d2": j["mahal2"].to_numpy(float)})
 
 
 def status_metrics(errors: pd.DataFrame) -> pd.DataFrame:

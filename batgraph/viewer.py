@@ -50,10 +50,11 @@ import pandas as pd
 
 from .atomic import atomic_path
 from .errors import InputError
+from .motion import CHI2_3DOF_95
 
 #: chi-square quantile, 3 degrees of freedom, 0.95: a 3D Gaussian's 95 % ellipsoid is
 #: ``(x - mu)^T cov^-1 (x - mu) <= CHI2_3D_95``, i.e. half-axes ``sqrt(CHI2_3D_95 * eigenvalue)``.
-CHI2_3D_95 = 7.814727903251178
+CHI2_3D_95 = CHI2_3DOF_95  # 95 % quantile of chi-square, 3 DOF (ellipsoid half-axes)
 
 RECORDING_NAME = "recording.rrd"
 APPLICATION_ID = "batgraph"
