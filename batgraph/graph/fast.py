@@ -388,15 +388,6 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     return xyz, cov, info
 
 
-def fit_markers(markers: np.ndarray, n_fit: int) -> np.ndarray:
-    """The markers the choice of q is fitted on: ``n_fit`` spread evenly over ``markers`` (int array).
-
-    Mirrors batgraph.graph.smoother.choose_accel_psd's subset so both paths choose the same q.
-    """
-    n_fit = min(n_fit, len(markers))
-    return markers[np.unique(np.linspace(0, len(markers) - 1, n_fit).round().astype(int))]
-
-
 def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
                           markers: np.ndarray, fps: float, robust: str, robust_k: float,
                           progress: bool = False, p_start: np.ndarray | None = None,
@@ -409,9 +400,8 @@ def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
     gauge priors stay at p_init[0]. The score's cost and log det come from the fast solver (log det of
     the Hessian in p [m], v [m/s], as batgraph.graph.smoother.posterior_logdet gives it).
     """
-    from .smoother import FIT_MARKERS
 
-    fit = fit_markers(markers, FIT_MARKERS)
+    fit = noise.fit_markers(markers)
     sub = IdealObservations(ideal.uv_px[:, :, fit], ideal.cov_px2[:, :, fit])
     F = p_init.shape[0]
     state = {"p": (p_init if p_start is None else p_start)[:, fit],

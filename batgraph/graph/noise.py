@@ -88,6 +88,19 @@ def laplace_log_evidence(error: float, logdet_post: float, accel_psd_m2_s3: floa
     return -error - 0.5 * logdet_post + 0.5 * logdet_prior
 
 
+FIT_MARKERS = 8  # markers one global q is fitted on (evenly spread over the estimated ones)
+
+
+def fit_markers(markers: np.ndarray, n_fit: int = FIT_MARKERS) -> np.ndarray:
+    """The markers one global q is fitted on: ``n_fit`` spread evenly over ``markers`` (int array).
+
+    Markers are independent given fixed cameras, so the evidence is a sum over markers and a spread
+    subset estimates the common q at a fraction of the cost (used by both smoother paths).
+    """
+    n_fit = min(n_fit, len(markers))
+    return markers[np.unique(np.linspace(0, len(markers) - 1, n_fit).round().astype(int))]
+
+
 def maximise_log10(score: Callable[[float], float], lo: float = LOG10_Q_RANGE[0], hi: float = LOG10_Q_RANGE[1],
                    tol: float = LOG10_Q_TOL, progress: bool = False) -> tuple[float, list[tuple[float, float]]]:
     """Maximise ``score(q)`` over log10 q in [lo, hi]: decade grid, then golden section around the best.

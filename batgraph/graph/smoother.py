@@ -47,7 +47,6 @@ from . import factors, noise
 from .factors import MotionFactors, MotionModel, ObservationFactors
 
 MAX_ITERATIONS = 200
-FIT_MARKERS = 8  # markers used to choose q (evenly spread over the estimated ones); q is global
 CLEANING_LOSS = "cauchy"  # redescending: the loss of the rejection pre-solve (module docstring)
 REJECTION_ROUNDS = 3  # final solves at most, until the flagged set equals the excluded one
 
@@ -115,14 +114,13 @@ def choose_accel_psd(obs: ObservationFactors, p_init: np.ndarray, v_init: np.nda
     """Maximum-marginal-likelihood q [m^2/s^3] on a subset of ``markers`` (noise.py's rule).
 
     The markers are independent given fixed cameras, so the evidence is a sum over markers and a
-    spread subset (FIT_MARKERS, evenly over the index order) estimates the common q at a fraction
+    spread subset (noise.fit_markers) estimates the common q at a fraction
     of the cost; with camera variables the subset is a sub-graph sharing the cameras. The first
     solve starts from ``start`` (values holding at least the subset's p, v and the variable
     cameras; default the initial track), each later one from the previous solution. The gauge
     priors stay at p_init. Returns (q, info for Estimate.info).
     """
-    n_fit = min(FIT_MARKERS, len(markers))
-    fit = markers[np.unique(np.linspace(0, len(markers) - 1, n_fit).round().astype(int))]
+    fit = noise.fit_markers(markers)
     F = p_init.shape[0]
     base = factors.observation_graph(obs, fit, F)
     model0 = MotionModel("constant_velocity", dt_s, accel_psd_m2_s3=1.0)
