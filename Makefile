@@ -26,6 +26,10 @@ test: install
 ## bench: speed and memory, ratios against baselines measured in the same run (see BENCHMARKS.md)
 bench: install
 	$(BIN)/python scripts/bench.py
+	$(BIN)/python scripts/bench_growth.py
+	test -x .venv-bench/bin/python || ($(PYTHON) -m venv .venv-bench && .venv-bench/bin/python -m pip install --quiet aniposelib)
+	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
+	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib/points.npz bench_out/aniposelib/calibration.toml
 
 ## study: the accuracy study (see BENCHMARKS.md / README.md)
 study: install
