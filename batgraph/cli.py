@@ -106,9 +106,11 @@ def _cmd_reconstruct(args) -> int:
 
 # ----- simulate --------------------------------------------------------------------------------
 def _add_simulate(sub):
-    p = sub.add_parser("simulate", help="write a synthetic session with ground truth (bat flight or ear)",
-                       description="Write a simulated session folder with truth.csv.")
-    p.add_argument("scene", choices=["flight", "ear"])
+    p = sub.add_parser("simulate", help="write a synthetic session with ground truth (bat flight, ear, wand)",
+                       description="Write a simulated session folder with truth.csv. `wand` is a 0.5 m "
+                                   "calibration wand waved through the flight tunnel, filmed by the same rig "
+                                   "(and calibration error) as `flight` with the same --seed and --cameras.")
+    p.add_argument("scene", choices=["flight", "ear", "wand"])
     p.add_argument("out", metavar="OUT_SESSION")
     p.add_argument("--cameras", type=_positive_int, help="number of cameras (flight: default 5, up to 30)")
     p.add_argument("--markers", type=_positive_int,
@@ -130,7 +132,7 @@ def _cmd_simulate(args) -> int:
     import numpy as np
 
     from .session import write_session
-    from .simulate import simulate_ear, simulate_flight
+    from .simulate import simulate_ear, simulate_flight, simulate_wand
 
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
@@ -145,13 +147,16 @@ def _cmd_simulate(args) -> int:
         common["n_frames"] = args.frames
     if args.fps:
         common["fps"] = args.fps
+    if args.cameras and args.cameras > 30:
+        raise InputError(f"--cameras: at most 30, got {args.cameras}")
     if args.scene == "flight":
-        if args.cameras and args.cameras > 30:
-            raise InputError(f"--cameras: at most 30, got {args.cameras}")
         if args.markers is not None and not 14 <= args.markers <= 180:
             raise InputError(f"--markers: must be between 14 and 180, got {args.markers}")
         session = simulate_flight(rng, n_cameras=args.cameras or 5, n_markers=args.markers,
                                   calib_rot_deg=args.calib_rot_deg, calib_trans_mm=args.calib_trans_mm, **common)
+    elif args.scene == "wand":
+        session = simulate_wand(rng, n_cameras=args.cameras or 5, calib_rot_deg=args.calib_rot_deg,
+                                calib_trans_mm=args.calib_trans_mm, **common)
     else:
         session = simulate_ear(rng, **common)
     write_session(session, out)

@@ -609,3 +609,50 @@ def scene_from_session(session: Session) -> Scene:
         return flight_scene(sim["n_frames"], sim["fps"], sim["n_markers"], sim["phase0_rad"], tuple(sim["offset_yz_m"]))
     return ear_scene(sim["n_frames"], sim["fps"], sim["phase0_rad"], sim["drift_hz"], sim["drift_phase_rad"],
                      sim["drift_amp_m"])
+
+
+WAND_LENGTH_M = 0.5
+
+
+def wand_scene(n_frames: int, fps: float, rng: np.random.Generator, length_m: float = WAND_LENGTH_M) -> Scene:
+    """A calibration wand (two end markers ``wand_a``, ``wand_b`` a fixed distance apart) waved through
+    the tunnel's flight volume: its centre wanders smoothly along x in [-1.5, 1.5] m and within
+    +-0.25 m of the axis, and it turns about all axes. Nothing occludes it (a thin wand)."""
+    t = np.arange(n_frames) / fps
+    dur = max(t[-1], 1e-9)
+    f = rng.uniform(0.3, 1.2, (3, 3))  # Hz: three sinusoids per coordinate
+    ph = rng.uniform(0, 2 * np.pi, (3, 3))
+    wave = np.stack([np.sin(2 * np.pi * f[i][:, None] * t + ph[i][:, None]).mean(axis=0) for i in range(3)], -1)
+    center = np.column_stack([1.5 * np.cos(np.pi * t / dur), 0.25 * wave[:, 1], 0.25 * wave[:, 2]])
+    yaw = 2 * np.pi * 0.4 * t + ph[0, 0]
+    pitch = 0.6 * np.sin(2 * np.pi * 0.3 * t + ph[1, 1])
+    direction = np.column_stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+    half = 0.5 * length_m * direction
+    points = np.stack([center - half, center + half], axis=1)  # (F, 2, 3)
+    return Scene(["wand_a", "wand_b"], points, np.zeros((n_frames, 0, 3, 3)), [], np.zeros(n_frames))
+
+
+def simulate_wand(
+    rng: np.random.Generator, *, n_cameras: int = 5, n_frames: int = 600, fps: float = 120.0,
+    pixel_sigma_px: float = 1.0, outlier_rate: float = 0.0, calib_rot_deg: float = 0.0,
+    calib_trans_mm: float = 0.0, calib_cameras: list[int] | None = None, name: str | None = None,
+) -> Session:
+    """A wand-calibration recording in the flight tunnel: the SAME rig and calibration error as
+    :func:`simulate_flight` with the same seed and ``n_cameras`` (same random streams), so a wand
+    session can calibrate the rig that films a flight. session.toml gets ``[wand] ends``, ``length_m``.
+    """
+    if n_cameras < 1 or n_frames < 2 or fps <= 0:
+        raise ValueError("n_cameras must be >= 1, n_frames >= 2 and fps > 0")
+    rng_scene, rng_cams, *streams = rng.spawn(5)
+    scene = wand_scene(n_frames, fps, rng_scene)
+    rig = tunnel_rig(rng_cams, n_cameras)
+    motion = MotionConfig(model="constant_velocity", flight_speed_mps=FLIGHT_SPEED_MPS, span_m=WAND_LENGTH_M,
+                          flap_hz=1.0, flap_angle_deg=90.0)
+    params = {"scene": "wand", "n_cameras": int(n_cameras), "n_frames": int(n_frames), "fps": float(fps),
+              "wand_length_m": WAND_LENGTH_M}
+    session = _assemble(rng, streams, scene, rig, name=name or f"wand_{n_cameras}cam", fps=fps, motion=motion,
+                        skeleton=[("wand_a", "wand_b")], pixel_sigma_px=pixel_sigma_px,
+                        outlier_rate=outlier_rate, calib_rot_deg=calib_rot_deg, calib_trans_mm=calib_trans_mm,
+                        calib_cameras=calib_cameras, params=params)
+    session.extra_toml["wand"] = {"ends": ["wand_a", "wand_b"], "length_m": WAND_LENGTH_M}
+    return session
