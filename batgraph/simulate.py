@@ -382,8 +382,8 @@ def flight_skeleton(marker_names: list[str]) -> list[tuple[str, str]]:
 # ear kinematics
 # ==================================================================================================
 def ear_scene(
-    n_frames: int, fps: float, phase0_rad: float = 0.0, drift_hz: np.ndarray = (0.4, 0.7, 1.1),
-    drift_phase_rad: np.ndarray = (0.0, 0.0, 0.0), drift_amp_m: float = 2e-4,
+    n_frames: int, fps: float, phase0_rad: float = 0.0, drift_hz: tuple[float, ...] = (0.4, 0.7, 1.1),
+    drift_phase_rad: tuple[float, ...] = (0.0, 0.0, 0.0), drift_amp_m: float = 2e-4,
 ) -> Scene:
     """A bat head (3 markers) with one ear (6 markers) bending through 90 deg at 10 Hz.
 
