@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from . import atomic, evaluate
 from .camera import Rig
@@ -49,7 +50,8 @@ CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square, 2 DOF (reprojec
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
 MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs small and fast
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
-DPI = 80
+DPI = 100
+MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretched so that it stays readable
 
 
 # ----------------------------------------------------------------------------------------------
@@ -105,7 +107,8 @@ def camera_error_stats(rep_mm: pd.DataFrame) -> pd.DataFrame:
     Returns columns method, camera, n, n_outliers, mean_px, median_px, rms_px, p95_px,
     mean_mm_at_depth, p95_mm_at_depth.
     """
-    rep = rep_mm[np.isfinite(rep_mm["err_px"].to_numpy(float))]
+    rep = rep_mm.astype({"err_px": float, "err_mm": float})
+    rep = rep[np.isfinite(rep["err_px"].to_numpy())]
     out = (rep["outlier"].fillna(False).astype(bool) if "outlier" in rep
            else pd.Series(False, index=rep.index))
     inl = rep[~out.to_numpy()].assign(err2=lambda d: d["err_px"] ** 2)
@@ -154,6 +157,7 @@ def status_metrics(errors: pd.DataFrame) -> pd.DataFrame:
     Mahalanobis distance is within the 3-DOF 95 % chi-square quantile (7.8147), over points that
     have a covariance. Returns columns method, status, n, rmse_m, mean_m, p95_m, coverage95.
     """
+    errors = errors.astype({"err_m": float, "d2": float})
     both = pd.concat([errors.assign(status="all"), errors[errors["status"].isin(STATUSES[1:])]])
     both = both.assign(e2=both["err_m"] ** 2, inside=np.where(np.isfinite(both["d2"]),
                                                                 (both["d2"] <= CHI2_3DOF_95).astype(float), np.nan))
@@ -279,7 +283,7 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
     n = len(methods)
     ncol = min(n, 3)
     nrow = int(math.ceil(n / ncol))
-    fig = Figure(figsize=(4.6 * ncol, 4.2 * nrow))
+    fig = Figure(figsize=(4.6 * ncol, 3.6 * nrow))
     cmap = _marker_colours(len(markers))
     mi = {m: i for i, m in enumerate(markers)}
     sk = [(mi[a], mi[b]) for a, b in skeleton if a in mi and b in mi]
@@ -301,11 +305,15 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
         n_est = int(np.isfinite(c[..., 0]).sum())
         ax.set_title(f"{m}  ({n_est}/{c.shape[0] * c.shape[1]} estimates)", fontsize=10, color=style[m][0])
         ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
-        ax.set_box_aspect(hi - lo)
+        span = hi - lo
+        ax.set_box_aspect(np.maximum(span, span.max() / MAX_ASPECT))
         ax.set_xlabel("x [m]", fontsize=8)
         ax.set_ylabel("y [m]", fontsize=8)
         ax.set_zlabel("z [m]", fontsize=8)
         ax.tick_params(labelsize=7)
+        for a in (ax.xaxis, ax.yaxis, ax.zaxis):
+            a.set_major_locator(MaxNLocator(4))
+        ax.view_init(elev=22, azim=-65)
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], color=cmap[j], lw=2, label=mk) for j, mk in enumerate(markers[:20])]
     if truth_cube is not None:
@@ -397,7 +405,9 @@ def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, sel
                 continue
             uv = om[["u", "v"]].to_numpy(float)[::max(1, st)]
             ax.scatter(uv[:, 0], uv[:, 1], s=7, facecolor="none", edgecolor=cmap[j], lw=0.7, zorder=3)
-            ax.annotate(mk, uv[0], fontsize=7, color=cmap[j], xytext=(4, -4), textcoords="offset points")
+            # label at the track's median: the tracks' starts often coincide, their middles less so
+            ax.annotate(mk, np.median(uv, axis=0), fontsize=7, fontweight="bold", color=cmap[j], xytext=(4, 0),
+                        textcoords="offset points")
         for m in methods:
             uvm = reproj_tracks[m][cam]  # (F, M_sel, 2)
             colour, ls = style[m]
@@ -470,8 +480,11 @@ def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status
         extra_h += _legend_handles([], {}, [dict(color="#9467bd", marker=".", ls="", label="reference")])
     extra_h += [Patch(color="#f6d7a7", label="single view"), Patch(color="#f4a6a6", label="unobserved"),
                 Patch(color="0.6", alpha=0.3, label="95 % band (±1.96 σ)")]
-    fig.legend(handles=extra_h, loc="lower center", ncol=len(extra_h), fontsize=8, frameon=False)
-    fig.subplots_adjust(bottom=0.9 / (1.55 * len(selected) + 0.9) + 0.04, hspace=0.15, wspace=0.18)
+    # above the panels: its height is fixed, so the gap does not grow with the number of markers
+    fig.legend(handles=extra_h, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(extra_h), fontsize=8,
+               frameon=False)
+    fig.subplots_adjust(top=1.0 - 0.3 / (1.55 * len(selected) + 0.9), bottom=0.5 / (1.55 * len(selected) + 0.9),
+                        hspace=0.15, wspace=0.18)
     return fig
 
 
@@ -513,6 +526,9 @@ def _fig_error_time(errors, methods, style, fps, ax, ylabel):
             ax.plot(e.index.to_numpy() / fps, e.to_numpy() * 1000, color=style[m][0], ls=style[m][1], lw=1.0,
                     label=m)
     ax.set_yscale("log")
+    plain = FuncFormatter(lambda v, _: f"{v:g}")  # "6" rather than "6 x 10^0"
+    ax.yaxis.set_major_formatter(plain)
+    ax.yaxis.set_minor_formatter(plain)
     ax.set_xlabel("time [s]", fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.tick_params(labelsize=7)
@@ -522,11 +538,9 @@ def _fig_reference(errors, methods, style, fps):
     fig = Figure(figsize=(9.0, 3.0))
     ax = fig.add_subplot(1, 1, 1)
     _fig_error_time(errors, methods, style, fps, ax, "median distance over markers [mm]")
-    ax.axhline(1.0, color="k", ls="--", lw=0.8)
-    ax.text(ax.get_xlim()[0], 1.0, " paper: EKF/UKF within 1 mm of stereo triangulation (ear)", fontsize=7,
-            va="bottom")
+    ax.axhline(1.0, color="k", ls="--", lw=0.8, label="paper (ear): EKF/UKF within 1 mm of triangulation")
     ax.set_title("distance to the reference reconstruction over time", fontsize=10)
-    ax.legend(fontsize=7, frameon=False, ncol=len(methods))
+    ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return fig
 
 
@@ -656,7 +670,9 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     reprojection["method"] = reprojection["method"].astype(str)
     methods = _methods(trajectories, reprojection, summary)
     style = _style(methods)
-    plotted = [m for m in methods if (trajectories["method"] == m).any()]
+    has_xyz = np.isfinite(trajectories[["x", "y", "z"]].to_numpy(float)).all(axis=1)
+    estimated = set(trajectories.loc[has_xyz, "method"])
+    plotted = [m for m in methods if m in estimated]  # a method without a single estimate has nothing to draw
     fps = float(session.fps)
     cameras = session.rig.names
     markers = list(session.markers)
@@ -708,7 +724,8 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         if plotted else None
     sections.append(("trajectories", "3D trajectories", _figure_html(
         fig, "Every marker's path (colour = marker) for each method, in the world frame [m], on common "
-        "axes (1st–99th percentile of all estimates). Blue segments: the skeleton at five evenly spaced "
+        "axes (1st–99th percentile of all estimates), equally scaled unless one range is under a quarter of "
+        "the longest (then that axis is stretched). Blue segments: the skeleton at five evenly spaced "
         "frames (the paper's Fig. 5a draws the wing the same way). Thin black: truth, when known.",
         "3D trajectories per method")))
 
@@ -745,8 +762,9 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     sections.append(("coordinates", "Marker coordinates over time", _figure_html(
         fig, "World x, y, z [m] of the selected markers for each method, with 95 % bands (± 1.96 σ per axis "
         f"from the marginal covariance). Shaded: frames where the marker was seen by one camera only "
-        f"(orange) or by none (red), from the status column of {html.escape(plotted[0]) if plotted else '–'}. "
-        "Dotted black: truth; purple dots: reference reconstruction (when present).",
+        f"(orange) or by none (red), from the status column of {html.escape(plotted[0]) if plotted else '–'}."
+        + (" Dotted black: truth." if truth is not None else "")
+        + (" Purple dots: reference reconstruction." if reference is not None else ""),
         "marker coordinates over time")))
 
     # --- per-camera table
@@ -758,8 +776,9 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         "statistics of |(û, v̂) − (u, v)| on the raw image, and the same error in millimetres at the "
         "marker's depth (err_px × depth / f × 1000, depth = z of the method's estimate in that camera). "
         "Values from summary.json where present, otherwise computed from reprojection.csv. The last column "
-        f"is the paper's published figure for its {experiment} experiment (its camera 1 was the base of a "
-        "pairwise calibration, hence its smaller error).</p>" + table
+        f"is the paper's published figure for its {experiment} experiment"
+        + (" (its camera 1 was the base of a pairwise calibration, hence its smaller error)"
+           if experiment == "flight" else "") + ".</p>" + table
         + "<p class=\"note\">The paper's published figures (Bender et al., PAPER.md):</p>"
         + _paper_table(experiment))))
 

@@ -48,20 +48,20 @@ def make_scene(n_cams=3, n_frames=48, markers=MARKERS, fps=120.0, methods=("smoo
                seed=0, name="flight_test"):
     """A session plus trajectories/reprojection tables as the pipeline would hand them to the report.
 
-    Markers: a body moving along -x at 3 m/s and wing points flapping at 4 Hz. Occlusion: wrist_r is
+    Markers: a body moving along -x at 3 m/s through the origin and wing points flapping at 4 Hz. Occlusion: wrist_r is
     seen by one camera on frames 10-17 and by none on 18-25. Each method = truth + N(0, sigma) with
     its own sigma and its covariance set to sigma^2 I; triangulate has no estimate off 2+ views.
     """
     rng = np.random.default_rng(seed)
     ang = np.linspace(0, 2 * np.pi, n_cams, endpoint=False)
-    rig = Rig([look_at_camera(f"cam{i + 1}", np.array([3 * np.cos(a), 3 * np.sin(a), 0.8]))
+    rig = Rig([look_at_camera(f"cam{i + 1}", np.array([4 * np.cos(a), 4 * np.sin(a), 0.8]))
                for i, a in enumerate(ang)])
     frames = np.arange(n_frames)
     t = frames / fps
     M = len(markers)
     span = np.linspace(0, 0.25, M)  # distance of each marker from the body along the wing [m]
     flap = np.sin(2 * np.pi * 4.0 * t)[:, None] * span[None, :] * 0.8
-    xyz = np.stack([np.broadcast_to(0.2 - 3.0 * t[:, None], (n_frames, M)) + 0.01 * np.arange(M),
+    xyz = np.stack([np.broadcast_to(3.0 * (t[-1] / 2 - t[:, None]), (n_frames, M)) + 0.01 * np.arange(M),
                     np.broadcast_to(-span, (n_frames, M)), flap], axis=-1)  # (F, M, 3) [m]
     truth = pd.DataFrame({"frame": np.repeat(frames, M), "marker": np.tile(markers, n_frames),
                           "x": xyz[..., 0].ravel(), "y": xyz[..., 1].ravel(), "z": xyz[..., 2].ravel()})
@@ -275,3 +275,16 @@ def test_summary_values_take_precedence(tmp_path):
     assert cams[row][5] != "–"  # median not in the summary: computed
     truth = {r[0]: r for r in table(p, "status")[1:]}
     assert truth["ukf"][2] == "43.21" and truth["ukf"][6] == "50.0 %"
+
+
+def test_degenerate_inputs_still_render(tmp_path):
+    """No reprojection rows and a single method without any estimate: every figure section says so,
+    and the truth section (nothing to compare) is left out."""
+    session, traj, rep, _ = make_scene(n_cams=2, n_frames=12, methods=("smoother",))
+    traj[["x", "y", "z"]] = np.nan
+    text = render_report(session, traj, rep.iloc[:0], {"methods": {"smoother": None}})
+    p = parse(text)
+    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table"]
+    assert len(p.imgs) == 0
+    assert text.count("No data to draw") == 4
+    assert "No reprojection errors." in text
