@@ -63,10 +63,6 @@ def timed(fn, repeats: int):
     return statistics.median(times), times, out
 
 
-def subset(ideal: IdealObservations, markers: np.ndarray) -> IdealObservations:
-    """The observations of ``markers`` only (C, F, M', ...)."""
-    return IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
-
 
 # ----- (a) the smoother ------------------------------------------------------------------------------
 def gtsam_straightforward(session: Session, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
@@ -250,7 +246,7 @@ def bench_filter(session: Session, dense, ideal: IdealObservations, repeats: int
         s5 = simulate_flight(np.random.default_rng(0), n_cameras=5, n_frames=F)
         d5 = dense_observations(s5)
         i5 = ideal_observations(s5.rig, d5, s5.pixel_sigma_px)
-        t5, times5, e5 = timed(lambda: run_filter_fast(s5, d5, i5, opt), repeats)
+        t5, _, e5 = timed(lambda: run_filter_fast(s5, d5, i5, opt), repeats)
         M5 = i5.seen.shape[2]
         print(f"    fast filter, 5-camera flight ({M5} markers): {F / t5:.0f} frames/s")
         rows.append((f"fast filter: 5-camera flight, {M5} markers, {F} frames", f"{F / t5:.0f} fr/s",

@@ -14,7 +14,9 @@ import pandas as pd
 import pytest
 
 from batgraph.camera import Camera, Rig
-from batgraph.session import MotionConfig, Session, write_session
+from batgraph.measurement import ideal_observations
+from batgraph.motion import constant_velocity_F, constant_velocity_Q
+from batgraph.session import MotionConfig, Session, dense_observations, write_session
 
 
 def look_at(name: str, centre_world_m, target_world_m, K, size_wh=(640, 480), dist=None,
@@ -111,3 +113,25 @@ def make_session_folder(tmp_path: Path):
     def make(name: str = "session", **kwargs) -> Path:
         return write_tiny_session(tmp_path / name, **kwargs)
     return make
+
+
+def cv_scene(q_per_marker, n_frames: int, seed: int = 0, fps: float = 100.0, v0_sigma_mps: float = 0.3):
+    """Session, dense, ideal and truth (F, M, 3) [m] of tracks drawn from the constant-velocity model with
+    one q [m^2/s^3] per marker, seen by 4 cameras with 0.5 px noise."""
+    rng = np.random.default_rng(seed)
+    q = np.asarray(q_per_marker, float)
+    M, dt = len(q), 1 / fps
+    Fm = constant_velocity_F(dt)
+    x = np.zeros((n_frames, M, 6))
+    x[0, :, :3] = rng.uniform(-0.1, 0.1, (M, 3))
+    x[0, :, 3:] = rng.normal(0, v0_sigma_mps, (M, 3))
+    L = np.linalg.cholesky(constant_velocity_Q(1.0, dt))
+    for k in range(1, n_frames):
+        x[k] = x[k - 1] @ Fm.T + np.sqrt(q)[:, None] * (rng.normal(size=(M, 6)) @ L.T)
+    truth = x[..., :3]
+    rig = tiny_rig(4, size_wh=(1280, 720), focal_px=900.0)
+    obs = observations_table(rig, truth)
+    obs[["u", "v"]] += rng.normal(0, 0.5, (len(obs), 2))
+    session = Session("q", fps, rig, obs, MotionConfig(model="constant_velocity"), pixel_sigma_px=0.5)
+    dense = dense_observations(session)
+    return session, dense, ideal_observations(rig, dense, 0.5), truth

@@ -8,7 +8,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-from conftest import observations_table, tiny_rig, tiny_scene
+from conftest import cv_scene, observations_table, tiny_rig, tiny_scene
 
 from batgraph.camera import Camera, Rig
 from batgraph.graph import factors, noise
@@ -292,23 +292,10 @@ def test_q_selection_and_logdet():
     """Marker tracks drawn from the constant-velocity model with q = 30 m^2/s^3: the marginal-likelihood
     rule picks each marker's q within a factor 3 (measured 21-33), and the smoother's posterior log-determinant equals
     numpy's slogdet of the dense Hessian in m, m/s units (measured rel. diff 1e-13)."""
-    rng = np.random.default_rng(7)
-    q_true, n, M = 30.0, 60, 4
+    q_true = 30.0
     dt = 1 / FPS
-    Fm, Qm = constant_velocity_F(dt), constant_velocity_Q(q_true, dt)
-    x = np.zeros((n, M, 6))
-    x[0, :, :3] = rng.uniform(-0.1, 0.1, (M, 3))
-    x[0, :, 3:] = rng.normal(0, 0.5, (M, 3))
-    Lq = np.linalg.cholesky(Qm)
-    for k in range(1, n):
-        x[k] = x[k - 1] @ Fm.T + rng.normal(size=(M, 6)) @ Lq.T
-    truth = x[..., :3]
-    rig = tiny_rig(4, size_wh=(1280, 720), focal_px=900.0)
-    obs = observations_table(rig, truth)
-    obs[["u", "v"]] += rng.normal(0, 0.5, (len(obs), 2))
-    session = Session("q", FPS, rig, obs, MotionConfig(model="constant_velocity"), pixel_sigma_px=0.5)
-    dense = dense_observations(session)
-    ideal = ideal_observations(rig, dense, 0.5)
+    session, dense, ideal, _ = cv_scene([q_true] * 4, n_frames=60, seed=7, fps=FPS, v0_sigma_mps=0.5)
+    rig = session.rig
     est = run_smoother(session, dense, ideal, Options(robust="none", progress=False))
     q = np.array(list(est.info["accel_psd_m2_s3"].values()))  # one per marker (fixed cameras)
     print(f"chosen q {q} (truth {q_true})")

@@ -7,40 +7,16 @@ by 4 cameras with 0.5 px noise, so the maximum-likelihood q has a known target.
 from __future__ import annotations
 
 import numpy as np
-from conftest import observations_table, tiny_rig
+from conftest import cv_scene
 
 from batgraph.graph import factors, noise
 from batgraph.graph.factors import MotionFactors, MotionModel
 from batgraph.graph.fast import solve_fast
 from batgraph.graph.smoother import log_evidence, run_smoother, solve_batch
-from batgraph.measurement import ideal_observations
-from batgraph.motion import constant_velocity_F, constant_velocity_Q
 from batgraph.result import Options
-from batgraph.session import MotionConfig, Session, dense_observations
 from batgraph.triangulate import triangulate_ideal
 
 FPS = 100.0
-
-
-def cv_scene(q_per_marker, n_frames: int, seed: int = 0):
-    """Session, dense, ideal and truth (F, M, 3) [m] of tracks drawn with one q [m^2/s^3] per marker."""
-    rng = np.random.default_rng(seed)
-    q = np.asarray(q_per_marker, float)
-    M, dt = len(q), 1 / FPS
-    Fm = constant_velocity_F(dt)
-    x = np.zeros((n_frames, M, 6))
-    x[0, :, :3] = rng.uniform(-0.1, 0.1, (M, 3))
-    x[0, :, 3:] = rng.normal(0, 0.3, (M, 3))
-    L = np.linalg.cholesky(constant_velocity_Q(1.0, dt))
-    for k in range(1, n_frames):
-        x[k] = x[k - 1] @ Fm.T + np.sqrt(q)[:, None] * (rng.normal(size=(M, 6)) @ L.T)
-    truth = x[..., :3]
-    rig = tiny_rig(4, size_wh=(1280, 720), focal_px=900.0)
-    obs = observations_table(rig, truth)
-    obs[["u", "v"]] += rng.normal(0, 0.5, (len(obs), 2))
-    session = Session("q", FPS, rig, obs, MotionConfig(model="constant_velocity"), pixel_sigma_px=0.5)
-    dense = dense_observations(session)
-    return session, dense, ideal_observations(rig, dense, 0.5), truth
 
 
 def test_per_marker_evidence_matches_gtsam_subgraph():
