@@ -14,14 +14,15 @@ section around the best grid point. With outlier rejection the smoother scores o
 its Cauchy cleaning step kept (mislabels inflated q: 26 instead of 20 on the simulated flight with 5 %
 of them).
 
-With fixed cameras q is chosen PER MARKER (:func:`choose_accel_psd_per_marker`): the markers are then
+q is chosen PER MARKER (:func:`choose_accel_psd_per_marker`): with fixed cameras the markers are
 independent, so the evidence is a sum of per-marker terms and each marker's q maximises its own term
 exactly (wing tips accelerate far more than the body: on the simulated flight body markers get
 q ~ 0.03-1, elbows ~3, wrists ~18, digit tips 30-56 m^2/s^3). One global q (~20) made the body's
 extrapolation at the sequence ends too loose and the tips' too tight (95 % coverage of single-view
-points at the ends 75-78 %). With camera variables the markers share the cameras and q stays global:
-:func:`maximise_log10` with a score computed by the caller (a GTSAM graph in
-:mod:`batgraph.graph.smoother`), so any solver of the same cost can reuse that search.
+points at the ends 75-78 %). With camera variables the markers share the cameras; the smoother then
+scores each marker with the cameras held at their calibrated means (the evidence conditional on
+them), which kept the per-marker accuracy (a global q cost 8.6 % RMSE there). :func:`maximise_log10`
+takes a score computed by the caller, so any solver of the same cost can reuse the search.
 
 Rule for the filter, which must not see the future: the session/option value if given, else
 :func:`causal_accel_psd` from the motion config alone. This module does not build graphs.
