@@ -26,6 +26,9 @@ def _add_reconstruct(sub):
                        description="Reconstruct 3D marker trajectories from a session folder (or several).")
     p.add_argument("sessions", nargs="+", metavar="SESSION", help="session folder(s) or glob pattern(s)")
     p.add_argument("--out", help="output folder (default SESSION/out; with several sessions OUT/<session>)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration.toml to use instead of each session's own (e.g. from `calibrate` on a wand "
+                        "recording); the session folders are not modified")
     p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
                                      "(default smoother,filter)")
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
@@ -84,7 +87,8 @@ def _cmd_reconstruct(args) -> int:
         viewer = "spawn" if display_available() and not batch else "save"
     if batch:
         items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
-                                 n_workers=args.workers, progress=not args.quiet, viewer=viewer)
+                                 n_workers=args.workers, progress=not args.quiet, viewer=viewer,
+                                 calibration=args.calibration)
         if args.quiet:
             for it in items:
                 if it.status != "ok":
@@ -92,7 +96,7 @@ def _cmd_reconstruct(args) -> int:
         else:
             print(format_batch_table(items, verbose=args.verbose))
         return exit_code(items)
-    result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer)
+    result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer, calibration=args.calibration)
     if not args.quiet:
         print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
         for w in result.session.warnings:

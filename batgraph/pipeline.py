@@ -172,14 +172,15 @@ def write_outputs(result: Result, out_dir: Path, viewer: str = "save", options: 
 
 def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
                 methods: list[str] | None = None, options: Options | None = None,
-                viewer: str = "save") -> Result:
+                viewer: str = "save", calibration: str | Path | None = None) -> Result:
     """The ``reconstruct`` command for one session folder. Raises InputError on bad input.
 
     viewer: "spawn" streams the filter live to a Rerun window (and saves recording.rrd), "save"
-    writes recording.rrd, "none" neither.
+    writes recording.rrd, "none" neither. calibration: a calibration.toml to use instead of the
+    session's own (see batgraph.session.read_session).
     """
     options = options or Options()
-    session = read_session(session_dir)
+    session = read_session(session_dir, calibration)
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     methods = list(methods or DEFAULT_METHODS)
     if viewer == "spawn":

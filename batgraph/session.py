@@ -267,8 +267,10 @@ def _labels(df: pd.DataFrame, col: str, path: Path, is_csv: bool) -> pd.Series:
     return s
 
 
-def read_observations(path: Path, rig: Rig) -> tuple[pd.DataFrame, list[str]]:
-    """Read and validate observations.csv/.parquet. Returns (table, warnings)."""
+def read_observations(path: Path, rig: Rig,
+                      calibration_name: str = "calibration.toml") -> tuple[pd.DataFrame, list[str]]:
+    """Read and validate observations.csv/.parquet against ``rig`` (read from ``calibration_name``, named in
+    errors). Returns (table, warnings)."""
     df, is_csv = _read_table(path, OBS_COLUMNS, "observations")
     frame = _frames(df, path, is_csv)
     camera = _labels(df, "camera", path, is_csv)
@@ -288,7 +290,7 @@ def read_observations(path: Path, rig: Rig) -> tuple[pd.DataFrame, list[str]]:
     if unknown.any():
         i = int(np.argmax(unknown.to_numpy()))
         raise InputError(
-            f"{path} {_line(i, is_csv)}: camera {camera.iloc[i]!r} is not in calibration.toml "
+            f"{path} {_line(i, is_csv)}: camera {camera.iloc[i]!r} is not in {calibration_name} "
             f"(cameras: {', '.join(rig.names)})"
         )
     half = np.isnan(u) != np.isnan(v)
@@ -355,19 +357,24 @@ def _session_config(path: Path) -> dict:
     return data
 
 
-def read_session(folder: str | Path) -> Session:
-    """Load and validate a session folder (see module docstring)."""
+def read_session(folder: str | Path, calibration: str | Path | None = None) -> Session:
+    """Load and validate a session folder (see module docstring).
+
+    calibration: a calibration.toml to use instead of the folder's own (e.g. one ``calibrate`` wrote
+    from a wand recording of the same rig); the folder is not modified.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: session folder not found")
     cfg = _session_config(folder / "session.toml")
-    rig = read_calibration(folder / "calibration.toml")
+    cal_path = Path(calibration) if calibration is not None else folder / "calibration.toml"
+    rig = read_calibration(cal_path)
     obs_path = folder / "observations.csv"
     if not obs_path.exists() and (folder / "observations.parquet").exists():
         obs_path = folder / "observations.parquet"
     if not obs_path.exists():
         raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
-    observations, warnings = read_observations(obs_path, rig)
+    observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path))
     sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})
     known = {f for f in MotionConfig.__dataclass_fields__}
     mcfg = MotionConfig(**{k: v for k, v in motion.items() if k in known})

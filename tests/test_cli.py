@@ -62,6 +62,20 @@ def test_bad_input_is_one_line_exit_2_and_no_traceback(tmp_path, breakage, words
     assert not (bad / "out").exists()
 
 
+def test_bad_calibration_option_is_one_line_exit_2(tmp_path):
+    """`reconstruct --calibration FILE`: a missing file, or one without the session's cameras, is named."""
+    other = tmp_path / "other.toml"
+    other.write_text((SAMPLE / "calibration.toml").read_text().replace('name = "cam1"', 'name = "camX"'))
+    for cal, words in ((tmp_path / "missing.toml", ["missing.toml", "not found"]),
+                       (other, ["other.toml", "'cam1'", "observations.csv"])):
+        r = run("reconstruct", SAMPLE, "--calibration", cal, "--methods", "triangulate", "--out", tmp_path / "o",
+                "--quiet")
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+        assert all(w in r.stderr for w in words), r.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_simulate_then_export_dltdv_and_console_script(tmp_path):
     r = run("simulate", "ear", tmp_path / "ear", "--frames", "20", "--seed", "3")
     assert r.returncode == 0, r.stderr
