@@ -385,8 +385,10 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
-    largest step is < 1e-10 m (or the relative cost decrease < 1e-15). The steps use the robust loss's
-    curvature (see ``_Problem.linearize``), so robust problems converge in a few iterations.
+    largest step is < 1e-10 m, the relative cost decrease < 1e-15, or a rejected step's predicted
+    decrease is below the cost's rounding (4 eps; such steps are ~1e-9 m). The first step, and a step
+    after a rejected one, use the IRLS curvature (it majorises the robust loss); the others the robust
+    loss's own curvature (see ``_Problem.evaluate``), so robust problems converge in a few iterations.
 
     Returns xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2] (marginal of each p[m, k] from the Gauss-Newton
     Hessian at the minimiser, with the IRLS weights there), both NaN for markers not estimated, and
