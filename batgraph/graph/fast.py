@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -38,6 +39,13 @@ PRIOR_SIGMA_V_MPS = factors.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m,
 # rounding level) costs one or two more quadratically convergent iterations and lands on the minimiser.
 REL_COST_TOL = 1e-15
 STEP_TOL_M = 1e-10  # largest step component [m]
+# A step whose predicted decrease (from the quadratic model) is below a few rounding units of the
+# marker's cost cannot be judged by comparing costs (their sums differ by rounding, ~10-30 eps measured
+# on 10^4-term costs); such a step is ~1e-9 m or less and the marker is at its minimiser to rounding.
+ROUNDING_EPS = 4.0
+# Observations are evaluated in blocks of whole frames of about this many rows, so that the
+# temporaries of one block (a few hundred kB each) stay in the CPU cache whatever the scene's size.
+CHUNK_ROWS = 1 << 15
 
 
 def robust_loss(d2: np.ndarray, robust: str, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -61,62 +69,133 @@ def robust_loss(d2: np.ndarray, robust: str, k: float) -> tuple[np.ndarray, np.n
 
 @dataclass
 class _Observations:
-    """Projection factors, flattened over (camera, frame, marker); n rows, component-major for speed.
+    """Projection factors of the markers being solved, sorted by (frame, marker); n rows, component-major.
 
-    f, m: frame index and column of the marker in the state being solved, (n,) int.
-    P: K [R | t] of the observing camera, (3, 4, n) (ideal pixels; the third row gives the depth).
-    uv: ideal pixels, (2, n). Linv: whitening L^-1 = [[a, 0], [b, c]], L = chol(cov_px2), as
-    (3, n) = (a, b, c) [1/px]. behind_px: GTSAM's residual when the point is behind the camera, 2 fx.
+    f, m: frame index and column of the marker in the state being solved, (n,) int, sorted by
+    f * M' + m. cam: observing camera (n,) int. P: K [R | t] of every camera as (12, C), row 4 i + j
+    holding P[i, j] (ideal pixels; the third row gives the depth). uv: ideal pixels, (2, n). Linv:
+    whitening L^-1 = [[a, 0], [b, c]], L = chol(cov_px2), as (3, n) = (a, b, c) [1/px]. behind_px:
+    GTSAM's residual when the point is behind camera c, 2 fx, (C,). n_frames, n_markers: F, M'.
     """
 
     f: np.ndarray
     m: np.ndarray
+    cam: np.ndarray
     P: np.ndarray
     uv: np.ndarray
     Linv: np.ndarray
     behind_px: np.ndarray
+    n_frames: int
+    n_markers: int
+
+    @cached_property
+    def cell(self) -> np.ndarray:
+        """The (frame, marker) cell of each row, f * M' + m, (n,) int, non-decreasing."""
+        return self.f * self.n_markers + self.m
+
+    @cached_property
+    def blocks(self) -> list[tuple[slice, int, int]]:
+        """(rows, f0, f1): blocks of whole frames [f0, f1) of about CHUNK_ROWS rows (at least one frame)."""
+        row_of_frame = np.searchsorted(self.f, np.arange(self.n_frames + 1))
+        edges = [0]
+        while edges[-1] < self.n_frames:
+            f1 = np.searchsorted(row_of_frame, row_of_frame[edges[-1]] + CHUNK_ROWS, side="right") - 1
+            edges.append(int(min(self.n_frames, max(f1, edges[-1] + 1))))
+        return [(slice(row_of_frame[a], row_of_frame[b]), a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
     def of_markers(self, keep: np.ndarray) -> _Observations:
         """The rows of the markers where ``keep`` (bool over current columns), columns renumbered."""
         col = np.cumsum(keep) - 1
         rows = np.flatnonzero(keep[self.m])
-        return _Observations(self.f[rows], col[self.m[rows]], self.P[:, :, rows], self.uv[:, rows],
-                             self.Linv[:, rows], self.behind_px[rows])
+        return _Observations(self.f[rows], col[self.m[rows]], self.cam[rows], self.P, self.uv[:, rows],
+                             self.Linv[:, rows], self.behind_px, self.n_frames, int(keep.sum()))
 
-    def residuals(self, x: np.ndarray, jacobian: bool):
-        """Whitened residuals r (2, n) at x (F, M', d) and, if asked, whitened Jacobians Jw (2, 3, n) [1/m].
+    def residuals(self, x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residuals r (2, n) of every row at x (F, M', >= 3) [m] and, if asked, whitened
+        Jacobians Jw (2, 3, n) [1/m] (see :meth:`block_residuals`)."""
+        r0, r1, Jw0, Jw1 = self.block_residuals(_positions(x), slice(None), jacobian)
+        return np.stack([r0, r1]), None if Jw0 is None else np.stack([Jw0, Jw1])
+
+    def block_residuals(self, pt: np.ndarray, rows: slice, jacobian: bool):
+        """Whitened residuals (r0, r1), each (k,), of ``rows`` at positions pt (3, F * M') [m] and, if
+        asked, the rows of the whitened Jacobian (Jw0, Jw1), each (3, k) [1/m].
 
         r = L^-1 (pi(p) - uv) in front of the camera (depth > 0); behind it r = L^-1 (2 fx, 2 fx) with a
         zero Jacobian, which is what GTSAM's TriangulationFactor returns on a cheirality exception
         (an initial track can put a single-view point behind its camera).
         """
-        F, M = x.shape[:2]
-        p = np.moveaxis(x[..., :3], -1, 0).reshape(3, F * M)[:, self.f * M + self.m]  # (3, n), contiguous
-        P = self.P
-        uvw = P[:, 0] * p[0] + P[:, 1] * p[1] + P[:, 2] * p[2] + P[:, 3]  # (3, n)
-        front = uvw[2] > 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv_depth = np.where(front, 1.0 / uvw[2], 0.0)
-        uv = uvw[:2] * inv_depth
-        e = np.where(front, uv - self.uv, self.behind_px)
-        a, b, c = self.Linv
-        r = np.stack([a * e[0], b * e[0] + c * e[1]])
+        p = np.take(pt, self.cell[rows], axis=1)  # (3, k)
+        P = np.take(self.P, self.cam[rows], axis=1)  # (12, k)
+        depth = P[8] * p[0] + P[9] * p[1] + P[10] * p[2] + P[11]
+        front = depth > 0
+        with np.errstate(divide="ignore"):
+            inv_depth = 1.0 / depth
+        u = (P[0] * p[0] + P[1] * p[1] + P[2] * p[2] + P[3]) * inv_depth
+        v = (P[4] * p[0] + P[5] * p[1] + P[6] * p[2] + P[7]) * inv_depth
+        e0, e1 = u - self.uv[0, rows], v - self.uv[1, rows]
+        if not front.all():
+            behind = ~front
+            e0[behind] = e1[behind] = self.behind_px[self.cam[rows][behind]]
+            inv_depth[behind] = 0.0
+        a, b, c = self.Linv[:, rows]
+        r0, r1 = a * e0, b * e0 + c * e1
         if not jacobian:
-            return r, None
-        J0 = (P[0, :3] - uv[0] * P[2, :3]) * inv_depth  # d u / d p, (3, n) [px/m]
-        J1 = (P[1, :3] - uv[1] * P[2, :3]) * inv_depth
-        return r, np.stack([a * J0, b * J0 + c * J1])
+            return r0, r1, None, None
+        J0 = (P[0:3] - u * P[8:11]) * inv_depth  # d u / d p, (3, k) [px/m]
+        J1 = (P[4:7] - v * P[8:11]) * inv_depth
+        Jw0 = a * J0
+        J1 *= c
+        J1 += b * J0
+        return r0, r1, Jw0, J1
+
+
+def _positions(x: np.ndarray) -> np.ndarray:
+    """The positions of a state x (F, M', d) as (3, F * M') [m], column f * M' + m (contiguous rows)."""
+    F, M = x.shape[:2]
+    return np.ascontiguousarray(x[..., :3].reshape(F * M, 3).T)
 
 
 def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> _Observations:
-    """Every observation of the ``estimated`` markers (bool (M,)) as :class:`_Observations`."""
-    seen = ideal.seen & estimated[None, None, :]
-    c, f, m = np.nonzero(seen)
-    P = np.stack([cam.P for cam in rig], axis=-1)[:, :, c]
-    L = np.linalg.cholesky(ideal.cov_px2[c, f, m])
-    Linv = np.stack([1 / L[:, 0, 0], -L[:, 1, 0] / (L[:, 0, 0] * L[:, 1, 1]), 1 / L[:, 1, 1]])
-    behind = np.array([2.0 * cam.K[0, 0] for cam in rig])[c]
-    return _Observations(f, m, np.ascontiguousarray(P), ideal.uv_px[c, f, m].T.copy(), Linv, behind)
+    """Every observation of the ``estimated`` markers (bool (M,)) as :class:`_Observations`, columns
+    numbered among the estimated markers."""
+    seen = (ideal.seen & estimated[None, None, :]).transpose(1, 2, 0)  # (F, M, C): rows come out sorted
+    f, m, c = np.nonzero(seen)
+    P = np.stack([cam.P.ravel() for cam in rig], axis=-1)  # (12, C)
+    cov = ideal.cov_px2[c, f, m]
+    l00 = np.sqrt(cov[:, 0, 0])
+    l10 = cov[:, 1, 0] / l00
+    l11 = np.sqrt(cov[:, 1, 1] - l10 * l10)
+    Linv = np.stack([1 / l00, -l10 / (l00 * l11), 1 / l11])
+    behind = np.array([2.0 * cam.K[0, 0] for cam in rig])
+    col = np.cumsum(estimated) - 1
+    return _Observations(f, col[m], c, P, ideal.uv_px[c, f, m].T.copy(), Linv, behind, seen.shape[0],
+                         int(estimated.sum()))
+
+
+# the 6 distinct entries (i, j), i <= j, of a symmetric 3x3 block
+_IU = np.triu_indices(3)
+_IU_PAIRS = list(zip(*_IU, strict=True))
+
+
+@dataclass
+class _Linearization:
+    """The projection factors' part of the Gauss-Newton system at some x, per (frame, marker).
+
+    Hw: ``sum w Jw^T Jw`` with the IRLS weights w (GTSAM's robust whitening), (F, M', 6) upper-triangle
+    entries (rows of _IU) [1/m^2]; Hc: the correction ``sum w a Jw^T r r^T Jw / |r|^2`` whose
+    subtraction gives the robust loss's own curvature (see :meth:`_Problem.evaluate`), same shape;
+    g: gradient ``sum w Jw^T r``, (F, M', 3) [1/m].
+    """
+
+    Hw: np.ndarray
+    Hc: np.ndarray
+    g: np.ndarray
+
+    def take(self, cols: np.ndarray) -> _Linearization:
+        return _Linearization(self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols])
+
+    def put(self, cols: np.ndarray, other: _Linearization) -> None:
+        self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols] = other.Hw, other.Hc, other.g
 
 
 class _Problem:
@@ -163,55 +242,71 @@ class _Problem:
         out.wq, out.Qi, out.AtQiA, out.B = self.wq[keep], self.Qi[keep], self.AtQiA[keep], self.B[keep]
         return out
 
-    def cost(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations) -> np.ndarray:
-        """Total cost per marker, shape (M',) (inf where not finite)."""
-        M = x.shape[1]
-        r, _ = obs.residuals(x, jacobian=False)
-        rho, _ = robust_loss(r[0] * r[0] + r[1] * r[1], self.robust, self.k)
-        total = np.bincount(obs.m, weights=rho, minlength=M).astype(float)  # float even when empty
+    def evaluate(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations,
+                 jacobian: bool) -> tuple[np.ndarray, _Linearization | None]:
+        """Total cost per marker (M',) (inf where not finite) and, if asked, the projection factors'
+        linearisation at x.
+
+        The curvature correction Hc is ``w a / |r|^2 (Jw^T r)(Jw^T r)^T`` with a = 1 beyond Huber's k,
+        a = min(1, 2|r|^2 / (k^2 + |r|^2)) for Cauchy (clamped so that Hw - Hc stays PSD), 0 for no
+        robust loss: Hw - Hc is the robust loss's own curvature in the whitened residual, with which
+        the iteration converges quadratically instead of IRLS's linear rate; Hw alone (IRLS) majorises
+        the loss (a safe step when the other is rejected) and is what the marginal covariances use.
+        """
+        F, M = x.shape[:2]
+        pt = _positions(x)
+        total = np.zeros(M)
+        lin = _Linearization(np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3))) if jacobian else None
+        kk = self.k * self.k
+        for rows, f0, f1 in obs.blocks:  # sums over each block's (frame, marker) cells
+            r0, r1, Jw0, Jw1 = obs.block_residuals(pt, rows, jacobian)
+            d2 = r0 * r0 + r1 * r1
+            rho, w = robust_loss(d2, self.robust, self.k)
+            total += np.bincount(obs.m[rows], weights=rho, minlength=M)
+            if not jacobian:
+                continue
+            cells = slice(f0 * M, f1 * M)
+            local, n_local = obs.cell[rows] - f0 * M, (f1 - f0) * M
+            Jr = Jw0 * r0 + Jw1 * r1  # Jw^T r, (3, k)
+            for i in range(3):
+                lin.g[cells, i] = np.bincount(local, weights=w * Jr[i], minlength=n_local)
+            for s, (i, j) in enumerate(_IU_PAIRS):
+                lin.Hw[cells, s] = np.bincount(local, weights=w * (Jw0[i] * Jw0[j] + Jw1[i] * Jw1[j]),
+                                               minlength=n_local)
+            if self.robust == "none":
+                continue
+            bent = np.flatnonzero(d2 > kk) if self.robust == "huber" else np.flatnonzero(d2 > 0)
+            if len(bent) == 0:
+                continue
+            a = 1.0 if self.robust == "huber" else np.minimum(1.0, 2 * d2[bent] / (kk + d2[bent]))
+            wa = w[bent] * a / d2[bent]
+            Jr_b = Jr[:, bent]
+            for s, (i, j) in enumerate(_IU_PAIRS):
+                lin.Hc[cells, s] = np.bincount(local[bent], weights=wa * Jr_b[i] * Jr_b[j], minlength=n_local)
         e = x[1:] - x[:-1] @ self.A.T
         total += 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
         e0 = x[0] - mu0
         total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
-        return np.where(np.isnan(total), np.inf, total)
+        total = np.where(np.isnan(total), np.inf, total)
+        if jacobian:
+            lin = _Linearization(lin.Hw.reshape(F, M, 6), lin.Hc.reshape(F, M, 6), lin.g.reshape(F, M, 3))
+        return total, lin
 
-    def linearize(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations,
-                  irls: bool) -> tuple[np.ndarray, np.ndarray]:
+    def system(self, x: np.ndarray, mu0: np.ndarray, lin: _Linearization,
+               exact: bool | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton diagonal blocks D (F, M', d, d) and gradient g (F, M', d) at x.
 
-        irls=True: projection blocks ``w Jw^T Jw`` with the IRLS weight w at x (GTSAM's robust
-        whitening; what the marginal covariances use). irls=False: the robust loss's own curvature
-        in the whitened residual, ``w Jw^T (I - a r r^T / |r|^2) Jw`` (a = 1 beyond Huber's k,
-        a = min(1, 2|r|^2 / (k^2 + |r|^2)) for Cauchy, clamped so the block stays PSD), which makes the
-        iteration converge quadratically instead of IRLS's linear rate; same gradient, same minimiser.
-        The off-diagonal blocks are ``self.B`` (constant over frames).
+        Projection blocks from ``lin`` (at x): Hw - Hc (the robust loss's own curvature) where
+        ``exact`` (bool, scalar or per marker (M',)), Hw (IRLS) elsewhere; plus the motion and prior
+        factors. The off-diagonal blocks are ``self.B`` (constant over frames).
         """
         F, M = x.shape[:2]
-        d = self.d
-        r, Jw = obs.residuals(x, jacobian=True)
-        d2 = r[0] * r[0] + r[1] * r[1]
-        _, w = robust_loss(d2, self.robust, self.k)
-        Jr = Jw[0] * r[0] + Jw[1] * r[1]  # Jw^T r, (3, n)
-        if not irls and self.robust != "none":
-            kk = self.k * self.k
-            a = (d2 > kk).astype(float) if self.robust == "huber" else np.minimum(1.0, 2 * d2 / (kk + d2))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                a = np.where(d2 > 0, a / d2, 0.0)
-        else:
-            a = None
-        # sum the per-observation blocks into their (frame, marker): one bincount per entry
-        flat = obs.f * M + obs.m
-        n_fm = F * M
-        D = np.zeros((F, M, d, d))
-        g = np.zeros((F, M, d))
-        for i in range(3):
-            g[..., i] = np.bincount(flat, weights=w * Jr[i], minlength=n_fm).reshape(F, M)
-            for j in range(i, 3):
-                Hij = Jw[0, i] * Jw[0, j] + Jw[1, i] * Jw[1, j]
-                if a is not None:
-                    Hij -= a * Jr[i] * Jr[j]
-                D[..., i, j] = np.bincount(flat, weights=w * Hij, minlength=n_fm).reshape(F, M)
-                D[..., j, i] = D[..., i, j]
+        Hp = lin.Hw - np.asarray(exact, float)[..., None] * lin.Hc  # (F, M', 6)
+        D = np.zeros((F, M, self.d, self.d))
+        D[..., _IU[0], _IU[1]] = Hp
+        D[..., _IU[1], _IU[0]] = Hp
+        g = np.zeros((F, M, self.d))
+        g[..., :3] = lin.g
         e = x[1:] - x[:-1] @ self.A.T  # (F-1, M, d)
         eQ = (e @ self.Qi1) * self.wq[..., None]
         g[:-1] -= eQ @ self.A
@@ -290,8 +385,10 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
-    largest step is < 1e-10 m (or the relative cost decrease < 1e-15). The steps use the robust loss's
-    curvature (see ``_Problem.linearize``), so robust problems converge in a few iterations.
+    largest step is < 1e-10 m, the relative cost decrease < 1e-15, or a rejected step's predicted
+    decrease is below the cost's rounding (4 eps; such steps are ~1e-9 m). The first step, and a step
+    after a rejected one, use the IRLS curvature (it majorises the robust loss); the others the robust
+    loss's own curvature (see ``_Problem.evaluate``), so robust problems converge in a few iterations.
 
     Returns xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2] (marginal of each p[m, k] from the Gauss-Newton
     Hessian at the minimiser, with the IRLS weights there), both NaN for markers not estimated, and
@@ -318,7 +415,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k)
     dt = 1.0 / fps
     d = prob.d
-    obs_all = _observations(rig, ideal, estimated).of_markers(estimated)
+    obs_all = _observations(rig, ideal, estimated)
     x = np.zeros((F, len(ms), d))
     x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
     if d == 6:
@@ -328,12 +425,14 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     mu0 = np.zeros((len(ms), d))
     mu0[:, :3] = p_init[0, ms]  # velocity prior mean 0
 
-    cost = prob.cost(x, mu0, obs_all)
+    cost, lin = prob.evaluate(x, mu0, obs_all, jacobian=True)
     lam = np.zeros(len(ms))
+    exact = np.zeros(len(ms), bool)  # the next step uses the loss's own curvature (else IRLS's)
     active = np.ones(len(ms), bool)
     iters = np.zeros(len(ms), int)
     converged = np.zeros(len(ms), bool)
     diag = np.arange(d)
+    eps = np.finfo(float).eps
     obs, cols, obs_cols, prob_a = obs_all, np.arange(len(ms)), len(ms), prob
     for _ in range(max_iterations):
         if not active.any():
@@ -344,23 +443,32 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
             obs, prob_a = obs.of_markers(active[cols]), prob_a.of_markers(active[cols])
             cols, obs_cols = act, len(act)
         xa = x[:, act]
-        D, g = prob_a.linearize(xa, mu0[act], obs, irls=False)
+        D, g = prob_a.system(xa, mu0[act], lin.take(act), exact[act])
         D[..., diag, diag] *= 1.0 + lam[act][None, :, None]
         dx = _solve(D, prob_a.B, -g)
-        cost_new = prob_a.cost(xa + dx, mu0[act], obs)
+        xn = xa + dx
+        cost_new, lin_new = prob_a.evaluate(xn, mu0[act], obs, jacobian=True)
         ok = cost_new <= cost[act]
         step = np.abs(dx).max(axis=(0, 2))
         rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
-        x[:, act[ok]] = xa[:, ok] + dx[:, ok]
+        gain = -0.5 * np.einsum("fmi,fmi->m", g, dx)  # the damped quadratic model's decrease
+        flat = ~ok & (gain <= ROUNDING_EPS * eps * cost[act])  # no decrease the cost could resolve
+        x[:, act[ok]] = xn[:, ok]
+        lin.put(act[ok], lin_new.take(ok))
         stuck = lam[act] > 1e12
-        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | stuck
+        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck
         converged[act] = done & ~stuck
         iters[act] += 1
         cost[act] = np.where(ok, cost_new, cost[act])
-        lam[act] = np.where(ok, np.where(lam[act] > 1e-9, lam[act] / 10, 0.0), np.maximum(lam[act] * 10, 1e-6))
+        # accepted: less damping, next step exact; rejected exact step: retry with the IRLS curvature
+        # (it majorises the robust loss), same damping; rejected IRLS step: more damping
+        retry = ~ok & exact[act] & (prob.robust != "none")
+        lam[act] = np.where(ok, np.where(lam[act] > 1e-9, lam[act] / 10, 0.0),
+                            np.where(retry, lam[act], np.maximum(lam[act] * 10, 1e-6)))
+        exact[act] = ok
         active[act] = ~done
 
-    D, _ = prob.linearize(x, mu0, obs_all, irls=True)
+    D, _ = prob.system(x, mu0, lin, exact=False)
     Sigma_e, logdet_e = marginals(D, prob.B)
     if d == 6:  # back to the spec's variables: v = x_v / dt, so H_v = H_x dt^2 per velocity axis
         logdet_e = logdet_e + 2 * 3 * F * np.log(dt)
