@@ -502,8 +502,8 @@ def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
                           v_start: np.ndarray | None = None) -> tuple[float, dict]:
     """Maximum-marginal-likelihood q [m^2/s^3], batgraph.graph.noise's rule, scored with :func:`solve_fast`.
 
-    Same subset of markers, same search and the same warm starts as the GTSAM smoother's
-    choose_accel_psd: the first solve starts from ``p_start`` (F, M, 3) [m] and ``v_start`` (F, M, 3)
+    One q for every marker (the benchmark's common q; the smoother itself chooses one per marker), fitted
+    on noise.fit_markers' spread subset: the first solve starts from ``p_start`` (F, M, 3) [m] and ``v_start`` (F, M, 3)
     [m/s] (default the initial track p_init, v_init), each later one from the previous solution; the
     gauge priors stay at p_init[0]. The score's cost and log det come from the fast solver (log det of
     the Hessian in p [m], v [m/s], as batgraph.graph.smoother.posterior_logdet gives it).
