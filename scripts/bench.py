@@ -31,7 +31,7 @@ from batgraph.measurement import IdealObservations, ideal_observations  # noqa: 
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import Session, dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
-from batgraph.triangulate import triangulate_ideal  # noqa: E402
+from batgraph.triangulate import dlt_points, triangulate_ideal  # noqa: E402
 
 EKF_MARKERS = (10, 20, 45, 90, 180)
 
@@ -160,7 +160,7 @@ def bench_smoother(session: Session, dense, ideal: IdealObservations, args) -> l
     opt = Options(progress=False)
     model = session.motion.model
     rows = []
-    t_init, _, tri = timed(lambda: triangulate_ideal(session.rig, ideal)[0], 1)
+    t_init, _, tri = timed(lambda: dlt_points(session.rig, ideal), 1)
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
     if model == "constant_velocity":

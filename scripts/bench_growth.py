@@ -52,7 +52,7 @@ def run_one(n_cameras: int, n_markers: int, n_frames: int, end_to_end: bool) -> 
     from batgraph.result import Options
     from batgraph.session import dense_observations
     from batgraph.simulate import simulate_flight
-    from batgraph.triangulate import triangulate_ideal
+    from batgraph.triangulate import dlt_points
 
     # simulate_flight's bat crosses the camera volume (~4 m) at 3 m/s in ~160 frames and is then out of
     # view; to keep it in view for all F frames (observations growing with F) it flies the same 4 m
@@ -67,7 +67,7 @@ def run_one(n_cameras: int, n_markers: int, n_frames: int, end_to_end: bool) -> 
     out["dense+ideal"] = _merge(out)  # one set-up row: both conversions
     out["observations"] = int(ideal.seen.sum())
     p_init, v_init, _ = _stage(out, "triangulate+init", lambda: factors.initial_track(
-        triangulate_ideal(session.rig, ideal)[0], session.fps))
+        dlt_points(session.rig, ideal), session.fps))
     opt = Options(progress=False)
     _, _, info = _stage(out, "solve_fast", lambda: fast.solve_fast(
         session.rig, ideal, p_init, "constant_velocity", FIXED_Q, session.fps, opt.robust, opt.robust_k,

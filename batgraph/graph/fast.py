@@ -26,7 +26,7 @@ from ..measurement import IdealObservations
 from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
-from ..triangulate import triangulate_ideal
+from ..triangulate import dlt_points
 from . import factors, noise
 
 MODELS = factors.MOTION_MODELS
@@ -551,7 +551,7 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     t0 = time.perf_counter()
     rig, fps, robust, k = session.rig, session.fps, options.robust, options.robust_k
     model, sigma_m, q = noise.motion_choice(session, options)
-    tri, _ = triangulate_ideal(rig, ideal)
+    tri = dlt_points(rig, ideal)
     p_init, v_init, estimated = factors.initial_track(tri, fps)
     reject = options.outlier_rejection and robust != "none"
     figures: dict = {"solver": "fast", "motion_model": model, "robust": robust, "robust_k": k,

@@ -31,7 +31,7 @@ from ..measurement import IdealObservations
 from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
-from ..triangulate import triangulate_ideal
+from ..triangulate import dlt_points
 from . import factors
 from .factors import MotionModel
 from .fast import _Observations, robust_loss
@@ -213,7 +213,7 @@ def frame_rows(rig, ideal: IdealObservations, join: np.ndarray) -> _Observations
 def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
     """Each marker's joining frame index (M,) int (-1: never joins) and its triangulation there (M, 3) [m].
 
-    The filter's rule: the first frame whose triangulation (batgraph.triangulate.triangulate_ideal) is
+    The filter's rule: the first frame whose triangulation (batgraph.triangulate.dlt_points) is
     finite; only the candidate frames are triangulated (a point's DLT does not depend on the others').
     """
     multi = ideal.seen.sum(axis=0) >= 2  # (F, M): where a triangulation can be finite
@@ -225,7 +225,7 @@ def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
         ms = np.flatnonzero(todo)
         ks = multi[:, ms].argmax(axis=0)
         sub = IdealObservations(ideal.uv_px[:, ks, ms][:, None], ideal.cov_px2[:, ks, ms][:, None])
-        xyz = triangulate_ideal(rig, sub)[0][0]  # (n, 3)
+        xyz = dlt_points(rig, sub)[0]  # (n, 3)
         ok = np.isfinite(xyz).all(axis=-1)
         join[ms[ok]], tri[ms[ok]] = ks[ok], xyz[ok]
         multi[ks[~ok], ms[~ok]] = False  # degenerate DLT: try the marker's next multi-view frame

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 from ..measurement import IdealObservations
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
-from ..triangulate import triangulate_ideal
+from ..triangulate import dlt_points
 from . import factors, noise
 from .factors import MotionFactors, MotionModel, ObservationFactors
 
@@ -98,7 +98,7 @@ def run_filter(session: Session, dense: DenseObservations, ideal: IdealObservati
     model, info = filter_motion(session, options)
     motion = MotionFactors(model)
     obs = ObservationFactors(session.rig, ideal, options.robust, options.robust_k)
-    tri, _ = triangulate_ideal(session.rig, ideal)
+    tri = dlt_points(session.rig, ideal)
     joinable = np.isfinite(tri).all(axis=-1)  # (F, M)
     solver = IncrementalSolver()
     solver.add(*obs.camera_priors())

@@ -44,7 +44,7 @@ import numpy as np
 from ..measurement import IdealObservations
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
-from ..triangulate import triangulate_ideal
+from ..triangulate import dlt_points
 from . import factors, noise
 from .factors import MotionFactors, MotionModel, ObservationFactors
 
@@ -168,7 +168,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     C, F, M = ideal.seen.shape
     dt = 1.0 / session.fps
     model_name, sigma_m, q = noise.motion_choice(session, options)
-    tri, _ = triangulate_ideal(session.rig, ideal)
+    tri = dlt_points(session.rig, ideal)
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
     reject = options.outlier_rejection and options.robust != "none"
