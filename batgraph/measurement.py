@@ -42,8 +42,7 @@ def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float
         s = seen[c]
         raw = dense.uv_px[c][s]
         cam = rig[c]
-        uv[c][s] = cam.undistort(raw)
-        J = cam.ideal_from_raw_jacobian(raw)
+        uv[c][s], J = cam.undistort_with_jacobian(raw)
         var = pixel_sigma_px**2 / dense.weight[c][s]
         cov[c][s] = var[:, None, None] * (J @ np.swapaxes(J, -1, -2))
     return IdealObservations(uv, cov)
