@@ -155,21 +155,27 @@ def _positions(x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x[..., :3].reshape(F * M, 3).T)
 
 
-def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> _Observations:
-    """Every observation of the ``estimated`` markers (bool (M,)) as :class:`_Observations`, columns
-    numbered among the estimated markers."""
-    seen = (ideal.seen & estimated[None, None, :]).transpose(1, 2, 0)  # (F, M, C): rows come out sorted
-    f, m, c = np.nonzero(seen)
-    P = np.stack([cam.P.ravel() for cam in rig], axis=-1)  # (12, C)
+def projection_rows(rig: Rig, ideal: IdealObservations, c: np.ndarray, f: np.ndarray, m: np.ndarray,
+                    col: np.ndarray, n_markers: int) -> _Observations:
+    """The observations (camera c, frame f, marker m) of ``ideal`` (each (n,) int, in the row order wanted)
+    as :class:`_Observations` with marker columns ``col`` (n,) among ``n_markers``: the cameras' P = K [R | t],
+    the ideal pixels, the whitening L^-1 of chol(cov_px2) (closed-form 2x2 Cholesky) and GTSAM's
+    behind-camera residual 2 fx."""
     cov = ideal.cov_px2[c, f, m]
     l00 = np.sqrt(cov[:, 0, 0])
     l10 = cov[:, 1, 0] / l00
     l11 = np.sqrt(cov[:, 1, 1] - l10 * l10)
     Linv = np.stack([1 / l00, -l10 / (l00 * l11), 1 / l11])
+    P = np.stack([cam.P.ravel() for cam in rig], axis=-1)  # (12, C)
     behind = np.array([2.0 * cam.K[0, 0] for cam in rig])
-    col = np.cumsum(estimated) - 1
-    return _Observations(f, col[m], c, P, ideal.uv_px[c, f, m].T.copy(), Linv, behind, seen.shape[0],
-                         int(estimated.sum()))
+    return _Observations(f, col, c, P, ideal.uv_px[c, f, m].T.copy(), Linv, behind, ideal.seen.shape[1], n_markers)
+
+
+def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> _Observations:
+    """Every observation of the ``estimated`` markers (bool (M,)) as :class:`_Observations`, sorted by
+    (frame, marker), columns numbered among the estimated markers."""
+    f, m, c = np.nonzero((ideal.seen & estimated[None, None, :]).transpose(1, 2, 0))  # (F, M, C) order
+    return projection_rows(rig, ideal, c, f, m, (np.cumsum(estimated) - 1)[m], int(estimated.sum()))
 
 
 # the 6 distinct entries (i, j), i <= j, of a symmetric 3x3 block

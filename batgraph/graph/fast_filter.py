@@ -34,7 +34,7 @@ from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import factors
 from .factors import MotionModel
-from .fast import _Observations, robust_loss
+from .fast import _Observations, projection_rows, robust_loss
 
 MAX_ITERATIONS = 100  # per frame; measured 2-8 on the simulated flight (Huber, the loss's own curvature)
 STEP_TOL_M = 1e-10  # stop when a marker's largest step component is below this [m] (cost spec)
@@ -191,23 +191,12 @@ def iterated_update(mean: np.ndarray, cov: np.ndarray, rows, robust: str = "hube
 
 def frame_rows(rig, ideal: IdealObservations, join: np.ndarray) -> _Observations:
     """Every observation of a marker from its joining frame ``join`` (M,) on, as batgraph.graph.fast's
-    projection rows sorted by frame (so each frame's rows are one contiguous slice); ``m`` is the marker.
-
-    Same rows as fast._observations (cameras' P = K [R | t], ideal pixels, whitening L^-1 of chol(cov_px2)
-    as (a, b, c), GTSAM's behind-camera residual 2 fx), built frame-major with a closed-form 2x2 Cholesky.
-    """
+    projection rows (fast.projection_rows) sorted by frame, so each frame's rows are one contiguous slice;
+    the column ``m`` is the marker itself."""
     C, F, M = ideal.seen.shape
     use = ideal.seen & (join >= 0) & (np.arange(F)[:, None] >= join)  # (C, F, M)
     f, c, m = np.nonzero(use.transpose(1, 0, 2))
-    S = ideal.cov_px2[c, f, m]  # (n, 2, 2)
-    a = np.sqrt(S[:, 0, 0])
-    b = S[:, 1, 0] / a
-    d = np.sqrt(S[:, 1, 1] - b * b)
-    uv = ideal.uv_px[c, f, m]
-    P = np.stack([cam.P.ravel() for cam in rig], axis=-1)  # (12, C)
-    behind = np.array([2.0 * cam.K[0, 0] for cam in rig])
-    return _Observations(f, m, c, P, np.stack([uv[:, 0], uv[:, 1]]), np.stack([1 / a, -b / (a * d), 1 / d]),
-                         behind, F, M)
+    return projection_rows(rig, ideal, c, f, m, m, M)
 
 
 def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
