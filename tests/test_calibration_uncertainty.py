@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from batgraph.camera import Camera, Rig
+from batgraph.graph.noise import PER_MARKER_RULE
 from batgraph.pipeline import run_methods
 from batgraph.result import Options
 
@@ -48,7 +49,9 @@ def test_fixed_wrong_cameras_are_overconfident_and_pose_priors_are_honest(result
     assert fixed["coverage95"]["observed"] < 0.5
     assert 0.90 <= priors["coverage95"]["observed"] <= 0.999
     assert priors["rmse_m"]["observed"] < 0.5 * fixed["rmse_m"]["observed"]
-    assert results["priors"]["smoother"]["info"]["camera_variables"] == 4
+    info = results["priors"]["smoother"]["info"]
+    assert info["camera_variables"] == 4
+    assert info["accel_psd_rule"] == PER_MARKER_RULE and len(info["accel_psd_m2_s3"]) > 1  # q per marker
 
 
 def test_filter_with_pose_priors_uses_camera_variables(results):
