@@ -95,6 +95,20 @@ def test_three_sessions_on_two_worker_cluster(make_session_folder, tmp_path, mon
     assert text.splitlines()[-1] == "2 of 3 sessions ok, 1 input error"
 
 
+def test_one_calibration_for_every_session_reaches_the_workers(make_session_folder, tmp_path):
+    """`--calibration FILE` replaces each session's own calibration.toml, inside the Dask workers too: a
+    file whose first camera is renamed makes both (otherwise good) sessions input errors naming that file."""
+    sessions = [make_session_folder("flight_a", seed=1), make_session_folder("flight_b", seed=2)]
+    day = tmp_path / "day.toml"
+    day.write_text((sessions[0] / "calibration.toml").read_text().replace('name = "cam1"', 'name = "camX"', 1))
+    assert day.read_text() != (sessions[0] / "calibration.toml").read_text()
+    items = reconstruct_many(sessions, tmp_path / "out", ["triangulate"], n_workers=2, progress=False,
+                             viewer="none", calibration=day)
+    assert [it.status for it in items] == ["input error", "input error"]
+    assert all(str(day) in it.message and "'cam1'" in it.message for it in items), [it.message for it in items]
+    assert os.getpid() not in {it.pid for it in items}
+
+
 def test_single_session_runs_here_and_a_crash_is_reported(make_session_folder, tmp_path):
     """One session, no scheduler: no cluster (runs in this process); a non-input exception -> "failed".
 
