@@ -268,6 +268,13 @@ def _legend_handles(methods, style, extra=()):
 # ----------------------------------------------------------------------------------------------
 # figures: each returns a Figure (or None when there is nothing to draw)
 # ----------------------------------------------------------------------------------------------
+def _panel_grid(n: int, max_cols: int, panel_in: tuple[float, float]) -> tuple[Figure, int, int]:
+    """A figure for ``n`` panels in rows of at most ``max_cols``, each ``panel_in`` (w, h) inches: (fig, nrow, ncol)."""
+    ncol = min(n, max_cols)
+    nrow = int(math.ceil(n / ncol))
+    return Figure(figsize=(panel_in[0] * ncol, panel_in[1] * nrow)), nrow, ncol
+
+
 def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, truth_cube):
     """One 3D panel per method; all markers' paths, coloured by marker; skeleton at a few frames."""
     cubes = {m: _trajectory_cube(trajectories, m, frames, markers) for m in methods}
@@ -280,10 +287,7 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
     lo, hi = np.percentile(allpts, 1, axis=0), np.percentile(allpts, 99, axis=0)
     pad = 0.08 * max(float((hi - lo).max()), 1e-3)
     lo, hi = lo - pad, hi + pad
-    n = len(methods)
-    ncol = min(n, 3)
-    nrow = int(math.ceil(n / ncol))
-    fig = Figure(figsize=(4.6 * ncol, 3.6 * nrow))
+    fig, nrow, ncol = _panel_grid(len(methods), 3, (4.6, 3.6))
     cmap = _marker_colours(len(markers))
     mi = {m: i for i, m in enumerate(markers)}
     sk = [(mi[a], mi[b]) for a, b in skeleton if a in mi and b in mi]
@@ -350,9 +354,7 @@ def _fig_reprojection_ellipses(rep_mm, methods, style, cameras, rng):
     cams = [c for c in cameras if (rep["camera"] == c).any()]
     if not cams:
         return None
-    ncol = min(len(cams), 5)
-    nrow = int(math.ceil(len(cams) / ncol))
-    fig = Figure(figsize=(3.3 * ncol, 3.5 * nrow))
+    fig, nrow, ncol = _panel_grid(len(cams), 5, (3.3, 3.5))
     groups = dict(tuple(rep.groupby(["camera", "method"], sort=False)))
     for k, cam in enumerate(cams):
         ax = fig.add_subplot(nrow, ncol, k + 1)
@@ -390,9 +392,7 @@ def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, sel
     cams = [c for c in cameras if (obs["camera"] == c).any()]
     if not cams:
         return None
-    ncol = min(len(cams), 3)
-    nrow = int(math.ceil(len(cams) / ncol))
-    fig = Figure(figsize=(4.6 * ncol, 3.6 * nrow))
+    fig, nrow, ncol = _panel_grid(len(cams), 3, (4.6, 3.6))
     cmap = _marker_colours(len(selected))
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     for k, cam in enumerate(cams):

@@ -586,16 +586,12 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
         figures["sigma_m"] = sigma_m
     elif q is None:  # step 3: q per marker on the observations left, first solve from the cleaning solution
         markers = np.flatnonzero(estimated)
-        q, figures["accel_psd_selection"] = noise.choose_accel_psd_per_marker(
+        q, selection = noise.choose_accel_psd_per_marker(
             rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
             p_start, v_start, q_start=figures.get("cleaning", {}).get("accel_psd_m2_s3"), progress=options.progress)
-        figures["accel_psd_source"] = "data"
-        figures["accel_psd_rule"] = noise.PER_MARKER_RULE
-        figures["accel_psd_m2_s3"] = {dense.markers[m]: float(q[m]) for m in markers}
+        figures.update(noise.q_figures(q, markers, dense.markers, selection))
     else:
-        figures["accel_psd_source"] = "given"
-        figures["accel_psd_rule"] = "given (options or session), one q for all markers"
-        figures["accel_psd_m2_s3"] = q
+        figures.update(noise.q_figures(q))
     rounds = []
     n_rounds = REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one

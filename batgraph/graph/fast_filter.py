@@ -193,7 +193,7 @@ def frame_rows(rig, ideal: IdealObservations, join: np.ndarray) -> _Observations
     """Every observation of a marker from its joining frame ``join`` (M,) on, as batgraph.graph.fast's
     projection rows (fast.projection_rows) sorted by frame, so each frame's rows are one contiguous slice;
     the column ``m`` is the marker itself."""
-    C, F, M = ideal.seen.shape
+    _, F, M = ideal.seen.shape
     use = ideal.seen & (join >= 0) & (np.arange(F)[:, None] >= join)  # (C, F, M)
     f, c, m = np.nonzero(use.transpose(1, 0, 2))
     return projection_rows(rig, ideal, c, f, m, m, M)

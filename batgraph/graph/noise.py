@@ -137,6 +137,20 @@ def maximise_log10(score: Callable[[float], float], lo: float = LOG10_Q_RANGE[0]
     return 10.0**x_best, trace
 
 
+GIVEN_RULE = "given (options or session), one q for all markers"
+
+
+def q_figures(q: float | np.ndarray, markers: np.ndarray | None = None, names: list[str] | None = None,
+              selection: dict | None = None) -> dict:
+    """The figures both smoothers report about q: a given one (``q`` a number) or, with ``selection``
+    from :func:`choose_accel_psd_per_marker`, one per marker (``q`` (M,), ``markers`` int indices,
+    ``names`` the marker labels)."""
+    if selection is None:
+        return {"accel_psd_source": "given", "accel_psd_rule": GIVEN_RULE, "accel_psd_m2_s3": q}
+    return {"accel_psd_selection": selection, "accel_psd_source": "data", "accel_psd_rule": PER_MARKER_RULE,
+            "accel_psd_m2_s3": {names[m]: float(q[m]) for m in markers}}
+
+
 def causal_accel_psd(session: Session) -> float:
     """Constant-velocity q [m^2/s^3] from the motion config alone (the filter's default; sees no data).
 

@@ -203,18 +203,13 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         if start is not None:
             p_start = factors.positions(start, markers, F, M)
             v_start = _velocities(start, markers, F, M, dt)
-        q_m, info["accel_psd_selection"] = noise.choose_accel_psd_per_marker(
+        q_m, selection = noise.choose_accel_psd_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
             options.robust, options.robust_k, p_start, v_start, q_start=info.get("cleaning", {}).get(
                 "accel_psd_m2_s3"), progress=options.progress)
-        info["accel_psd_source"] = "data"
-        info["accel_psd_rule"] = noise.PER_MARKER_RULE
-        info["accel_psd_m2_s3"] = {dense.markers[m]: float(q_m[m]) for m in markers}
+        info.update(noise.q_figures(q_m, markers, dense.markers, selection))
     else:
-        info["accel_psd_source"] = "given"
-        info["accel_psd_rule"] = "given (options or session), one q for all markers"
-    if model_name == "constant_velocity" and q is not None:
-        info["accel_psd_m2_s3"] = q
+        info.update(noise.q_figures(q))
     if model_name == "constant_velocity" and q is None:  # per marker
         model = {int(m): motion(float(q_m[m])) for m in markers}
     else:
