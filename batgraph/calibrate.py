@@ -15,9 +15,11 @@ cannot hold skew: observations are de-skewed with the input K before the adjustm
 refined, COLMAP frees k4..k6 too; the refined lens is then re-fitted to the 5-parameter model by
 linear least squares on a grid over the image (the fit residual is reported).
 
-Pose conventions: COLMAP stores cam_from_world (like calibration.toml); GTSAM's Pose3 of a camera
-is world_from_cam. :func:`rigid_from_camera`, :func:`camera_pose_from_rigid` and
-:func:`pose_cov_gtsam_from_colmap` are the only places in batgraph that convert between them.
+Pose conventions: COLMAP stores cam_from_world (like calibration.toml), so :func:`rigid_from_camera`
+and :func:`camera_pose_from_rigid` only repackage the arrays; GTSAM's Pose3 of a camera is
+world_from_cam with another tangent, and COLMAP's pose covariances are converted to it by
+:func:`batgraph.geometry.pose.pose_cov_gtsam_from_colmap` (importable from here too), like every other pose
+conversion in :mod:`batgraph.geometry.pose`.
 
 Gauge (7 degrees of freedom that images cannot fix):
 
@@ -53,6 +55,8 @@ import pycolmap
 from . import atomic
 from .camera import Camera, Rig
 from .errors import InputError
+from .geometry import pose
+from .geometry.pose import pose_cov_gtsam_from_colmap
 from .session import DenseObservations, Session, calibration_toml, dense_observations
 from .triangulate import triangulate
 
@@ -94,7 +98,7 @@ def wand_from_session(session: Session) -> Wand | None:
 
 
 # ==================================================================================================
-# pose conventions: the one place that converts COLMAP <-> batgraph / GTSAM
+# COLMAP's pose objects (the conventions themselves: batgraph.geometry.pose)
 # ==================================================================================================
 def rigid_from_camera(cam: Camera) -> pycolmap.Rigid3d:
     """batgraph's cam_from_world (rvec, tvec) -> COLMAP's Rigid3d (also cam_from_world: same pose)."""
@@ -104,45 +108,7 @@ def rigid_from_camera(cam: Camera) -> pycolmap.Rigid3d:
 def camera_pose_from_rigid(cam_from_world: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
     """COLMAP Rigid3d cam_from_world -> (rvec (3,) [rad], tvec (3,) [m]) of batgraph's cam_from_world."""
     R = np.asarray(cam_from_world.rotation.matrix())
-    return cv2.Rodrigues(R)[0].reshape(3), np.asarray(cam_from_world.translation, dtype=float).copy()
-
-
-def pose_cov_jacobian(R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
-    """d(GTSAM world_from_cam tangent) / d(COLMAP cam_from_world tangent), shape (6, 6).
-
-    COLMAP's pose block is Ceres' EigenQuaternion x Euclidean(3) manifold on cam_from_world
-    (R, t): ``R <- Exp(2 dq) R`` (Ceres' quaternion increment is the half angle, applied on the
-    left) and ``t <- t + dt``; tangent order [dq, dt]. GTSAM's Pose3 retraction on world_from_cam
-    T = (R^T, -R^T t) is ``T <- T Exp([w, v])`` (body frame), tangent order [w, v]. Inverting the
-    perturbed cam_from_world to first order gives ``w = -2 dq``, ``v = -dt - [t]x 2 dq``.
-    """
-    del R_cw  # the map does not depend on the rotation (both perturbations are frame-consistent)
-    tx = np.array([[0.0, -t_cw[2], t_cw[1]], [t_cw[2], 0.0, -t_cw[0]], [-t_cw[1], t_cw[0], 0.0]])
-    J = np.zeros((6, 6))
-    J[:3, :3] = -2.0 * np.eye(3)
-    J[3:, :3] = -2.0 * tx
-    J[3:, 3:] = -np.eye(3)
-    return J
-
-
-def pose_cov_gtsam_from_colmap(cov_colmap: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
-    """Convert a pycolmap pose covariance to batgraph's ``pose_covariance``.
-
-    cov_colmap: (6, 6) from ``BACovariance.get_cam_cov_from_world``: tangent of cam_from_world in
-        Ceres' order [quaternion increment (half angle) (3), translation (3) [m]].
-    R_cw (3, 3), t_cw (3,) [m]: the cam_from_world pose it is linearised at.
-    Returns (6, 6): covariance of GTSAM's Pose3 tangent [rotation rad (3), translation m (3)] of
-    world_from_cam, right (body-frame) perturbation (see :func:`pose_cov_jacobian`).
-    """
-    J = pose_cov_jacobian(R_cw, t_cw)
-    out = J @ np.asarray(cov_colmap, dtype=float) @ J.T
-    return 0.5 * (out + out.T)
-
-
-def _scale_pose_cov(cov: np.ndarray, scale: float) -> np.ndarray:
-    """A world similarity with scale s leaves the body-frame rotation tangent and scales v by s."""
-    S = np.diag([1.0, 1.0, 1.0, scale, scale, scale])
-    return S @ cov @ S
+    return pose.rvec_from_R(R), np.asarray(cam_from_world.translation, dtype=float).copy()
 
 
 # ==================================================================================================
@@ -338,14 +304,12 @@ def _similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tu
 
 
 def _transform_rig(rig: Rig, s: float, R: np.ndarray, t: np.ndarray) -> Rig:
-    """Apply the world similarity x' = s R x + t to every camera (cam_from_world' = (R_c R^T, s t_c - R_c R^T t))."""
+    """Apply the world similarity x' = s R x + t to every camera (see batgraph.geometry.pose.similarity_*)."""
     out = []
     for cam in rig:
-        Rc = cam.R @ R.T
-        tc = s * cam.tvec - Rc @ t
-        cov = None if cam.pose_cov is None else _scale_pose_cov(cam.pose_cov, s)
-        rvec = cv2.Rodrigues(Rc)[0].reshape(3)
-        out.append(Camera(cam.name, cam.size_wh, cam.K.copy(), cam.dist.copy(), rvec, tc, cov))
+        Rc, tc = pose.similarity_cam_from_world(cam.R, cam.tvec, s, R, t)
+        cov = None if cam.pose_cov is None else pose.similarity_pose_cov(cam.pose_cov, s)
+        out.append(Camera(cam.name, cam.size_wh, cam.K.copy(), cam.dist.copy(), pose.rvec_from_R(Rc), tc, cov))
     return Rig(out)
 
 
@@ -389,7 +353,7 @@ def _initial_rig_from_scratch(rig: Rig, dense: DenseObservations, ref: int, sigm
     poses[second] = (R @ R_ref, R @ t_ref + t.reshape(3))
 
     def current_rig() -> Rig:
-        return Rig([Camera(cam.name, cam.size_wh, cam.K, cam.dist, cv2.Rodrigues(poses[c][0])[0].reshape(3),
+        return Rig([Camera(cam.name, cam.size_wh, cam.K, cam.dist, pose.rvec_from_R(poses[c][0]),
                            poses[c][1]) if c in poses else cam for c, cam in enumerate(rig)])
 
     while len(poses) < C:
@@ -410,7 +374,7 @@ def _initial_rig_from_scratch(rig: Rig, dense: DenseObservations, ref: int, sigm
                                                  iterationsCount=1000, confidence=0.9999)
         if not good:
             raise InputError(f"calibrate: could not place camera {rig[c].name!r} by PnP")
-        poses[c] = (cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+        poses[c] = (pose.R_from_rvec(rvec), tvec.reshape(3))
     return current_rig()
 
 
@@ -611,7 +575,7 @@ def _rms(e: np.ndarray) -> float:
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    return float(np.degrees(np.linalg.norm(cv2.Rodrigues(Ra @ Rb.T)[0])))
+    return float(np.degrees(pose.rotation_angle(Ra, Rb)))
 
 
 class _NoBar:

@@ -18,11 +18,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import pandas as pd
 
 from .camera import Camera, Rig
+from .geometry import pose
 from .session import MotionConfig, Session
 
 # ----- the paper's flight numbers (PAPER.md, "Motion model") ---------------------------------------
@@ -192,21 +192,10 @@ def scene_visibility(scene: Scene, rig: Rig) -> np.ndarray:
 # cameras
 # ==================================================================================================
 def look_at(center_m: np.ndarray, target_m: np.ndarray, right_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_world (rvec (3,), tvec (3,)) of a camera at ``center_m`` looking at ``target_m``.
-
-    Image x (right) is ``right_hint`` made perpendicular to the optical axis; it is flipped if that
-    would put world-up at the bottom of the image.
-    """
-    z = target_m - center_m
-    z = z / np.linalg.norm(z)
-    x = right_hint - (right_hint @ z) * z
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    if y[2] > 1e-9:  # image v (down) should not point up in the world
-        x, y = -x, -y
-    R = np.stack([x, y, z])
-    rvec = cv2.Rodrigues(R)[0].reshape(3)
-    return rvec, -R @ center_m
+    """cam_from_world (rvec (3,), tvec (3,)) of a camera at ``center_m`` looking at ``target_m``
+    (:func:`batgraph.geometry.pose.look_at`: world-up at the top of the image)."""
+    R, t = pose.look_at(center_m, target_m, right_hint)
+    return pose.rvec_from_R(R), t
 
 
 def tunnel_rig(rng: np.random.Generator, n_cameras: int) -> Rig:
@@ -438,11 +427,11 @@ def perturb_rig(rng: np.random.Generator, rig: Rig, rot_deg: float, trans_mm: fl
         if i in cameras:
             axis = rng.standard_normal(3)
             direction = rng.standard_normal(3)
-            dR = cv2.Rodrigues((np.radians(rot_deg) * axis / np.linalg.norm(axis)).reshape(3, 1))[0]
+            dR = pose.R_from_rvec(np.radians(rot_deg) * axis / np.linalg.norm(axis))
             R = R @ dR  # cam_from_world; the camera turns about its own centre by dR^T (world axes)
             C = C + trans_mm / 1000 * direction / np.linalg.norm(direction)
-        out.append(Camera(cam.name, cam.size_wh, cam.K.copy(), cam.dist.copy(),
-                          cv2.Rodrigues(R)[0].reshape(3), -R @ C))
+        R, t = pose.cam_from_world(R.T, C)  # orientation and centre -> cam_from_world
+        out.append(Camera(cam.name, cam.size_wh, cam.K.copy(), cam.dist.copy(), pose.rvec_from_R(R), t))
     return Rig(out)
 
 

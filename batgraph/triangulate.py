@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from .camera import Rig
+from .geometry import pinhole
 from .measurement import IdealObservations, ideal_observations
 from .result import Estimate, Options
 from .session import DenseObservations, Session
@@ -39,11 +40,9 @@ def dlt_points(rig: Rig, ideal: IdealObservations) -> np.ndarray:
         s = seen[c]
         if not s.any():
             continue
-        Kinv = np.linalg.inv(cam.K)
-        uv = ideal.uv_px[c][s]  # (n, 2)
-        x = Kinv[0, 0] * uv[:, 0] + Kinv[0, 1] * uv[:, 1] + Kinv[0, 2]
-        y = Kinv[1, 1] * uv[:, 1] + Kinv[1, 2]
-        Pn = np.hstack([cam.R, cam.tvec[:, None]])  # cam_from_world, normalised camera
+        xy = pinhole.normalized_from_pixels(ideal.uv_px[c][s], np.linalg.inv(cam.K))  # (n, 2)
+        x, y = xy[:, 0], xy[:, 1]
+        Pn = pinhole.projection_matrix(np.eye(3), cam.R, cam.tvec)  # [R | t]: the normalised camera
         a = x[:, None] * Pn[2] - Pn[0]  # (n, 4)
         b = y[:, None] * Pn[2] - Pn[1]
         i, j = _IU4

@@ -8,7 +8,8 @@ State layout: the stacked positions of the markers currently in the filter, ``x`
 [m, world], in the order the markers entered (a marker enters at its first triangulated frame and
 never leaves); ``P`` of shape (3n, 3n) [m^2]. Measurement rows are stacked camera-major as in
 eq. 8: (camera 0: its markers in label order, camera 1: ...), two rows (u, v) per seen pair, in
-ideal (undistorted) pixels. Unseen pairs have no rows (the paper's occlusion trimming).
+ideal (undistorted) pixels. Unseen pairs have no rows (the paper's occlusion trimming). The pinhole
+itself (eq. 6, 16) and its pose Jacobian are :mod:`batgraph.geometry.pinhole`'s.
 With many rows (30 cameras x 180 markers: ~10,000) the updates switch to the same algebra through
 the matrix inversion lemma (see LARGE_ROWS), so Q is kept factored (:class:`MeasurementNoise`).
 """
@@ -25,6 +26,7 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from ..camera import Rig
+from ..geometry import pinhole
 from ..measurement import IdealObservations
 from ..motion import random_walk_sigma_m
 from ..result import Estimate, Options
@@ -67,43 +69,13 @@ class RigArrays:
                    np.stack([c.tvec for c in rig]), pose_cov)
 
 
-def project_ideal(proj: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
-    """Pinhole projection, paper eq. 6: ``(1/lambda) K Pi_0 H x`` with lambda the depth.
-
-    proj: per-row projection matrices, shape (p, 3, 4); xyz_world_m: points, shape (..., p, 3) [m].
-    Returns ideal pixels, shape (..., p, 2). No check that the point is in front of the camera:
-    the filters only project estimates of points that cameras see.
-    """
-    uvw = np.einsum("pij,...pj->...pi", proj[:, :, :3], xyz_world_m) + proj[:, :, 3]
-    return uvw[..., :2] / uvw[..., 2:3]
-
-
-def projection_jacobian(proj: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
-    """Paper eq. 16, d(ideal px)/d(xyz_world): ``(1/lambda) M - (1/lambda) uv m3^T``, shape (p, 2, 3) [px/m].
-
-    proj (p, 3, 4) and xyz_world_m (p, 3) as in :func:`project_ideal`; M = first two rows and m3 =
-    last row of ``proj[:, :, :3]``, lambda = ``m3 . x + proj[:, 2, 3]`` (depth).
-    """
-    uvw = np.einsum("pij,pj->pi", proj[:, :, :3], xyz_world_m) + proj[:, :, 3]
-    uv = uvw[:, :2] / uvw[:, 2:3]
-    return (proj[:, :2, :3] - uv[:, :, None] * proj[:, None, 2, :3]) / uvw[:, 2, None, None]
-
-
 def pose_jacobian(rig: RigArrays, cam: np.ndarray, xyz_world_m: np.ndarray) -> np.ndarray:
     """d(ideal px)/d(xi) for the camera pose perturbed as ``world_from_cam * exp(xi)``, shape (p, 2, 6).
 
-    cam: camera index of each row, shape (p,); xyz_world_m: points, shape (p, 3) [m].
-    xi = [omega (rad), v (m)] in GTSAM's Pose3 tangent order. To first order the point in the
-    camera frame moves by ``p_c x omega - v``, i.e. d p_c / d xi = [skew(p_c), -I] (GTSAM's
-    Pose3::transformTo Jacobian); d uv / d p_c is eq. 16 with the rotation taken out (J_world R^T).
+    cam: camera index of each row, shape (p,); xyz_world_m: points, shape (p, 3) [m]; xi in GTSAM's
+    Pose3 tangent order (see :func:`batgraph.geometry.pinhole.pose_jacobian`).
     """
-    R = rig.R[cam]
-    p_c = np.einsum("pij,pj->pi", R, xyz_world_m) + rig.t[cam]
-    J_pc = projection_jacobian(rig.proj[cam], xyz_world_m) @ np.swapaxes(R, -1, -2)  # (p, 2, 3)
-    skew = np.zeros(p_c.shape[:-1] + (3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p_c[:, 2], p_c[:, 1], -p_c[:, 0]
-    skew = skew - np.swapaxes(skew, -1, -2)
-    return np.concatenate([J_pc @ skew, -J_pc], axis=-1)
+    return pinhole.pose_jacobian(rig.proj[cam], rig.R[cam], rig.t[cam], xyz_world_m)
 
 
 @dataclass
@@ -132,13 +104,13 @@ class FrameMeasurement:
 
     def h(self, x: np.ndarray) -> np.ndarray:
         """Measurement function h (eq. 8) of state(s) x (..., 3n) -> predicted ideal pixels (..., 2p)."""
-        uv = project_ideal(self.rig.proj[self.cam], self.points(x))
+        uv = pinhole.project_ideal(self.rig.proj[self.cam], self.points(x))
         return uv.reshape(uv.shape[:-2] + (-1,))
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """Dense H = dh/dx at x (3n,), shape (2p, 3n) [px/m]: eq. 16 blocks placed as eq. 17-18."""
         p, n3 = self.n_pairs, x.shape[-1]
-        J = projection_jacobian(self.rig.proj[self.cam], self.points(x))
+        J = pinhole.point_jacobian(self.rig.proj[self.cam], self.points(x))
         H = np.zeros((2 * p, n3))
         rows = 2 * np.arange(p)[:, None, None] + np.arange(2)[None, :, None]
         cols = 3 * self.slot[:, None, None] + np.arange(3)[None, None, :]

@@ -23,6 +23,7 @@ import gtsam
 import numpy as np
 
 from ..camera import Camera, Rig
+from ..geometry import pose as geometry_pose
 from ..measurement import IdealObservations
 from ..motion import constant_velocity_Q
 
@@ -192,7 +193,7 @@ def gtsam_calibration(cam: Camera) -> gtsam.Cal3_S2:
 
 
 def gtsam_camera(cam: Camera) -> gtsam.PinholeCameraCal3_S2:
-    """The ideal-pixel pinhole of ``cam`` as GTSAM sees it (Pose3 = world_from_cam; the one conversion)."""
+    """The ideal-pixel pinhole of ``cam`` as GTSAM sees it (Pose3 = world_from_cam, see batgraph.geometry.pose)."""
     R_wc, t_wc = cam.world_from_cam()
     return gtsam.PinholeCameraCal3_S2(gtsam.Pose3(gtsam.Rot3(R_wc), t_wc), gtsam_calibration(cam))
 
@@ -266,17 +267,12 @@ class ObservationFactors:
         cams = []
         for c, cam in enumerate(self.rig):
             if self.variable[c]:
-                pose = values.atPose3(pose_key(c))
-                R_cw = pose.rotation().matrix().T
-                t_cw = -R_cw @ pose.translation()
-                cam = Camera(cam.name, cam.size_wh, cam.K, cam.dist, _rodrigues(R_cw), t_cw, cam.pose_cov)
+                pose = values.atPose3(pose_key(c))  # world_from_cam
+                R_cw, t_cw = geometry_pose.cam_from_world(pose.rotation().matrix(), np.asarray(pose.translation()))
+                cam = Camera(cam.name, cam.size_wh, cam.K, cam.dist, geometry_pose.rvec_from_R(R_cw), t_cw,
+                             cam.pose_cov)
             cams.append(cam)
         return Rig(cams)
-
-
-def _rodrigues(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> rotation vector (3,) [rad] (SO(3) log = OpenCV's Rodrigues vector)."""
-    return np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R)), float)
 
 
 # ----- initial values and residuals -----------------------------------------------------------------
