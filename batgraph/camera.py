@@ -1,17 +1,9 @@
 """Pinhole cameras with OpenCV 5-parameter distortion, and the rig that holds them.
 
-Conventions, stated once for the whole project:
-
-* Poses are **cam_from_world**: ``xyz_cam = R @ xyz_world + t``, ``R = Rodrigues(rvec)`` (the
-  aniposelib / OpenCV / COLMAP convention). GTSAM's ``Pose3`` of a camera is world_from_cam;
-  :meth:`Camera.world_from_cam` is the one place that converts.
-* Camera axes: x right, y down, z forward (optical axis).
-* Pixels follow OpenCV: (0, 0) is the centre of the top-left pixel, u to the right, v downward.
-* "Distorted" pixels are raw image coordinates; "ideal" pixels are what an undistorted pinhole with
-  the same K would see: ``uv_ideal = K @ [x/z, y/z, 1]``. Skew ``K[0, 1]`` is honoured everywhere.
-* Distortion: OpenCV (k1, k2, p1, p2, k3) on normalised coordinates.
-
-This module does geometry only: no file formats (see :mod:`batgraph.session`), no estimation.
+The conventions (cam_from_world poses, OpenCV pixels and distortion, ideal vs raw pixels) are stated
+in :mod:`batgraph.geometry`, whose pure functions do every conversion and projection; the methods
+here apply them to one camera's K, dist, rvec, tvec. No file formats (see :mod:`batgraph.session`),
+no estimation.
 """
 
 from __future__ import annotations
@@ -20,7 +12,16 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-import scipy.linalg
+
+from .geometry import dlt, pinhole, pose
+from .geometry.distortion import (  # noqa: F401  (re-exported: part of this module's interface)
+    distort_normalized,
+    distortion_jacobian,
+    ideal_from_raw_jacobian,
+    max_valid_radius,
+    solve_2x2,
+    undistort_normalized,
+)
 
 
 def _as_float(a, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -28,61 +29,6 @@ def _as_float(a, shape: tuple[int, ...], what: str) -> np.ndarray:
     if arr.shape != shape:
         raise ValueError(f"{what} must have shape {shape}, got {arr.shape}")
     return arr
-
-
-def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Apply OpenCV's 5-parameter distortion to normalised coordinates.
-
-    xy: undistorted normalised coordinates ``(x/z, y/z)``, shape (..., 2).
-    dist: (k1, k2, p1, p2, k3), shape (5,).
-    Returns distorted normalised coordinates, shape (..., 2).
-    """
-    k1, k2, p1, p2, k3 = dist
-    x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
-
-
-def distortion_jacobian(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """d(distorted normalised) / d(undistorted normalised), shape (..., 2, 2), at ``xy`` (..., 2)."""
-    k1, k2, p1, p2, k3 = dist
-    x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    g = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    J = np.empty(xy.shape[:-1] + (2, 2))
-    J[..., 0, 0] = radial + 2 * g * x * x + 2 * p1 * y + 6 * p2 * x
-    J[..., 0, 1] = 2 * g * x * y + 2 * p1 * x + 2 * p2 * y
-    J[..., 1, 0] = 2 * g * x * y + 2 * p1 * x + 2 * p2 * y
-    J[..., 1, 1] = radial + 2 * g * y * y + 6 * p1 * y + 2 * p2 * x
-    return J
-
-
-def solve_2x2(J: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """J^-1 r for batches of 2x2 systems, J (..., 2, 2), r (..., 2), by Cramer's rule (inf/NaN where J is
-    singular). Written out because numpy's batched solve costs ~10x as much on 2x2 blocks and raises on a
-    single singular one."""
-    det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-    return np.stack([J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1],
-                     J[..., 0, 0] * r[..., 1] - J[..., 1, 0] * r[..., 0]], axis=-1) / det[..., None]
-
-
-def max_valid_radius(dist: np.ndarray) -> float:
-    """Largest undistorted normalised radius where the radial model is still monotonic.
-
-    Beyond it, OpenCV's polynomial folds back and a point would land at the wrong place in the
-    image: physically, outside the lens's field. ``inf`` when the model is monotonic everywhere.
-    """
-    k1, k2, _, _, k3 = dist
-    # d/dr [r (1 + k1 r^2 + k2 r^4 + k3 r^6)] = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3, s = r^2
-    roots = np.roots([7 * k3, 5 * k2, 3 * k1, 1.0]) if k3 else np.roots([5 * k2, 3 * k1, 1.0]) if k2 else (
-        np.array([-1 / (3 * k1)]) if k1 else np.array([])
-    )
-    s = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
-    return float(np.sqrt(min(s))) if s else float("inf")
 
 
 @dataclass(eq=False)
@@ -115,7 +61,7 @@ class Camera:
         if self.pose_cov is not None:
             self.pose_cov = _as_float(self.pose_cov, (6, 6), f"camera {self.name!r} pose_covariance")
         self.size_wh = (int(self.size_wh[0]), int(self.size_wh[1]))
-        self._R = cv2.Rodrigues(self.rvec.reshape(3, 1))[0]
+        self._R = pose.R_from_rvec(self.rvec)
         self._K_inv = np.linalg.inv(self.K)
         self._r_max = max_valid_radius(self.dist)
 
@@ -128,20 +74,20 @@ class Camera:
     @property
     def center_world(self) -> np.ndarray:
         """Camera centre in the world frame, shape (3,) [m]."""
-        return -self._R.T @ self.tvec
+        return self.world_from_cam()[1]
 
     @property
     def P(self) -> np.ndarray:
         """Projection matrix K [R | t] to ideal pixels, shape (3, 4)."""
-        return self.K @ np.hstack([self._R, self.tvec[:, None]])
+        return pinhole.projection_matrix(self.K, self._R, self.tvec)
 
     def world_from_cam(self) -> tuple[np.ndarray, np.ndarray]:
         """(R_wc (3, 3), t_wc (3,)): the pose as GTSAM's Pose3 of a camera expects it."""
-        return self._R.T, self.center_world
+        return pose.world_from_cam(self._R, self.tvec)
 
     def to_cam(self, xyz_world_m: np.ndarray) -> np.ndarray:
         """World points (..., 3) [m] -> camera frame (..., 3) [m]."""
-        return xyz_world_m @ self._R.T + self.tvec
+        return pose.transform_points(self._R, self.tvec, xyz_world_m)
 
     # ----- projection -------------------------------------------------------------------------
     def project(self, xyz_world_m: np.ndarray, distort: bool = True) -> np.ndarray:
@@ -152,61 +98,21 @@ class Camera:
         Returns uv_px, shape (..., 2); NaN for points behind the camera or (with distortion)
         outside the lens's valid field (see :func:`max_valid_radius`).
         """
-        xyz_cam = self.to_cam(np.asarray(xyz_world_m, dtype=float))
-        z = xyz_cam[..., 2:3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.where(z > 1e-9, xyz_cam[..., :2] / z, np.nan)
-        if distort:
-            r = np.linalg.norm(xy, axis=-1, keepdims=True)
-            xy = np.where(r <= self._r_max, distort_normalized(xy, self.dist), np.nan)
-        return self._apply_K(xy)
-
-    def _apply_K(self, xy: np.ndarray) -> np.ndarray:
-        K = self.K
-        u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]
-        v = K[1, 1] * xy[..., 1] + K[1, 2]
-        return np.stack([u, v], axis=-1)
-
-    def _remove_K(self, uv_px: np.ndarray) -> np.ndarray:
-        Ki = self._K_inv
-        x = Ki[0, 0] * uv_px[..., 0] + Ki[0, 1] * uv_px[..., 1] + Ki[0, 2]
-        y = Ki[1, 1] * uv_px[..., 1] + Ki[1, 2]
-        return np.stack([x, y], axis=-1)
+        return pinhole.project(xyz_world_m, self.K, self._R, self.tvec, self.dist if distort else None,
+                               self._r_max)
 
     def undistort_normalized(self, uv_px: np.ndarray) -> np.ndarray:
         """Raw pixels (..., 2) -> undistorted normalised coordinates (x/z, y/z), shape (..., 2).
 
-        OpenCV's ``undistortPoints`` gives the starting point; two Newton steps on the exact
-        Jacobian polish it, because OpenCV's fixed-point iteration stalls at ~1e-3 px near the
-        edge of a strongly distorted (GoPro-like) lens. NaN in, NaN out.
+        See :func:`batgraph.geometry.distortion.undistort_normalized` (OpenCV, then two Newton steps).
+        NaN in, NaN out.
         """
-        uv = np.asarray(uv_px, dtype=float)
-        xy_d = self._remove_K(uv)
-        flat = xy_d.reshape(-1, 2)
-        ok = np.isfinite(flat).all(axis=1)
-        out = np.full_like(flat, np.nan)
-        if ok.any() and np.any(self.dist):
-            criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
-            xy = cv2.undistortPoints(
-                flat[ok].reshape(-1, 1, 2), np.eye(3), self.dist, criteria=criteria
-            ).reshape(-1, 2)
-            for _ in range(2):
-                resid = distort_normalized(xy, self.dist) - flat[ok]
-                J = distortion_jacobian(xy, self.dist)
-                with np.errstate(all="ignore"):
-                    step = xy - solve_2x2(J, resid)
-                    better = np.linalg.norm(distort_normalized(step, self.dist) - flat[ok], axis=-1)
-                # A noisy pixel just beyond the lens's largest distorted radius has no preimage and
-                # OpenCV stops near the fold, where J is singular: keep only steps that help.
-                xy = np.where((better < np.linalg.norm(resid, axis=-1))[:, None], step, xy)
-            out[ok] = xy
-        elif ok.any():
-            out[ok] = flat[ok]
-        return out.reshape(xy_d.shape)
+        return undistort_normalized(pinhole.normalized_from_pixels(np.asarray(uv_px, dtype=float), self._K_inv),
+                                    self.dist)
 
     def undistort(self, uv_px: np.ndarray) -> np.ndarray:
         """Raw pixels (..., 2) -> ideal (undistorted) pixels (..., 2)."""
-        return self._apply_K(self.undistort_normalized(uv_px))
+        return pinhole.pixels_from_normalized(self.undistort_normalized(uv_px), self.K)
 
     def ideal_from_raw_jacobian(self, uv_px: np.ndarray) -> np.ndarray:
         """d(ideal px) / d(raw px) at raw pixels ``uv_px`` (..., 2); shape (..., 2, 2).
@@ -219,25 +125,11 @@ class Camera:
     def undistort_with_jacobian(self, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw pixels (..., 2) -> (ideal pixels (..., 2), d(ideal px) / d(raw px) (..., 2, 2)), one undistortion."""
         xy = self.undistort_normalized(uv_px)
-        D = distortion_jacobian(xy, self.dist)  # d xy_d / d xy
-        A = self.K[:2, :2]  # d px / d normalised (same for ideal and raw)
-        Ainv = np.linalg.inv(A)
-        # ideal = A xy + c, raw = A xy_d + c  ->  d ideal / d raw = A D^-1 A^-1
-        Dinv = np.stack([solve_2x2(D, np.broadcast_to(col, xy.shape)) for col in Ainv.T], axis=-1)
-        return self._apply_K(xy), A @ Dinv
+        return pinhole.pixels_from_normalized(xy, self.K), ideal_from_raw_jacobian(xy, self.dist, self.K)
 
     def ideal_jacobian_world(self, xyz_world_m: np.ndarray) -> np.ndarray:
         """d(ideal px) / d(xyz_world) at points (..., 3); shape (..., 2, 3) [px/m] (paper eq. 16)."""
-        xyz_cam = self.to_cam(np.asarray(xyz_world_m, dtype=float))
-        X, Y, Z = xyz_cam[..., 0], xyz_cam[..., 1], xyz_cam[..., 2]
-        K = self.K
-        J = np.zeros(xyz_cam.shape[:-1] + (2, 3))
-        J[..., 0, 0] = K[0, 0] / Z
-        J[..., 0, 1] = K[0, 1] / Z
-        J[..., 0, 2] = -(K[0, 0] * X + K[0, 1] * Y) / Z**2
-        J[..., 1, 1] = K[1, 1] / Z
-        J[..., 1, 2] = -K[1, 1] * Y / Z**2
-        return J @ self._R
+        return pinhole.point_jacobian(self.P, xyz_world_m)
 
     def in_image(self, uv_px: np.ndarray) -> np.ndarray:
         """True where raw pixels (..., 2) lie inside the image (pixel centres -0.5 .. size-0.5)."""
@@ -263,29 +155,43 @@ class Camera:
         det(R) = +1; skew is kept. Distortion is zero (a DLT has none).
         """
         L = _as_float(coefs, (11,), f"camera {name!r} DLT coefficients")
-        P = np.append(L, 1.0).reshape(3, 4)
-        M = P[:, :3]
-        if np.linalg.det(M) < 0:  # the DLT's overall scale is negative: flip it
-            P = -P
-            M = P[:, :3]
-        K, R = scipy.linalg.rq(M)
-        S = np.diag(np.sign(np.diag(K)))  # make K's diagonal positive (S @ S = I)
-        K, R = K @ S, S @ R
-        scale = K[2, 2]
-        t = np.linalg.solve(K, P[:, 3])
-        K = K / scale
+        K, R, t = dlt.krt_from_projection(dlt.dlt_matrix(L))
         rvec = cv2.Rodrigues(R)[0].reshape(3)
         return cls(name=name, size_wh=size_wh, K=K, dist=np.zeros(5), rvec=rvec, tvec=t)
 
 
 @dataclass(eq=False)
 class Rig:
-    """The cameras of a session, in calibration.toml order."""
+    """The cameras of a session, in calibration.toml order.
+
+    world_mirror: (3,) of +-1: the rig's world is right-handed; a user's world that is mirrored (a DLT
+        calibration may be left-handed) is ``x_user = world_mirror * x_world`` (``[metadata] world_mirror``
+        in calibration.toml). Results are reported in the user's frame (:meth:`to_user`).
+    """
 
     cameras: list[Camera]
+    world_mirror: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     def __post_init__(self):
         self._index = {c.name: i for i, c in enumerate(self.cameras)}
+        self.world_mirror = np.asarray(self.world_mirror, dtype=float)
+        if self.world_mirror.shape != (3,) or not np.all(np.abs(self.world_mirror) == 1):
+            raise ValueError(f"world_mirror must be three values of +-1, got {self.world_mirror!r}")
+
+    @property
+    def mirrored(self) -> bool:
+        """True when the user's world is left-handed (see ``world_mirror``)."""
+        return bool(np.prod(self.world_mirror) < 0)
+
+    def to_user(self, xyz_m: np.ndarray, cov_m2: np.ndarray | None = None):
+        """Points (..., 3) [m] (and covariances (..., 3, 3) [m^2]) from the rig's world to the user's frame.
+
+        The mirror is its own inverse, so the same call converts back. Returns xyz, or (xyz, cov) when
+        cov_m2 is given.
+        """
+        m = self.world_mirror
+        xyz = np.asarray(xyz_m) * m
+        return xyz if cov_m2 is None else (xyz, np.asarray(cov_m2) * m[:, None] * m[None, :])
 
     @property
     def names(self) -> list[str]:

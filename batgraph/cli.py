@@ -50,6 +50,9 @@ def _add_reconstruct(sub):
     p.add_argument("--workers", type=_positive_int, help="local Dask workers (default: one per core)")
     p.add_argument("--verbose", action="store_true", help="with several sessions: tracebacks of crashed ones")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
+    p.add_argument("--validate", action="store_true",
+                   help="also run leave-one-camera-out validation (see `batgraph validate`): validation.csv, "
+                        "summary.json 'validation', a report section")
     p.set_defaults(func=_cmd_reconstruct)
 
 
@@ -88,7 +91,7 @@ def _cmd_reconstruct(args) -> int:
     if batch:
         items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
                                  n_workers=args.workers, progress=not args.quiet, viewer=viewer,
-                                 calibration=args.calibration)
+                                 calibration=args.calibration, validate=args.validate)
         if args.quiet:
             for it in items:
                 if it.status != "ok":
@@ -96,15 +99,77 @@ def _cmd_reconstruct(args) -> int:
         else:
             print(format_batch_table(items, verbose=args.verbose))
         return exit_code(items)
-    result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer, calibration=args.calibration)
+    result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer, calibration=args.calibration,
+                         validate=args.validate, validate_workers=args.workers)
     if not args.quiet:
         print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
         for w in result.session.warnings:
             print(f"warning: {w}")
         print("\n".join(summary_lines(result.summary)))
+        if "validation" in result.summary:
+            print("\n".join(validation_lines(result.summary["validation"])))
         print(f"report: {result.out_dir / 'report.html'}")
         if viewer != "none":
             print(f"3D viewer: rerun {result.out_dir / 'recording.rrd'}   (or: batgraph view {result.out_dir})")
+    return 0
+
+
+# ----- validate --------------------------------------------------------------------------------
+def _add_validate(sub):
+    p = sub.add_parser("validate", help="leave-one-camera-out accuracy of every method, without ground truth",
+                       description="Reconstruct SESSION as `reconstruct` does (every output written), then, for "
+                                   "each camera, run every method without that camera's observations and measure "
+                                   "how well the estimate predicts them: median and p90 error [px] per camera, "
+                                   "method and status. Writes validation.csv; adds 'validation' to summary.json "
+                                   "and a section to report.html.")
+    p.add_argument("session", metavar="SESSION", help="session folder")
+    p.add_argument("--out", help="output folder (default SESSION/out)")
+    p.add_argument("--calibration", metavar="FILE", help="calibration.toml to use instead of the session's own")
+    p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
+                                     "(default smoother,filter,triangulate)")
+    p.add_argument("--compare", action="store_true", help="add every other method")
+    p.add_argument("--motion", choices=["constant_velocity", "random_walk"], help="motion model (as reconstruct)")
+    p.add_argument("--accel-psd", type=float, metavar="Q", help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
+    p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber", help="robust loss (default huber)")
+    p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--solver", choices=["fast", "gtsam"], default="fast", help="smoother/filter solver (default fast)")
+    p.add_argument("--viewer", choices=["save", "none"], default="save",
+                   help="write recording.rrd (save, default) or not (none)")
+    p.add_argument("--workers", type=_positive_int, help="processes for the folds (default: one per core)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or tables")
+    p.set_defaults(func=_cmd_validate)
+
+
+def validation_lines(validation: dict) -> list[str]:
+    """The terminal's validation table (from summary.json's "validation" section) and its verdict."""
+    import pandas as pd
+
+    from .validate import COLUMNS, format_table
+
+    table = pd.DataFrame(validation.get("table") or [], columns=COLUMNS)
+    lines = ["leave-one-camera-out: error [px] of each method's 3D projected into the held-out camera "
+             "(status without that camera; common = points every method estimates)"]
+    lines += format_table(table)
+    lines.append(f"verdict: {validation.get('verdict', '')}")
+    return lines
+
+
+def _cmd_validate(args) -> int:
+    from .pipeline import DEFAULT_METHODS, parse_methods, reconstruct
+    from .result import Options
+
+    text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
+    methods = parse_methods(text, args.compare)
+    options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
+                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet, solver=args.solver)
+    result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
+                         validate=True, validate_workers=args.workers)
+    if not args.quiet:
+        print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
+        for w in result.session.warnings:
+            print(f"warning: {w}")
+        print("\n".join(validation_lines(result.summary["validation"])))
+        print(f"report: {result.out_dir / 'report.html'}")
     return 0
 
 
@@ -173,17 +238,23 @@ def _cmd_simulate(args) -> int:
 def _add_import(sub):
     p = sub.add_parser("import", help="convert another tool's files into a session folder")
     fmt = p.add_subparsers(dest="format", required=True, metavar="FORMAT")
-    d = fmt.add_parser("dltdv", help="DLTdv8/DLTdv7/Argus xypts + DLT coefficients",
-                       description="Import a DLTdv trial: *xypts.csv and *dltCoefs.csv.")
+    d = fmt.add_parser("dltdv", help="DLTdv / Argus / easyWand xypts + DLT coefficients",
+                       description="Import a DLTdv trial: *xypts.csv and *dltCoefs.csv. The pixel origin and the "
+                                   "world's handedness are read from the coefficients.")
     d.add_argument("--xypts", required=True, help="DLTdv *xypts.csv (one row per frame)")
     d.add_argument("--coefs", required=True, help="DLT coefficients *dltCoefs.csv (11 rows x cameras)")
     d.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
     d.add_argument("--out", required=True, help="session folder to write")
-    d.add_argument("--dltdv-version", type=int, choices=[7, 8], default=8,
-                   help="pixel convention: 8 = origin top-left (default), 7 = origin bottom-left")
+    d.add_argument("--pixel-origin", choices=["lower-left", "upper-left"],
+                   help="pixel origin of the files (default: detected from the coefficients; every DLTdv version "
+                        "writes lower-left); one the coefficients contradict means a mirrored world")
+    d.add_argument("--units", choices=["m", "cm", "mm"], default="m",
+                   help="world units of the coefficients and xyzpts (default m); the session is in metres")
+    d.add_argument("--dltdv-version", type=int, help=argparse.SUPPRESS)  # old flag: the origin is detected now
     d.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="image size [px]")
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
-    d.add_argument("--pixel-sigma", type=float, default=1.0, help="click noise std [px] (default 1)")
+    d.add_argument("--pixel-sigma", type=float,
+                   help="click noise std [px] (default: measured per camera by reconstruct)")
     d.set_defaults(func=_cmd_import_dltdv)
 
     k = fmt.add_parser("deeplabcut", help="DeepLabCut 2D outputs (one .h5/.csv per camera) + calibration.toml")
@@ -212,7 +283,8 @@ def _add_import(sub):
     o.add_argument("--threshold", type=float, default=0.3, help="drop keypoints below this confidence (default 0.3)")
     o.add_argument("--person", type=int, default=0, help="which person in each JSON file (default 0)")
     o.add_argument("--reference-trc", help="Pose2Sim's own 3D (.trc), kept for comparison in reports")
-    o.add_argument("--pixel-sigma", type=float, default=5.0, help="keypoint noise std [px] (default 5)")
+    o.add_argument("--pixel-sigma", type=float,
+                   help="keypoint noise std [px] (default: measured per camera by reconstruct)")
     _common_import_args(o)
     o.set_defaults(func=_cmd_import_keypoints)
 
@@ -220,6 +292,8 @@ def _add_import(sub):
 def _common_import_args(p):
     p.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
     p.add_argument("--out", required=True, help="session folder to write")
+    p.add_argument("--units", choices=["m", "cm", "mm"],
+                   help="translation units of the calibration (default: its [metadata] units, else m)")
 
 
 def _cmd_import_keypoints(args) -> int:
@@ -229,18 +303,20 @@ def _cmd_import_keypoints(args) -> int:
         from .formats.deeplabcut import import_deeplabcut
 
         session = import_deeplabcut(args.files, args.calibration, args.fps, args.out, camera_names=args.camera_names,
-                                    threshold=args.threshold, individual=args.individual)
+                                    threshold=args.threshold, individual=args.individual, units=args.units)
     elif args.format == "anipose":
         from .formats.anipose import import_anipose
 
         session = import_anipose(args.project, args.fps, args.out, calibration=args.calibration,
-                                 threshold=args.threshold, trial=args.trial, cam_regex=args.cam_regex)
+                                 threshold=args.threshold, trial=args.trial, cam_regex=args.cam_regex,
+                                 units=args.units)
     else:
         from .formats.pose2sim import import_pose2sim
 
         session = import_pose2sim(args.json_dirs, args.calibration, args.fps, args.out, keypoints=args.keypoints,
                                   threshold=args.threshold, camera_names=args.camera_names, person=args.person,
-                                  reference_trc=args.reference_trc, pixel_sigma_px=args.pixel_sigma)
+                                  reference_trc=args.reference_trc, pixel_sigma_px=args.pixel_sigma,
+                                  units=args.units)
     print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.observations)} observations)")
     return 0
@@ -251,9 +327,16 @@ def _cmd_import_dltdv(args) -> int:
 
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
-    session = import_dltdv(args.xypts, args.coefs, args.fps, args.out, version=args.dltdv_version,
-                           image_size=tuple(args.image_size) if args.image_size else None,
+    if args.dltdv_version is not None:
+        print("note: --dltdv-version is ignored: every DLTdv version writes lower-left pixels, and the origin is "
+              "read from the coefficients (use --pixel-origin to override)", file=sys.stderr)
+    session = import_dltdv(args.xypts, args.coefs, args.fps, args.out, pixel_origin=args.pixel_origin,
+                           units=args.units, image_size=tuple(args.image_size) if args.image_size else None,
                            xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma)
+    imp = session.extra_toml["import"]
+    print(f"pixel origin: {imp['pixel_origin']} ({imp['pixel_origin_note']}); world: {imp['world']}; "
+          f"units: {imp['units']}" + ("; image size guessed from the principal point (give --image-size W H)"
+                                      if imp["image_size"] == "inferred" else ""))
     print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.observations)} observations)")
     return 0
@@ -400,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_reconstruct(sub)
+    _add_validate(sub)
     _add_simulate(sub)
     _add_import(sub)
     _add_calibrate(sub)

@@ -26,27 +26,44 @@ import tomli_w
 from . import atomic
 from .camera import Camera, Rig
 from .errors import InputError
+from .geometry.dlt import UNITS_M
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
 MOTION_MODELS = ("random_walk", "constant_velocity")
 
 
+PAPER_PHYSICS = {"flight_speed_mps": 3.0, "span_m": 0.5, "flap_hz": 4.0, "flap_angle_deg": 90.0}
+"""The paper's bat flight (v_f, l_w, f_f, alpha_f); the simulator and tests use it, nothing assumes it."""
+
+
 @dataclass
 class MotionConfig:
-    """[motion] of session.toml. Random-walk noise from the paper's eq. 4-5 unless ``sigma_m`` is set.
+    """[motion] of session.toml.
 
+    flight_speed_mps, span_m, flap_hz, flap_angle_deg: the paper's physics (eq. 4-5); None = not given.
+        Without them the random walk's sigma_m and the filter's q are measured from the triangulated
+        track by ``reconstruct`` (batgraph.motion.noise_from_track): nothing assumes a bat.
+    sigma_m: random-walk per-axis std per frame [m]; overrides the physics.
     accel_psd_m2_s3: for ``constant_velocity``, the power spectral density of the white-noise
         acceleration [m^2/s^3]; None means "choose it from the data" (see batgraph.motion).
+    causal_accel_psd_m2_s3: the filter's q when the physics are not given (filled by reconstruct from
+        the triangulated track; not read from session.toml).
     """
 
     model: str = "constant_velocity"
-    flight_speed_mps: float = 3.0
-    span_m: float = 0.5
-    flap_hz: float = 4.0
-    flap_angle_deg: float = 90.0
+    flight_speed_mps: float | None = None
+    span_m: float | None = None
+    flap_hz: float | None = None
+    flap_angle_deg: float | None = None
     sigma_m: float | None = None
     accel_psd_m2_s3: float | None = None
+    causal_accel_psd_m2_s3: float | None = None
+
+    @property
+    def has_physics(self) -> bool:
+        """True when all four physics values are given."""
+        return all(getattr(self, k) is not None for k in PAPER_PHYSICS)
 
 
 @dataclass
@@ -56,6 +73,9 @@ class Session:
     observations: columns frame (int64), camera (str), marker (str), u, v (float, raw pixels),
         weight (float in (0, 1]); only seen points (rows with empty u/v are dropped on load).
     truth, reference: columns frame, marker, x, y, z [m, world], or None.
+    pixel_sigma_px: std of one observation [px]: one value, one per camera name, or None = estimate it
+        per camera from the data (batgraph.pixel_noise), which reconstruct does when session.toml has no
+        ``[noise] pixel_sigma_px``.
     warnings: non-fatal remarks found while loading (e.g. points outside the image).
     """
 
@@ -64,7 +84,7 @@ class Session:
     rig: Rig
     observations: pd.DataFrame
     motion: MotionConfig = field(default_factory=MotionConfig)
-    pixel_sigma_px: float = 1.0
+    pixel_sigma_px: float | dict[str, float] | None = 1.0
     marker_names: list[str] = field(default_factory=list)
     skeleton: list[tuple[str, str]] = field(default_factory=list)
     truth: pd.DataFrame | None = None
@@ -80,6 +100,11 @@ class Session:
         """All marker labels: session.toml's order first, then the others as first seen."""
         seen = list(dict.fromkeys(self.observations["marker"]))
         return list(self.marker_names) + [m for m in seen if m not in self.marker_names]
+
+    @property
+    def world_mirror(self) -> np.ndarray:
+        """(3,) of +-1: user frame = world_mirror * the rig's (right-handed) world; see Rig."""
+        return self.rig.world_mirror
 
     @property
     def frames(self) -> np.ndarray:
@@ -165,9 +190,24 @@ def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
     return arr
 
 
-def read_calibration(path: Path) -> Rig:
-    """Read an aniposelib-style calibration.toml into a :class:`Rig` (order of the tables)."""
+def read_calibration(path: Path, units: str | None = None) -> Rig:
+    """Read an aniposelib-style calibration.toml into a :class:`Rig` (order of the tables), in metres.
+
+    Translations are in ``[metadata] units`` ("m" default, "cm", "mm"); ``units`` overrides it (an
+    importer's --units). ``[metadata] world_mirror`` (three +-1) marks a left-handed user frame.
+    """
     data = _read_toml(path)
+    meta = data.get("metadata", {})
+    meta = meta if isinstance(meta, dict) else {}
+    units = units if units is not None else meta.get("units", "m")
+    if units not in UNITS_M:
+        raise InputError(f"{path} [metadata] units: {units!r} is not one of {', '.join(UNITS_M)}")
+    scale = UNITS_M[units]  # translations [units] -> [m]
+    mirror = np.ones(3)
+    if "world_mirror" in meta:
+        mirror = _matrix(meta["world_mirror"], (3,), f"{path} [metadata] world_mirror")
+        if not np.all(np.abs(mirror) == 1):
+            raise InputError(f"{path} [metadata] world_mirror: expected three values of 1 or -1, got {mirror.tolist()}")
     cams = []
     for key, tab in data.items():
         if key == "metadata" or not isinstance(tab, dict):
@@ -191,10 +231,11 @@ def read_calibration(path: Path) -> Rig:
                              f"got {tab.get('distortions')!r}")
         dist = _matrix(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
         rvec = _matrix(tab["rotation"], (3,), f"{where} rotation")
-        tvec = _matrix(tab["translation"], (3,), f"{where} translation")
+        tvec = _matrix(tab["translation"], (3,), f"{where} translation") * scale
         cov = None
         if "pose_covariance" in tab:
-            cov = _matrix(tab["pose_covariance"], (6, 6), f"{where} pose_covariance")
+            s_t = np.diag([1.0, 1.0, 1.0, scale, scale, scale])  # tangent [rot rad, trans units]
+            cov = s_t @ _matrix(tab["pose_covariance"], (6, 6), f"{where} pose_covariance") @ s_t
         cams.append(Camera(name, (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov))
     if not cams:
         raise InputError(f"{path}: no camera tables (expected [cam_0], [cam_1], ...)")
@@ -202,7 +243,7 @@ def read_calibration(path: Path) -> Rig:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise InputError(f"{path}: camera name {dup[0]!r} appears more than once")
-    return Rig(cams)
+    return Rig(cams, world_mirror=mirror)
 
 
 def _line(i: int, is_csv: bool) -> str:
@@ -376,7 +417,7 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
         raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
     observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path))
     sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})
-    known = {f for f in MotionConfig.__dataclass_fields__}
+    known = {f for f in MotionConfig.__dataclass_fields__} - {"causal_accel_psd_m2_s3"}
     mcfg = MotionConfig(**{k: v for k, v in motion.items() if k in known})
     markers = cfg.get("markers", {})
     names = [str(n) for n in markers.get("names", [])]
@@ -397,7 +438,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     return Session(
         name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,
         observations=observations, motion=mcfg,
-        pixel_sigma_px=float(noise.get("pixel_sigma_px", 1.0)), marker_names=names, skeleton=skeleton,
+        pixel_sigma_px=float(noise["pixel_sigma_px"]) if "pixel_sigma_px" in noise else None,
+        marker_names=names, skeleton=skeleton,
         truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder,
         warnings=warnings,
     )
@@ -421,20 +463,22 @@ def calibration_toml(rig: Rig) -> str:
         if c.pose_cov is not None:
             tab["pose_covariance"] = c.pose_cov.tolist()
         doc[f"cam_{i}"] = tab
-    doc["metadata"] = {"written_by": "batgraph"}
+    doc["metadata"] = {"written_by": "batgraph", "units": "m"}
+    if rig.mirrored:
+        doc["metadata"]["world_mirror"] = rig.world_mirror.tolist()
     return tomli_w.dumps(doc)
 
 
 def session_toml(session: Session) -> str:
+    """The text of session.toml: only what the session states (no physics, no noise it does not know)."""
     m = session.motion
-    motion = {"model": m.model, "flight_speed_mps": m.flight_speed_mps, "span_m": m.span_m,
-              "flap_hz": m.flap_hz, "flap_angle_deg": m.flap_angle_deg}
-    if m.sigma_m is not None:
-        motion["sigma_m"] = m.sigma_m
-    if m.accel_psd_m2_s3 is not None:
-        motion["accel_psd_m2_s3"] = m.accel_psd_m2_s3
-    doc = {"session": {"name": session.name, "fps": session.fps}, "motion": motion,
-           "noise": {"pixel_sigma_px": session.pixel_sigma_px}}
+    motion = {"model": m.model}
+    for k in (*PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"):
+        if getattr(m, k) is not None:
+            motion[k] = getattr(m, k)
+    doc = {"session": {"name": session.name, "fps": session.fps}, "motion": motion}
+    if isinstance(session.pixel_sigma_px, int | float):
+        doc["noise"] = {"pixel_sigma_px": session.pixel_sigma_px}
     if session.marker_names or session.skeleton:
         doc["markers"] = {"names": list(session.marker_names), "skeleton": [list(e) for e in session.skeleton]}
     doc.update(session.extra_toml)

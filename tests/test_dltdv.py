@@ -12,6 +12,7 @@ from conftest import look_at, tiny_scene
 from batgraph.camera import Camera, Rig
 from batgraph.errors import InputError
 from batgraph.formats import dltdv
+from batgraph.geometry import dlt
 from batgraph.session import dense_observations, read_session
 from batgraph.triangulate import triangulate
 
@@ -49,8 +50,10 @@ def _rig() -> Rig:
                                                                                                   strict=True))])
 
 
-def _trial(tmp_path, version: int, noise_px: float = 0.0, seed: int = 0):
-    """Write a DLTdv trial (xypts, dltCoefs, xyzpts) in ``version``'s pixels; returns what a test needs.
+def _trial(tmp_path, origin: str, noise_px: float = 0.0, seed: int = 0, units: str = "m", mirror: bool = False):
+    """Write a DLTdv trial (xypts, dltCoefs, xyzpts) with ``origin`` pixels; returns what a test needs.
+
+    units: the files' world units; mirror: the files' world is the rig's with z negated (left-handed).
 
     40 frames of 5 moving markers; 35 % of the clicks are dropped, and those outside the image, so
     points have 0..4 views.
@@ -65,13 +68,14 @@ def _trial(tmp_path, version: int, noise_px: float = 0.0, seed: int = 0):
     uv_cv[rng.random(uv_cv.shape[:3]) < 0.35] = np.nan
     uv_cv[~np.stack([cam.in_image(uv_cv[c]) for c, cam in enumerate(rig)])] = np.nan  # a camera sees its image
     assert np.isfinite(uv_cv).all(axis=-1).sum() > 0
-    uv = dltdv.from_opencv_px(uv_cv, version, SIZE[1])
+    uv = dltdv.from_opencv_px(uv_cv, origin, SIZE[1])
     c, f, m = np.nonzero(np.isfinite(uv[..., 0]))
     table = pd.DataFrame({"frame": f, "camera_index": c, "point_index": m, "u": uv[c, f, m, 0],
                           "v": uv[c, f, m, 1]})
-    paths = {k: tmp_path / f"trial{version}{k}.csv" for k in ("xypts", "dltCoefs", "xyzpts")}
+    paths = {k: tmp_path / f"trial_{origin}_{k}.csv" for k in ("xypts", "dltCoefs", "xyzpts")}
     dltdv.write_xypts(paths["xypts"], table, n_cams=len(rig), n_points=M, n_frames=F)
-    dltdv.write_dlt_coefs(paths["dltCoefs"], rig, version, SIZE)
+    file_rig = Rig(rig.cameras, world_mirror=[1, 1, -1] if mirror else [1, 1, 1])
+    dltdv.write_dlt_coefs(paths["dltCoefs"], file_rig, origin, SIZE, units)
     # DLTdv's own 3D, from its own files (no pixel conversion at all)
     L = dltdv.read_dlt_coefs(paths["dltCoefs"])
     clicks = dltdv.read_xypts(paths["xypts"], n_cams=len(rig))
@@ -88,26 +92,27 @@ def _trial(tmp_path, version: int, noise_px: float = 0.0, seed: int = 0):
 def _batgraph_xyz(session, n_frames: int) -> np.ndarray:
     """batgraph.triangulate on the imported session, as (n_frames, M, 3) indexed by frame from 0."""
     dense = dense_observations(session)
-    xyz, cov = triangulate(session.rig, dense, session.pixel_sigma_px)
+    xyz, cov = triangulate(session.rig, dense, 1.0)  # positions do not depend on the noise
     out = np.full((n_frames, len(dense.markers), 3), np.nan)
     out[dense.frames] = xyz
     assert dense.markers == [f"pt{j + 1}" for j in range(len(dense.markers))]
     return out
 
 
-@pytest.mark.parametrize("version", [8, 7])
-def test_import_then_triangulate_equals_dltdv_reconstruction(tmp_path, version):
+@pytest.mark.parametrize("origin", ["lower-left", "upper-left"])
+def test_import_then_triangulate_equals_dltdv_reconstruction(tmp_path, origin):
     """Noise-free clicks: batgraph (OpenCV pixels, K R t, homogeneous DLT) equals DLTdv's own
     reconstruction (its pixels, its coefficients, inhomogeneous DLT) and the truth.
 
     A pixel-convention slip of 1 px would move points by ~2 mm here. Clicks are stored with 6
     decimals (5e-7 px rounding ~ 1e-8 m). Measured max difference to DLTdv 2.0e-10 m (v8 and v7),
-    to the truth 5.6e-9 m; bound 1e-6 m for both.
+    to the truth 5.6e-9 m; bound 1e-6 m for both. The pixel origin is detected from the coefficients.
     """
-    rig, truth, ref, paths = _trial(tmp_path, version)
+    rig, truth, ref, paths = _trial(tmp_path, origin)
     session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 120.0, tmp_path / "session",
-                                 version=version, image_size=SIZE if version == 7 else None,
-                                 xyzpts=paths["xyzpts"])
+                                 image_size=SIZE, xyzpts=paths["xyzpts"])
+    imp = session.extra_toml["import"]
+    assert (imp["pixel_origin"], imp["pixel_origin_source"], imp["world"]) == (origin, "detected", "right-handed")
     assert session.warnings == []  # every click inside its image, so in the right convention
     ours = _batgraph_xyz(session, len(truth))
     both = np.isfinite(ref).all(-1)
@@ -136,7 +141,7 @@ def test_noisy_clicks_agree_with_dltdv_to_noise_level(tmp_path):
     2.0-2.3 mm for both methods (ratio 0.065-0.084); bounds: ratio 0.15, max difference 1 mm, and
     batgraph's RMS error within 5 % of DLTdv's.
     """
-    _, truth, ref, paths = _trial(tmp_path, 8, noise_px=0.5, seed=3)
+    _, truth, ref, paths = _trial(tmp_path, "lower-left", noise_px=0.5, seed=3)
     session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 120.0, tmp_path / "session")
     ours = _batgraph_xyz(session, len(truth))
     both = np.isfinite(ref).all(-1)
@@ -151,7 +156,7 @@ def test_noisy_clicks_agree_with_dltdv_to_noise_level(tmp_path):
 
 
 def test_xyzpts_kept_as_reference_and_files_written(tmp_path):
-    _, _, ref, paths = _trial(tmp_path, 8)
+    _, _, ref, paths = _trial(tmp_path, "lower-left")
     out = tmp_path / "session"
     session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 250.0, out, xyzpts=paths["xyzpts"],
                                  marker_names=[f"m{j}" for j in range(5)], camera_names=list("ABCD"))
@@ -164,45 +169,53 @@ def test_xyzpts_kept_as_reference_and_files_written(tmp_path):
     got = r[["x", "y", "z"]].to_numpy()
     want = ref[r.frame.to_numpy(), [int(m[1:]) for m in r.marker]]
     assert np.abs(got - want).max() < 1e-8  # written with 9 decimals
-    assert session.extra_toml["import"]["format"] == "dltdv8"
+    assert session.extra_toml["import"]["format"] == "dltdv"
     assert read_session(out).reference.equals(r)
 
 
-def test_inferred_image_size(tmp_path):
-    """DLTdv8 without --image-size: W = round(2 cx + 1), H = round(2 cy + 1), enlarged to hold every click."""
-    rig, _, _, paths = _trial(tmp_path, 8)
+@pytest.mark.parametrize("origin", ["lower-left", "upper-left"])
+def test_inferred_image_size(tmp_path, origin):
+    """Without --image-size: the file's principal point (cx, cy) is the centre, W = round(2 cx - 1),
+    H = round(2 cy - 1) in the file's 1-based pixels whatever the origin, enlarged to hold every click;
+    the session records that it was guessed (reconstruct warns)."""
+    _, _, _, paths = _trial(tmp_path, origin)
     session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 100.0, tmp_path / "s")
-    for cam, orig in zip(session.rig, rig, strict=True):
-        want = np.round(2 * orig.K[:2, 2] + 1)
-        o = session.observations[session.observations.camera == cam.name]
-        want = np.maximum(want, np.ceil(o[["u", "v"]].max().to_numpy() + 0.5))
+    P = dlt.dlt_matrix(dltdv.read_dlt_coefs(paths["dltCoefs"]))
+    clicks = dltdv.read_xypts(paths["xypts"])
+    for c, cam in enumerate(session.rig):
+        want = np.round(2 * dlt.principal_point(P[c]) - 1)
+        uv = clicks.loc[clicks.camera_index == c, ["u", "v"]].to_numpy()
+        want = np.maximum(want, np.ceil(uv.max(axis=0) - 0.5))
         assert cam.size_wh == tuple(int(x) for x in want)
+        assert abs(cam.size_wh[1] - SIZE[1]) < 60  # principal points 10-25 px off centre
     assert session.warnings == []
+    assert session.extra_toml["import"]["image_size"] == "inferred"
 
 
 def test_pixel_conventions_by_hand():
-    """OpenCV's top-left pixel centre is (1, 1) in DLTdv8 and (1, H) in DLTdv7; the bottom-right is (W, H) / (W, 1)."""
+    """OpenCV's top-left pixel centre is (1, 1) upper-left and (1, H) lower-left (DLTdv); the bottom-right
+    is (W, H) / (W, 1)."""
     W, H = SIZE
     cv = np.array([[0.0, 0.0], [W - 1, H - 1], [np.nan, np.nan]])
-    np.testing.assert_array_equal(dltdv.from_opencv_px(cv, 8)[:2], [[1, 1], [W, H]])
-    np.testing.assert_array_equal(dltdv.from_opencv_px(cv, 7, H)[:2], [[1, H], [W, 1]])
-    assert np.isnan(dltdv.from_opencv_px(cv, 7, H)[2]).all()
-    for version in (7, 8):
-        np.testing.assert_allclose(dltdv.to_opencv_px(dltdv.from_opencv_px(cv, version, H), version, H), cv)
+    np.testing.assert_array_equal(dltdv.from_opencv_px(cv, "upper-left")[:2], [[1, 1], [W, H]])
+    np.testing.assert_array_equal(dltdv.from_opencv_px(cv, "lower-left", H)[:2], [[1, H], [W, 1]])
+    assert np.isnan(dltdv.from_opencv_px(cv, "lower-left", H)[2]).all()
+    for origin in dlt.PIXEL_ORIGINS:
+        np.testing.assert_allclose(dltdv.to_opencv_px(dltdv.from_opencv_px(cv, origin, H), origin, H), cv)
     with pytest.raises(ValueError):
-        dltdv.pixel_transform(7)
+        dlt.pixel_affine("lower-left")
 
 
-@pytest.mark.parametrize("version", [8, 7])
-def test_coefficient_file_round_trip(tmp_path, version):
+@pytest.mark.parametrize("origin", ["lower-left", "upper-left"])
+def test_coefficient_file_round_trip(tmp_path, origin):
     """Camera -> DLTdv coefficient file -> Camera, skew included. Measured 6.3e-13 px on K, 3.5e-15 on R,
     1.9e-15 m on t (v8 and v7); bound 1e-9."""
     rig = _rig()
     path = tmp_path / "c.csv"
-    dltdv.write_dlt_coefs(path, rig, version, SIZE)
+    dltdv.write_dlt_coefs(path, rig, origin, SIZE)
     L = dltdv.read_dlt_coefs(path)
     assert L.shape == (4, 11) and len(path.read_text().splitlines()) == 11
-    L_cv = dltdv.coefs_to_opencv(L, version, SIZE[1])
+    L_cv = dltdv.coefs_to_opencv(L, origin, SIZE[1])
     for cam, l_cv in zip(rig, L_cv, strict=True):
         back = Camera.from_dlt(cam.name, l_cv, SIZE)
         np.testing.assert_allclose(back.K, cam.K, rtol=0, atol=1e-9)
@@ -213,7 +226,7 @@ def test_coefficient_file_round_trip(tmp_path, version):
     for cam, l in zip(rig, L, strict=True):
         den = xyz @ l[8:11] + 1
         uv = np.stack([(xyz @ l[0:3] + l[3]) / den, (xyz @ l[4:7] + l[7]) / den], axis=1)
-        np.testing.assert_allclose(uv, dltdv.from_opencv_px(cam.project(xyz), version, SIZE[1]), atol=1e-9)
+        np.testing.assert_allclose(uv, dltdv.from_opencv_px(cam.project(xyz), origin, SIZE[1]), atol=1e-9)
 
 
 def test_wide_file_round_trips(tmp_path):
@@ -243,7 +256,7 @@ def test_wide_file_round_trips(tmp_path):
 # ----------------------------------------------------------------------------------------------
 @pytest.fixture
 def trial(tmp_path):
-    return _trial(tmp_path, 8)[3]
+    return _trial(tmp_path, "lower-left")[3]
 
 
 def _import_error(paths, tmp_path, **kwargs) -> str:
@@ -325,16 +338,56 @@ def test_camera_count_mismatch(trial, tmp_path):
     assert "xypts.csv line 1" in msg and "4 camera(s)" in msg and "dltCoefs.csv has 3 column(s)" in msg
 
 
-def test_version_7_needs_the_image_size(trial, tmp_path):
-    msg = _import_error(trial, tmp_path, version=7)
-    assert "xypts.csv" in msg and "--image-size" in msg
+def test_a_camera_from_another_convention_is_named(tmp_path):
+    """Camera 3's coefficients written for upper-left pixels in a lower-left trial: exit 2 naming it."""
+    rig, _, _, paths = _trial(tmp_path, "lower-left")
+    L = dltdv.read_dlt_coefs(paths["dltCoefs"]).copy()
+    L[2] = dltdv.rig_to_dlt_coefs(Rig([rig[2]]), "upper-left", SIZE)[0]
+    paths["dltCoefs"].write_text("".join(",".join(f"{x:.17g}" for x in row) + "\n" for row in L.T))
+    msg = _import_error(paths, tmp_path)
+    assert "dltCoefs.csv column 3 (camera cam3)" in msg and "behind it" in msg and "pixel origin?" in msg
+
+
+@pytest.mark.parametrize("given", [None, "upper-left"])
+def test_mirrored_world_comes_back_in_the_files_frame(tmp_path, given):
+    """A left-handed DLT world (z negated) with lower-left pixels: detected as upper-left (the same
+    coefficients), or read as mirrored when the user says lower-left... here said upper-left on a
+    lower-left trial whose world is right-handed gives the mirrored reading. Either way the 3D equals
+    DLTdv's own reconstruction in the file's frame, every point in front of every camera (1e-6 m)."""
+    _, truth, ref, paths = _trial(tmp_path, "lower-left", mirror=given is None)
+    session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 120.0, tmp_path / "s", image_size=SIZE,
+                                 pixel_origin=given)
+    imp = session.extra_toml["import"]
+    assert imp["pixel_origin"] == "upper-left"
+    assert imp["world"] == ("right-handed" if given is None else "mirrored")
+    assert read_session(tmp_path / "s").rig.mirrored == (given is not None)
+    ours = session.rig.to_user(_batgraph_xyz(session, len(truth)))
+    both = np.isfinite(ref).all(-1)
+    assert np.abs(ours[both] - ref[both]).max() < 1e-6
+    internal = _batgraph_xyz(session, len(truth))
+    for cam in session.rig:
+        assert (cam.to_cam(internal[both])[:, 2] > 0).all()
+
+
+def test_millimetre_world_is_imported_in_metres(tmp_path):
+    """Coefficients and xyzpts in millimetres + units="mm": the session is in metres (1e-6 m)."""
+    _, truth, ref, paths = _trial(tmp_path, "lower-left", units="mm")
+    session = dltdv.import_dltdv(paths["xypts"], paths["dltCoefs"], 120.0, tmp_path / "s", units="mm",
+                                 xyzpts=paths["xyzpts"])
+    both = np.isfinite(ref).all(-1)
+    assert np.abs(ref[both] / 1000 - truth[both]).max() < 1e-6  # the files really are in mm
+    assert np.abs(_batgraph_xyz(session, len(truth))[both] - truth[both]).max() < 1e-6
+    r = session.reference
+    assert np.abs(r[["x", "y", "z"]].to_numpy() - truth[r.frame.to_numpy(), [int(m[2:]) - 1 for m in r.marker]]
+                  ).max() < 1e-6
 
 
 @pytest.mark.parametrize(
     "kwargs, expect",
     [
         ({"fps": 0.0}, "fps must be a number > 0"),
-        ({"version": 6.5}, "DLTdv version must be one of"),
+        ({"pixel_origin": "bottom"}, "pixel origin must be one of"),
+        ({"units": "inch"}, "units must be one of"),
         ({"image_size": (1280,)}, "image size must be two positive integers"),
         ({"marker_names": ["a", "b"]}, "5 points in the file but 2 point names"),
         ({"camera_names": ["a", "a", "b", "c"]}, "camera names must be non-empty and distinct"),

@@ -61,13 +61,14 @@ def anipose_trials(pose_dir: Path, cam_regex: str) -> dict[str, dict[str, Path]]
 
 def import_anipose(project: str | Path, fps: float, out: str | Path | None, calibration: str | Path | None = None,
                    threshold: float | None = None, trial: str | None = None,
-                   cam_regex: str | None = None) -> Session:
+                   cam_regex: str | None = None, units: str | None = None) -> Session:
     """Import one trial of an Anipose session folder (or of a pose-2d folder) into a session.
 
     project: the session folder holding pose-2d/ (and calibration/calibration.toml), or the pose-2d
         folder itself. calibration: calibration.toml; None = <session>/calibration/calibration.toml.
     fps: frame rate [Hz]. threshold: minimum likelihood kept (None = config or 0.8).
     trial: which trial when pose-2d holds several. cam_regex: None = config or ``-cam([A-Z])$``.
+    units: the calibration's translation units (Anipose calibrates in the board's units, often mm).
     """
     folder = Path(project)
     if not folder.is_dir():
@@ -95,4 +96,4 @@ def import_anipose(project: str | Path, fps: float, out: str | Path | None, cali
             raise InputError(f"{calibration}: file not found (Anipose's calibration; pass calibration=)")
     cams = trials[trial]
     return import_deeplabcut(list(cams.values()), calibration, fps, out, camera_names=list(cams),
-                             threshold=threshold, name=trial or session_dir.name)
+                             threshold=threshold, name=trial or session_dir.name, units=units)

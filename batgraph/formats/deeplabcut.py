@@ -142,7 +142,7 @@ def read_deeplabcut(path: str | Path, individual: str | None = None,
 
 def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: float, out: str | Path | None,
                       camera_names: list[str] | None = None, threshold: float = 0.6,
-                      individual: str | None = None, name: str | None = None) -> Session:
+                      individual: str | None = None, name: str | None = None, units: str | None = None) -> Session:
     """Import one DeepLabCut 2D file per camera into a session (written to ``out`` unless None).
 
     files: one .h5/.csv per camera. calibration: aniposelib calibration.toml.
@@ -150,10 +150,10 @@ def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: flo
         (rule in :mod:`batgraph.formats.keypoints2d`).
     fps: frame rate [Hz]. threshold: minimum likelihood kept (DeepLabCut's pcutoff is 0.6).
     individual: for multi-animal files, which individual to import. name: session name (default:
-        the ``out`` folder's name).
+        the ``out`` folder's name). units: the calibration's translation units (see keypoints2d.load_rig).
     """
     fps = check_fps(fps)
-    calib, rig = load_rig(calibration)
+    calib, rig = load_rig(calibration, units)
     paths = [Path(f) for f in files]
     for p in paths:
         if not p.is_file():

@@ -10,16 +10,12 @@ DLTdv's files (Hedrick lab; Argus writes the same layout):
   pixel convention of the xypts file.
 * ``*xyzpts.csv``: ``pt{p}_X, pt{p}_Y, pt{p}_Z`` per frame; ``*xyzres.csv``: ``pt{p}_dltres``.
 
-Pixel conventions (OpenCV: origin at the centre of the top-left pixel, v down):
+Conventions (pixel origin, handedness, units) are read from the coefficients, not from a version
+number: every DLTdv version (DLTdv8 included), Argus and easyWand store pixels with the origin at the
+lower left, y up, 1-based, and a DLT world may be mirrored or in millimetres. The rules and the
+arithmetic are in :mod:`batgraph.geometry.dlt`; :func:`resolve_conventions` applies them to a trial.
 
-* DLTdv8: origin upper-left, pixel centres 1-based: ``u8 = u_cv + 1, v8 = v_cv + 1``.
-* DLTdv7 and earlier: origin lower-left, y up: ``u7 = u_cv + 1, v7 = H - v_cv`` (H = image height),
-  so importing them needs the image size. (Argus is documented as writing DLTdv-compatible files; which
-  origin a given Argus file uses is not verified here: pick the version whose origin matches.)
-
-:func:`pixel_transform` is the one place the conventions are written down; pixels and DLT
-coefficients are both converted through it. This module reads and writes files and builds a session;
-it does not triangulate (see :mod:`batgraph.triangulate`) and ignores ``*offsets.csv`` (camera frame
+This module reads and writes files and builds a session; it ignores ``*offsets.csv`` (camera frame
 offsets: apply them before importing) and DLTdv8's "sparse" xypts layout.
 """
 
@@ -35,9 +31,9 @@ import pandas as pd
 from .. import atomic
 from ..camera import Camera, Rig
 from ..errors import InputError
+from ..geometry import dlt
 from ..session import Session, read_session, write_session
 
-VERSIONS = (5, 6, 7, 8)  # 5-7 share the lower-left origin; 8 is upper-left
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
 _XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
 _XYZPTS = (re.compile(r"^pt(\d+)_([XYZ])$", re.IGNORECASE), "pt{p}_X / pt{p}_Y / pt{p}_Z")
@@ -45,54 +41,28 @@ _XYZRES = (re.compile(r"^pt(\d+)_(dltres)$", re.IGNORECASE), "pt{p}_dltres")
 
 
 # ----------------------------------------------------------------------------------------------
-# pixel conventions
+# pixel conventions (the arithmetic is batgraph.geometry.dlt's)
 # ----------------------------------------------------------------------------------------------
-def pixel_transform(version: int, height_px: float | None = None) -> np.ndarray:
-    """Affine map A, shape (3, 3), from OpenCV homogeneous pixels to DLTdv ``version`` pixels.
-
-    ``[u_dltdv, v_dltdv, 1] = A @ [u_cv, v_cv, 1]``; a DLT matrix converts as ``P_dltdv ~ A @ P_cv``.
-    height_px: image height H [px], needed for versions <= 7 (the y axis flips about it).
-    """
-    if version not in VERSIONS:
-        raise ValueError(f"DLTdv version must be one of {VERSIONS}, got {version!r}")
-    if version >= 8:
-        return np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 1]])
-    if height_px is None:
-        raise ValueError(f"DLTdv{version} pixels have a lower-left origin: the image height is needed")
-    return np.array([[1.0, 0, 1], [0, -1, float(height_px)], [0, 0, 1]])
+def to_opencv_px(uv_px: np.ndarray, origin: str, height_px: float | None = None) -> np.ndarray:
+    """File pixels (..., 2) with ``origin`` ("lower-left" / "upper-left") -> OpenCV pixels; NaN stays NaN."""
+    return dlt.apply_affine(np.linalg.inv(dlt.pixel_affine(origin, height_px)), uv_px)
 
 
-def _apply_affine(A: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
-    uv = np.asarray(uv_px, dtype=float)
-    return uv @ A[:2, :2].T + A[:2, 2]
+def from_opencv_px(uv_px: np.ndarray, origin: str, height_px: float | None = None) -> np.ndarray:
+    """OpenCV pixels (..., 2) -> file pixels with ``origin``; NaN stays NaN."""
+    return dlt.apply_affine(dlt.pixel_affine(origin, height_px), uv_px)
 
 
-def to_opencv_px(uv_px: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
-    """DLTdv pixels (..., 2) -> OpenCV pixels (..., 2); NaN stays NaN."""
-    return _apply_affine(np.linalg.inv(pixel_transform(version, height_px)), uv_px)
+def coefs_to_opencv(coefs: np.ndarray, origin: str, height_px: float | None = None) -> np.ndarray:
+    """DLT coefficients (n_cams, 11) for ``origin`` pixels -> the same cameras' coefficients in OpenCV pixels."""
+    A = np.linalg.inv(dlt.pixel_affine(origin, height_px))
+    return dlt.dlt_coefs(dlt.transform_dlt(dlt.dlt_matrix(coefs), pixel_from=A)).reshape(-1, 11)
 
 
-def from_opencv_px(uv_px: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
-    """OpenCV pixels (..., 2) -> DLTdv pixels (..., 2); NaN stays NaN."""
-    return _apply_affine(pixel_transform(version, height_px), uv_px)
-
-
-def _convert_coefs(coefs: np.ndarray, A: np.ndarray) -> np.ndarray:
-    L = np.asarray(coefs, dtype=float).reshape(-1, 11)
-    P = np.concatenate([L, np.ones((len(L), 1))], axis=1).reshape(-1, 3, 4)
-    P = A @ P
-    # A's last row is (0, 0, 1), so P[2, 3] stays 1; renormalise anyway so any A is safe
-    return (P / P[:, 2:3, 3:4]).reshape(-1, 12)[:, :11]
-
-
-def coefs_to_opencv(coefs: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
-    """DLT coefficients (n_cams, 11) in DLTdv pixels -> the same cameras' coefficients in OpenCV pixels."""
-    return _convert_coefs(coefs, np.linalg.inv(pixel_transform(version, height_px)))
-
-
-def coefs_from_opencv(coefs: np.ndarray, version: int, height_px: float | None = None) -> np.ndarray:
-    """DLT coefficients (n_cams, 11) in OpenCV pixels -> DLTdv ``version`` pixels."""
-    return _convert_coefs(coefs, pixel_transform(version, height_px))
+def coefs_from_opencv(coefs: np.ndarray, origin: str, height_px: float | None = None) -> np.ndarray:
+    """DLT coefficients (n_cams, 11) in OpenCV pixels -> ``origin`` pixels."""
+    A = dlt.pixel_affine(origin, height_px)
+    return dlt.dlt_coefs(dlt.transform_dlt(dlt.dlt_matrix(coefs), pixel_from=A)).reshape(-1, 11)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,25 +275,30 @@ def write_xyzres(path: str | Path, table: pd.DataFrame, n_points: int | None = N
     _write_wide(path, [f"pt{p}_dltres" for p in range(1, P + 1)], res.reshape(F, -1), "%.6f")
 
 
-def rig_to_dlt_coefs(rig: Rig, version: int = 8, image_size: tuple[int, int] | None = None) -> np.ndarray:
-    """DLT coefficients (n_cams, 11) of a rig's pinholes in DLTdv ``version`` pixels (distortion ignored).
+def rig_to_dlt_coefs(rig: Rig, origin: str = "lower-left", image_size: tuple[int, int] | None = None,
+                     units: str = "m") -> np.ndarray:
+    """DLT coefficients (n_cams, 11) of a rig's pinholes (distortion ignored) in a file's conventions.
 
-    image_size: (W, H) [px] for the y flip of versions <= 7; None uses each camera's own height.
+    origin: the file's pixel origin ("lower-left", DLTdv's, or "upper-left"). image_size: (W, H) [px] for
+    the lower-left y flip; None uses each camera's own height. units: the file's world units ("m", "cm",
+    "mm"). The world is the user's frame (``rig.world_mirror`` applied), as the rig's session came in.
     """
+    T = np.linalg.inv(dlt.world_scale_mirror(dlt.UNITS_M[units], rig.world_mirror))  # X_int = T @ X_file
     out = []
     for cam in rig:
         h = image_size[1] if image_size is not None else cam.size_wh[1]
-        out.append(coefs_from_opencv(cam.to_dlt(), version, h)[0])
+        P = dlt.transform_dlt(dlt.dlt_matrix(cam.to_dlt()), pixel_from=dlt.pixel_affine(origin, h), world_to=T)
+        out.append(dlt.dlt_coefs(P))
     return np.array(out).reshape(-1, 11)
 
 
-def write_dlt_coefs(path: str | Path, rig: Rig, version: int = 8,
-                    image_size: tuple[int, int] | None = None) -> None:
+def write_dlt_coefs(path: str | Path, rig: Rig, origin: str = "lower-left",
+                    image_size: tuple[int, int] | None = None, units: str = "m") -> None:
     """Write a DLTdv ``*dltCoefs.csv`` (11 rows x one column per camera, no header) for ``rig``.
 
     Distortion is not representable in a DLT and is ignored; see :func:`rig_to_dlt_coefs`.
     """
-    L = rig_to_dlt_coefs(rig, version, image_size)
+    L = rig_to_dlt_coefs(rig, origin, image_size, units)
     # %.17g: every float64 round-trips exactly, so Camera -> file -> Camera loses nothing
     text = "".join(",".join(f"{x:.17g}" for x in row) + "\n" for row in L.T)
     atomic.write_text(path, text)
@@ -341,51 +316,103 @@ def _names(given, n: int, default: str, what: str, where: str) -> list[str]:
     return names
 
 
-def infer_image_size(K: np.ndarray, uv_cv_px: np.ndarray) -> tuple[int, int]:
+def infer_image_size(P_file: np.ndarray, uv_file_px: np.ndarray) -> tuple[int, int]:
     """Image size (W, H) [px] when none is given: the principal point taken as the image centre.
 
-    ``W = round(2 cx + 1)`` (OpenCV's centre of a W-wide image is (W - 1) / 2), enlarged so that every
-    digitised pixel ``uv_cv_px`` (n, 2) lies inside; the same for H with cy. Only batgraph's
-    "outside the image" warnings and plots depend on it: a DLT has no distortion to centre.
+    P_file: one camera's DLT matrix (3, 4) and uv_file_px (n, 2) its clicks, both in the file's own
+    1-based pixels, whatever their origin: the centre of a W x H image is ((W + 1) / 2, (H + 1) / 2) in
+    either, so ``W = round(2 cx - 1)``, enlarged so that every click lies inside (``u <= W + 0.5``).
+    Only batgraph's "outside the image" checks and plots depend on it (a DLT has no distortion to centre).
     """
-    size = np.round(2 * K[:2, 2] + 1)
-    if len(uv_cv_px):
-        size = np.maximum(size, np.ceil(np.nanmax(uv_cv_px, axis=0) + 0.5))
+    size = np.round(2 * dlt.principal_point(P_file) - 1)
+    if len(uv_file_px):
+        size = np.maximum(size, np.ceil(np.nanmax(uv_file_px, axis=0) - 0.5))
     w, h = np.maximum(size, 1).astype(int)
     return int(w), int(h)
 
 
-def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Path, *, version: int = 8,
-                 image_size: tuple[int, int] | None = None, xyzpts: str | Path | None = None,
-                 camera_names: list[str] | None = None, marker_names: list[str] | None = None,
-                 pixel_sigma_px: float = 1.0) -> Session:
-    """Convert a DLTdv trial into a session folder ``out`` and return the session as read back.
+def resolve_conventions(P_file: np.ndarray, uv_file_px: np.ndarray, pixel_origin: str | None, *,
+                        xyz_file: np.ndarray | None = None, camera_names: list[str], coefs_path: Path,
+                        ) -> tuple[str, np.ndarray, str]:
+    """The pixel origin and world mirror of a DLT trial, from its coefficients and clicks.
 
-    xypts, coefs: DLTdv ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention, ``version``).
+    P_file: (C, 3, 4) as in the file; uv_file_px: (C, N, 2) clicks, NaN where missing; xyz_file:
+    optional (N, 3) 3D in the file's world (DLTdv's xyzpts) for points no two cameras see.
+    pixel_origin: None to detect, or "lower-left" / "upper-left" as the user says.
+    Each camera votes with :func:`batgraph.geometry.dlt.orientation_sign` on the points it sees
+    (triangulated by the file's own linear DLT); one rig must agree. Detected: -1 -> lower-left (DLTdv's
+    convention, right-handed world), +1 -> upper-left (or lower-left with a mirrored world: the same 3D).
+    A given origin that disagrees with the sign means a mirrored world: z is negated internally.
+    Returns (origin, world_mirror (3,), note). Raises InputError naming the camera that disagrees.
+    """
+    xyz = dlt.triangulate_linear(P_file, uv_file_px)
+    if xyz_file is not None:
+        xyz = np.where(np.isfinite(xyz), xyz, xyz_file)
+    seen = np.isfinite(uv_file_px[..., 0])
+    frac = dlt.orientation_sign(P_file, xyz, seen)
+    known = np.isfinite(frac)
+    if not known.any():
+        raise InputError(f"{coefs_path}: no point is digitised in two cameras, so the pixel origin cannot be "
+                         f"checked against the coefficients; digitise some points in two cameras")
+    votes = np.where(frac[known] > 0.5, 1, -1)
+    if votes.sum() == 0:
+        raise InputError(f"{coefs_path}: half of the cameras put the points behind them: the coefficient "
+                         f"columns mix pixel origins or handedness (cameras {', '.join(camera_names)})")
+    sign = 1 if votes.sum() > 0 else -1
+    for c in np.flatnonzero(known):
+        if (frac[c] > 0.5) != (sign > 0):
+            behind = 100 * (frac[c] if sign < 0 else 1 - frac[c])
+            raise InputError(f"{coefs_path} column {c + 1} (camera {camera_names[c]}): {behind:.0f} % of the points "
+                             f"it sees lie behind it under the pixel origin and handedness the other cameras share: "
+                             f"its coefficients come from another convention (pixel origin? mirrored world?)")
+    if pixel_origin is None:
+        origin = "upper-left" if sign > 0 else "lower-left"
+        note = ("detected from the coefficients" + (" (upper-left pixels with a right-handed world, or lower-left "
+                "with a mirrored one: the coefficients cannot tell them apart and both give the same 3D)"
+                if sign > 0 else ""))
+        return origin, np.ones(3), note
+    mirrored = (pixel_origin == "upper-left") != (sign > 0)
+    note = "given" + (" (the coefficients then describe a mirrored world: z is negated internally, results come "
+                      "back in the file's frame)" if mirrored else "")
+    return pixel_origin, np.array([1.0, 1.0, -1.0 if mirrored else 1.0]), note
+
+
+def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Path, *,
+                 pixel_origin: str | None = None, units: str = "m", image_size: tuple[int, int] | None = None,
+                 xyzpts: str | Path | None = None, camera_names: list[str] | None = None,
+                 marker_names: list[str] | None = None, pixel_sigma_px: float | None = None) -> Session:
+    """Convert a DLTdv / Argus / easyWand trial into a session folder ``out`` and return it as read back.
+
+    xypts, coefs: ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention).
     fps: camera frame rate [Hz]; frame k (row k of xypts) is at time k / fps.
-    version: 8 (origin upper-left) or 5-7 (origin lower-left; needs ``image_size``).
-    image_size: (W, H) [px] of every camera; None (DLTdv8 only) infers it per camera with
-        :func:`infer_image_size`.
-    xyzpts: optional DLTdv ``*xyzpts.csv``, kept as the session's reference (reference_xyz.csv).
+    pixel_origin: "lower-left" (DLTdv's), "upper-left", or None to detect it from the coefficients
+        (:func:`resolve_conventions`); a given origin that the coefficients contradict means a mirrored
+        world, which the session keeps as ``[metadata] world_mirror`` so results come back in the
+        file's frame.
+    units: the world units of the coefficients and xyzpts ("m", "cm", "mm"); the session is in metres.
+    image_size: (W, H) [px] of every camera; None infers it per camera (:func:`infer_image_size`) and the
+        session says so (reconstruct warns).
+    xyzpts: optional ``*xyzpts.csv``, kept as the session's reference (reference_xyz.csv, metres).
     camera_names, marker_names: default cam1.. (coefficient columns) and pt1.. (xypts points).
-    Pixels and coefficients are converted to OpenCV's convention and each camera becomes K, R, t with
-    zero distortion (:meth:`Camera.from_dlt`). Raises InputError naming the file for bad input.
+    pixel_sigma_px: click noise [px]; None (default) lets reconstruct estimate it per camera.
+    The imported pinholes reproduce each camera's own DLT projection exactly, with the points in front.
+    Raises InputError naming the file (and camera) for bad input.
     """
     xypts, coefs, out = Path(xypts), Path(coefs), Path(out)
-    if version not in VERSIONS:
-        raise InputError(f"DLTdv version must be one of {', '.join(map(str, VERSIONS))}, got {version!r}")
+    if pixel_origin is not None and pixel_origin not in dlt.PIXEL_ORIGINS:
+        raise InputError(f"pixel origin must be one of {', '.join(dlt.PIXEL_ORIGINS)}, got {pixel_origin!r}")
+    if units not in dlt.UNITS_M:
+        raise InputError(f"units must be one of {', '.join(dlt.UNITS_M)}, got {units!r}")
     if not (isinstance(fps, int | float) and math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a number > 0, got {fps!r}")
-    if not (isinstance(pixel_sigma_px, int | float) and math.isfinite(pixel_sigma_px) and pixel_sigma_px > 0):
+    if pixel_sigma_px is not None and not (isinstance(pixel_sigma_px, int | float) and math.isfinite(pixel_sigma_px)
+                                           and pixel_sigma_px > 0):
         raise InputError(f"pixel_sigma_px must be a number > 0, got {pixel_sigma_px!r}")
     if image_size is not None:
         size = np.asarray(image_size, dtype=object)
         if size.shape != (2,) or not all(isinstance(s, int | float) and s > 0 and s == int(s) for s in size):
             raise InputError(f"image size must be two positive integers W H, got {image_size!r}")
         image_size = (int(size[0]), int(size[1]))
-    elif version <= 7:
-        raise InputError(f"{xypts}: DLTdv{version} files have their origin at the lower-left; "
-                         f"give the image size (--image-size W H) to convert them")
     L = read_dlt_coefs(coefs)
     clicks = read_xypts(xypts)
     if clicks.attrs["n_cams"] != len(L):
@@ -395,34 +422,54 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
     markers = _names(marker_names, clicks.attrs["n_points"], "pt{}", "point", str(xypts))
     if len(clicks) == 0:
         raise InputError(f"{xypts}: no digitised points (every cell is NaN)")
-
-    height = image_size[1] if image_size is not None else None
-    uv_cv = to_opencv_px(clicks[["u", "v"]].to_numpy(), version, height)
-    L_cv = coefs_to_opencv(L, version, height)
-    ci = clicks["camera_index"].to_numpy()
-    rig = Rig([Camera.from_dlt(name, L_cv[c], image_size or (1, 1)) for c, name in enumerate(cams)])
-    if image_size is None:
-        for c, cam in enumerate(rig):
-            cam.size_wh = infer_image_size(cam.K, uv_cv[ci == c])
-    observations = pd.DataFrame({
-        "frame": clicks["frame"].to_numpy(), "camera": np.array(cams)[ci],
-        "marker": np.array(markers)[clicks["point_index"].to_numpy()],
-        "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
-    })
-    reference = None
+    ref = None
     if xyzpts is not None:
         ref = read_xyzpts(xyzpts)
         if ref.attrs["n_points"] != len(markers):
-            raise InputError(f"{xyzpts} line 1: {ref.attrs['n_points']} point(s) "
-                             f"but {xypts} has {len(markers)}")
+            raise InputError(f"{xyzpts} line 1: {ref.attrs['n_points']} point(s) but {xypts} has {len(markers)}")
+
+    # dense (C, N) layout of the clicks, N = (frame, point) pairs, for the convention check
+    ci, fi, pi = (clicks[k].to_numpy() for k in ("camera_index", "frame", "point_index"))
+    P_count = clicks.attrs["n_points"]
+    n = fi * P_count + pi
+    uv_file = np.full((len(L), clicks.attrs["n_frames"] * P_count, 2), np.nan)
+    uv_file[ci, n] = clicks[["u", "v"]].to_numpy()
+    xyz_file = None
+    if ref is not None:
+        xyz_file = np.full((uv_file.shape[1], 3), np.nan)
+        k = ref["frame"].to_numpy() * P_count + ref["point_index"].to_numpy()
+        inside = k < len(xyz_file)
+        xyz_file[k[inside]] = ref[["x", "y", "z"]].to_numpy()[inside]
+    P_file = dlt.dlt_matrix(L)
+    origin, mirror, note = resolve_conventions(P_file, uv_file, pixel_origin, xyz_file=xyz_file,
+                                               camera_names=cams, coefs_path=coefs)
+    sizes = ([image_size] * len(L) if image_size is not None
+             else [infer_image_size(P_file[c], uv_file[c][np.isfinite(uv_file[c, :, 0])]) for c in range(len(L))])
+    T = dlt.world_scale_mirror(dlt.UNITS_M[units], mirror)  # X_file = T @ X_internal
+    cameras, uv_cv = [], np.empty((len(clicks), 2))
+    for c, name in enumerate(cams):
+        A_inv = np.linalg.inv(dlt.pixel_affine(origin, sizes[c][1]))
+        P_cv = dlt.transform_dlt(P_file[c], pixel_from=A_inv, world_to=T)
+        cameras.append(Camera.from_dlt(name, dlt.dlt_coefs(P_cv), sizes[c]))
+        uv_cv[ci == c] = dlt.apply_affine(A_inv, clicks.loc[ci == c, ["u", "v"]].to_numpy())
+    rig = Rig(cameras, world_mirror=mirror)
+    observations = pd.DataFrame({
+        "frame": fi, "camera": np.array(cams)[ci], "marker": np.array(markers)[pi],
+        "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
+    })
+    reference = None
+    if ref is not None:  # the user's frame, in metres
         reference = ref.assign(marker=np.array(markers)[ref["point_index"].to_numpy()])
+        reference[["x", "y", "z"]] = reference[["x", "y", "z"]].to_numpy() * dlt.UNITS_M[units]
         reference = reference[["frame", "marker", "x", "y", "z"]]
-    provenance = {"format": f"dltdv{version}", "xypts": xypts.name, "dlt_coefs": coefs.name,
-                  "image_size": "given" if image_size is not None else "inferred from principal point"}
+    provenance = {"format": "dltdv", "xypts": xypts.name, "dlt_coefs": coefs.name, "pixel_origin": origin,
+                  "pixel_origin_source": "detected" if pixel_origin is None else "given",
+                  "pixel_origin_note": note, "world": "mirrored" if rig.mirrored else "right-handed",
+                  "units": units, "image_size": "given" if image_size is not None else "inferred"}
     if xyzpts is not None:
         provenance["xyzpts"] = Path(xyzpts).name
     session = Session(name=out.name, fps=float(fps), rig=rig, observations=observations,
-                      pixel_sigma_px=float(pixel_sigma_px), marker_names=markers, reference=reference,
+                      pixel_sigma_px=pixel_sigma_px, marker_names=markers, reference=reference,
                       extra_toml={"import": provenance})
     write_session(session, out)
     return read_session(out)

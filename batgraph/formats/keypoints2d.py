@@ -21,6 +21,7 @@ import pandas as pd
 
 from ..camera import Rig
 from ..errors import InputError
+from ..geometry.dlt import UNITS_M
 from ..session import Session, read_calibration, write_session
 
 
@@ -80,10 +81,15 @@ def check_fps(fps: float) -> float:
     return x
 
 
-def load_rig(calibration: str | Path) -> tuple[Path, Rig]:
-    """Read an aniposelib-format calibration.toml (Anipose's, Pose2Sim's Calib_*.toml)."""
+def load_rig(calibration: str | Path, units: str | None = None) -> tuple[Path, Rig]:
+    """Read an aniposelib-format calibration.toml (Anipose's, Pose2Sim's Calib_*.toml), in metres.
+
+    units: the calibration's translation units ("m", "cm", "mm"); None = its ``[metadata] units`` or metres.
+    """
     path = Path(calibration)
-    return path, read_calibration(path)
+    if units is not None and units not in UNITS_M:
+        raise InputError(f"units must be one of {', '.join(UNITS_M)}, got {units!r}")
+    return path, read_calibration(path, units)
 
 
 def observations_from_arrays(camera: str, frames: np.ndarray, markers: list[str], uv_px: np.ndarray,
@@ -106,13 +112,14 @@ def observations_from_arrays(camera: str, frames: np.ndarray, markers: list[str]
 
 def make_session(name: str, fps: float, rig: Rig, tables: list[pd.DataFrame], markers: list[str],
                  out: str | Path | None, source: str, reference: pd.DataFrame | None = None,
-                 pixel_sigma_px: float = 1.0) -> Session:
+                 pixel_sigma_px: float | None = None) -> Session:
     """Assemble and (if ``out``) write a session from per-camera observation tables.
 
     reference: another tool's 3D (frame, marker, x, y, z [m]) to keep as reference_xyz.csv.
 
     markers: the source's keypoint order (becomes session.toml [markers] names).
     source: what was imported (for the error message when nothing is left).
+    pixel_sigma_px: detection noise [px]; None (default): reconstruct measures it per camera.
     """
     obs = pd.concat(tables, ignore_index=True)
     if len(obs) == 0:

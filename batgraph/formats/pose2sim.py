@@ -118,7 +118,8 @@ def read_openpose_folder(folder: str | Path, names: list[str], person: int = 0,
 def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str | Path, fps: float,
                     out: str | Path | None, keypoints: str | list[str] = "BODY_25B", threshold: float = 0.3,
                     camera_names: list[str] | None = None, person: int = 0, name: str | None = None,
-                    reference_trc: str | Path | None = None, pixel_sigma_px: float = 5.0) -> Session:
+                    reference_trc: str | Path | None = None, pixel_sigma_px: float | None = None,
+                    units: str | None = None) -> Session:
     """Import per-camera folders of OpenPose JSON (Pose2Sim's pose/ or pose-associated/) into a session.
 
     json_dirs: one folder per camera, or one folder whose sub-folders (sorted) are the cameras.
@@ -130,11 +131,12 @@ def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str |
     reference_trc: Pose2Sim's own 3D (pose-3d/*.trc), kept as the session's reference_xyz.csv so
         reports compare against it. Pose2Sim writes Y-up TRCs (its zup2yup); batgraph's world is the
         calibration's (Z-up): world = trc[..., [2, 0, 1]]. TRC Frame# n is JSON frame n - 1.
-    pixel_sigma_px: keypoint noise [px]; markerless detectors are far noisier than markers (5 px default).
+    pixel_sigma_px: keypoint noise [px]; None (default): reconstruct measures it per camera.
+    units: the calibration's translation units (see keypoints2d.load_rig).
     """
     fps = check_fps(fps)
     names = keypoint_names(keypoints)
-    calib, rig = load_rig(calibration)
+    calib, rig = load_rig(calibration, units)
     if isinstance(json_dirs, str | Path):
         root = Path(json_dirs)
         if not root.is_dir():
