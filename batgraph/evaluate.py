@@ -31,7 +31,11 @@ def status_of(n_views: np.ndarray) -> np.ndarray:
 
 
 def trajectories_table(session: Session, dense: DenseObservations, est: Estimate) -> pd.DataFrame:
-    """The contract's trajectories table for one method: every frame x marker, NaN where no estimate."""
+    """The contract's trajectories table for one method: every frame x marker, NaN where no estimate.
+
+    Positions and covariances are in the user's frame (the rig's world with ``world_mirror`` applied), as
+    truth.csv and reference_xyz.csv are.
+    """
     F, M = len(dense.frames), len(dense.markers)
     n_views = dense.n_views
     df = pd.DataFrame({
@@ -40,9 +44,8 @@ def trajectories_table(session: Session, dense: DenseObservations, est: Estimate
         "time_s": np.repeat(dense.frames / session.fps, M),
         "marker": np.tile(np.asarray(dense.markers, dtype=object), F),
     })
-    xyz = est.xyz_m.reshape(F * M, 3)
+    xyz, cov = session.rig.to_user(est.xyz_m.reshape(F * M, 3), est.cov_m2.reshape(F * M, 3, 3))
     df["x"], df["y"], df["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    cov = est.cov_m2.reshape(F * M, 3, 3)
     for (i, j), name in zip(_COV_IDX, TRAJ_COLUMNS[7:13], strict=True):
         df[name] = cov[:, i, j]
     df["n_views"] = n_views.reshape(-1)

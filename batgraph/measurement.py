@@ -32,9 +32,13 @@ class IdealObservations:
         return np.isfinite(self.uv_px[..., 0])
 
 
-def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float) -> IdealObservations:
-    """Undistort every observation and map its noise (see module docstring)."""
+def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float | np.ndarray) -> IdealObservations:
+    """Undistort every observation and map its noise (see module docstring).
+
+    pixel_sigma_px: raw-pixel noise std [px], one value or one per camera (C,).
+    """
     C = len(rig)
+    sigma = np.broadcast_to(np.asarray(pixel_sigma_px, dtype=float), (C,))
     uv = np.full_like(dense.uv_px, np.nan)
     cov = np.full(dense.uv_px.shape + (2,), np.nan)
     seen = dense.seen
@@ -43,6 +47,6 @@ def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float
         raw = dense.uv_px[c][s]
         cam = rig[c]
         uv[c][s], J = cam.undistort_with_jacobian(raw)
-        var = pixel_sigma_px**2 / dense.weight[c][s]
+        var = sigma[c] ** 2 / dense.weight[c][s]
         cov[c][s] = var[:, None, None] * (J @ np.swapaxes(J, -1, -2))
     return IdealObservations(uv, cov)

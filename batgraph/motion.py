@@ -14,7 +14,10 @@ CHI2_3DOF_95 = 7.814727903251178  # 95 % quantile of chi-square, 3 DOF (the pape
 
 
 def max_motion_per_frame_m(motion: MotionConfig, fps: float) -> float:
-    """Paper eq. 4: d_m = sqrt((v_f / f_c)^2 + (alpha_f l_w f_f / f_c)^2) [m]."""
+    """Paper eq. 4: d_m = sqrt((v_f / f_c)^2 + (alpha_f l_w f_f / f_c)^2) [m]. Needs the physics."""
+    if not motion.has_physics:
+        raise ValueError("[motion] has no physics (flight_speed_mps, span_m, flap_hz, flap_angle_deg) and no sigma_m: "
+                         "reconstruct measures sigma_m from the triangulated track (noise_from_track)")
     alpha = math.radians(motion.flap_angle_deg)
     return math.hypot(motion.flight_speed_mps / fps, alpha * motion.span_m * motion.flap_hz / fps)
 
@@ -40,3 +43,54 @@ def constant_velocity_Q(accel_psd_m2_s3: float, dt_s: float) -> np.ndarray:
 def constant_velocity_F(dt_s: float) -> np.ndarray:
     """Transition matrix of the constant-velocity model, shape (6, 6)."""
     return np.block([[np.eye(3), dt_s * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+
+
+TRACK_LAGS = (1, 2, 4, 8, 16)  # frames: second differences at the shortest lag that clears the noise
+TRACK_SNR = 4.0
+TRACK_MARKER_PERCENTILE = 90  # the filter's one q must cover the fast markers (the paper's physics: the wing tip)
+
+
+def noise_from_track(xyz_m: np.ndarray, cov_m2: np.ndarray, fps: float) -> tuple[float, float]:
+    """(random-walk sigma_m [m], constant-velocity q [m^2/s^3]) measured from a triangulated track.
+
+    For sessions whose session.toml states no physics (imported humans, mice, insects): the paper's
+    eq. 4-5 take d_m as the largest motion per frame and sigma_m = d_m / sqrt(7.8147); here d_m is the
+    95th percentile of the observed per-frame 3D displacements. q follows the physics rule of
+    batgraph.graph.noise.causal_accel_psd, q = a_rms^2 dt / 3 (a sinusoid's mean square is half its
+    peak squared), with a_rms^2 each marker's mean square 3D acceleration from second differences
+    ``x[k+L] - 2 x[k] + x[k-L] ~ a (L dt)^2`` at the shortest lag L in TRACK_LAGS whose mean square is
+    TRACK_SNR times the triangulation noise ``tr(S[k+L]) + 4 tr(S[k]) + tr(S[k-L])`` (subtracted), and
+    the 90th percentile over markers (the physics rule is the wing tip's); the largest 0.5 % of second
+    differences are dropped (mislabels). Floored at 0.01 (the smoother's search floor).
+
+    xyz_m: (F, M, 3) [m], NaN where not triangulated; cov_m2: (F, M, 3, 3) [m^2]. fps [Hz].
+    Raises ValueError when fewer than 10 consecutive pairs are triangulated.
+    """
+    dt = 1.0 / fps
+    step = np.linalg.norm(np.diff(xyz_m, axis=0), axis=-1)
+    step = step[np.isfinite(step)]
+    if len(step) < 10:
+        raise ValueError("too few consecutive triangulated frames to measure the motion noise")
+    sigma_m = float(np.percentile(step, 95)) / math.sqrt(CHI2_3DOF_95)
+    tr = np.trace(cov_m2, axis1=-2, axis2=-1)
+    a2 = 0.0
+    for L in TRACK_LAGS:
+        if len(xyz_m) <= 2 * L:
+            break
+        d2 = xyz_m[2 * L:] - 2 * xyz_m[L:-L] + xyz_m[:-2 * L]
+        e = np.sum(d2 * d2, axis=-1)  # (F - 2L, M)
+        noise = tr[2 * L:] + 4 * tr[L:-L] + tr[:-2 * L]
+        ok = np.isfinite(e) & np.isfinite(noise)
+        if ok.sum() < 10:
+            break
+        e, noise = np.where(ok, e, np.nan), np.where(ok, noise, np.nan)
+        cut = np.nanpercentile(e, 99.5)
+        e, noise = np.where(e <= cut, e, np.nan), np.where(e <= cut, noise, np.nan)
+        with np.errstate(invalid="ignore"):
+            per_marker = (np.nanmean(e, axis=0) - np.nanmean(noise, axis=0)) / (L * dt) ** 4  # (M,)
+        enough = np.sum(np.isfinite(e), axis=0) >= 10
+        if enough.any():
+            a2 = max(float(np.percentile(per_marker[enough], TRACK_MARKER_PERCENTILE)), 0.0)
+        if np.nanmean(e) >= TRACK_SNR * np.nanmean(noise):
+            break
+    return max(sigma_m, 1e-6), max(a2 * dt / 3.0, 0.01)

@@ -6,6 +6,7 @@ only parses arguments and calls :func:`reconstruct` / :func:`reconstruct_many`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -17,7 +18,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import atomic, evaluate
+from . import atomic, checks, evaluate
 from .errors import InputError
 from .measurement import ideal_observations
 from .result import Estimate, Options
@@ -110,7 +111,9 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes.
     """
     dense = dense_observations(session)
-    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
+    session = dataclasses.replace(pre.session, warnings=list(session.warnings) + pre.warnings)
+    ideal = ideal_observations(session.rig, dense, pre.sigma_px)
     estimates, trajs, reprojs, per_method = {}, [], [], {}
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
         run = _estimator(name, options.solver)
@@ -126,7 +129,10 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     summary = {
         "session": session.name, "fps": session.fps, "n_cameras": len(session.rig),
         "n_frames": int(len(dense.frames)), "n_markers": len(dense.markers),
-        "n_observations": int(dense.seen.sum()), "pixel_sigma_px": session.pixel_sigma_px,
+        "n_observations": int(dense.seen.sum()),
+        "pixel_sigma_px": dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
+        "pixel_noise": pre.noise, "checks": pre.figures,
+        "world": {"units": "m", "world_mirror": session.world_mirror.tolist()},
         "views": {s: int((evaluate.status_of(dense.n_views) == s).sum()) for s in evaluate.STATUSES},
         "warnings": list(session.warnings), "methods": per_method,
     }
@@ -172,12 +178,15 @@ def write_outputs(result: Result, out_dir: Path, viewer: str = "save", options: 
 
 def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
                 methods: list[str] | None = None, options: Options | None = None,
-                viewer: str = "save", calibration: str | Path | None = None) -> Result:
+                viewer: str = "save", calibration: str | Path | None = None,
+                validate: bool = False, validate_workers: int | None = None) -> Result:
     """The ``reconstruct`` command for one session folder. Raises InputError on bad input.
 
     viewer: "spawn" streams the filter live to a Rerun window (and saves recording.rrd), "save"
     writes recording.rrd, "none" neither. calibration: a calibration.toml to use instead of the
-    session's own (see batgraph.session.read_session).
+    session's own (see batgraph.session.read_session). validate: also run leave-one-camera-out
+    validation (batgraph.validate) of every method: summary.json gets a "validation" section (and the
+    report its table), and validation.csv is written; validate_workers: its processes (None: one per core).
     """
     options = options or Options()
     session = read_session(session_dir, calibration)
@@ -190,7 +199,16 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     else:
         result = run_methods(session, methods, options)
     result.out_dir = out
+    validation = None
+    if validate:
+        from .validate import validate_session
+        validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
+        result.summary["validation"] = validation.to_summary()
     result.files = write_outputs(result, out, viewer, options)
+    if validation is not None:
+        from .validate import CSV_NAME, write_csv
+        write_csv(validation.table, out / CSV_NAME)
+        result.files.append(out / CSV_NAME)
     return result
 
 

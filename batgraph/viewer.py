@@ -397,7 +397,8 @@ def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataF
     frames = np.unique(np.concatenate(frame_sets))
     edges = _edges(session, markers)
     for method, table in trajectories.groupby("method", sort=False):
-        xyz, cov = _dense_results(table, frames, markers)
+        # the table is in the user's frame; the cameras are logged in the rig's (right-handed) world
+        xyz, cov = session.rig.to_user(*_dense_results(table, frames, markers))
         windows = _trail_windows(xyz, trail_frames) if trail_frames > 1 else None
         _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows)
     if reprojection is None or not len(reprojection):

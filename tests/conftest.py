@@ -16,7 +16,7 @@ import pytest
 from batgraph.camera import Camera, Rig
 from batgraph.measurement import ideal_observations
 from batgraph.motion import constant_velocity_F, constant_velocity_Q
-from batgraph.session import MotionConfig, Session, dense_observations, write_session
+from batgraph.session import PAPER_PHYSICS, MotionConfig, Session, dense_observations, write_session
 
 
 def look_at(name: str, centre_world_m, target_world_m, K, size_wh=(640, 480), dist=None,
@@ -96,7 +96,7 @@ def write_tiny_session(folder: Path, n_cams: int = 3, n_frames: int = 6, n_marke
         "x": xyz[..., 0].ravel(), "y": xyz[..., 1].ravel(), "z": xyz[..., 2].ravel(),
     })
     session = Session(name=Path(folder).name, fps=fps, rig=rig, observations=observations_table(rig, xyz, markers),
-                      motion=MotionConfig(model="random_walk"), marker_names=markers,
+                      motion=MotionConfig(model="random_walk", **PAPER_PHYSICS), marker_names=markers,
                       truth=truth if with_truth else None)
     return write_session(session, folder)
 
@@ -132,6 +132,6 @@ def cv_scene(q_per_marker, n_frames: int, seed: int = 0, fps: float = 100.0, v0_
     rig = tiny_rig(4, size_wh=(1280, 720), focal_px=900.0)
     obs = observations_table(rig, truth)
     obs[["u", "v"]] += rng.normal(0, 0.5, (len(obs), 2))
-    session = Session("q", fps, rig, obs, MotionConfig(model="constant_velocity"), pixel_sigma_px=0.5)
+    session = Session("q", fps, rig, obs, MotionConfig(model="constant_velocity", **PAPER_PHYSICS), pixel_sigma_px=0.5)
     dense = dense_observations(session)
     return session, dense, ideal_observations(rig, dense, 0.5), truth

@@ -18,7 +18,7 @@ from batgraph.graph.smoother import posterior_logdet, run_smoother
 from batgraph.measurement import ideal_observations
 from batgraph.motion import constant_velocity_Q
 from batgraph.result import Options
-from batgraph.session import MotionConfig, Session, dense_observations
+from batgraph.session import PAPER_PHYSICS, MotionConfig, Session, dense_observations
 from batgraph.triangulate import triangulate_ideal
 
 FPS = 100.0
@@ -47,7 +47,7 @@ def make_session(n_frames: int = 24, seed: int = 3) -> Session:
     obs[["u", "v"]] += rng.normal(0, 0.7, (len(obs), 2))
     out = obs.index[(obs.marker == "m2") & (obs.camera == "cam3") & obs.frame.isin([7, 15])]
     obs.loc[out, "u"] += 40.0
-    return Session("fast", FPS, rig, obs, MotionConfig(model="random_walk", sigma_m=SIGMA_M,
+    return Session("fast", FPS, rig, obs, MotionConfig(model="random_walk", sigma_m=SIGMA_M, **PAPER_PHYSICS,
                                                       accel_psd_m2_s3=ACCEL_PSD),
                    pixel_sigma_px=0.7, marker_names=markers)
 

@@ -10,7 +10,7 @@ import pandas as pd
 from batgraph.camera import Camera, Rig
 from batgraph.measurement import ideal_observations
 from batgraph.result import Options
-from batgraph.session import DenseObservations, MotionConfig, Session
+from batgraph.session import PAPER_PHYSICS, DenseObservations, MotionConfig, Session
 
 FPS = 120.0
 
@@ -61,7 +61,7 @@ def make_scene(rig: Rig, truth: np.ndarray, noise_px: float, pixel_sigma_px: flo
     c, f, m = np.nonzero(seen)
     obs = pd.DataFrame({"frame": f, "camera": np.array(rig.names)[c], "marker": np.array(markers)[m],
                         "u": uv[c, f, m, 0], "v": uv[c, f, m, 1], "weight": 1.0})
-    session = Session("synthetic", FPS, rig, obs, MotionConfig(model="random_walk"), pixel_sigma_px,
+    session = Session("synthetic", FPS, rig, obs, MotionConfig(model="random_walk", **PAPER_PHYSICS), pixel_sigma_px,
                       marker_names=markers)
     return session, dense, ideal_observations(rig, dense, pixel_sigma_px)
 
@@ -162,7 +162,8 @@ def test_projection_and_jacobian_match_camera_and_finite_differences():
     differences of h over the whole state (step 1e-6 m, truncation ~ h''' d^2 ~ 1e-9 px/m relative):
     measured 7e-8 px/m on entries up to 350 px/m; bound 1e-4 px/m.
     """
-    from batgraph.filters.common import FrameMeasurement, RigArrays, project_ideal, projection_jacobian
+    from batgraph.filters.common import FrameMeasurement, RigArrays
+    from batgraph.geometry.pinhole import point_jacobian, project_ideal
 
     rng = np.random.default_rng(3)
     rig = ring_rig(3)
@@ -171,7 +172,7 @@ def test_projection_and_jacobian_match_camera_and_finite_differences():
     cam = np.repeat(np.arange(3), 5)
     xyz = np.tile(pts, (3, 1))
     uv = project_ideal(arrays.proj[cam], xyz)
-    J = projection_jacobian(arrays.proj[cam], xyz)
+    J = point_jacobian(arrays.proj[cam], xyz)
     for c in range(3):
         assert np.abs(uv[cam == c] - rig[c].project(pts, distort=False)).max() < 1e-9
         assert np.abs(J[cam == c] - rig[c].ideal_jacobian_world(pts)).max() < 1e-9

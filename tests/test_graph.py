@@ -18,7 +18,7 @@ from batgraph.graph.smoother import marginal_covariances, posterior_logdet, run_
 from batgraph.measurement import ideal_observations
 from batgraph.motion import constant_velocity_F, constant_velocity_Q
 from batgraph.result import Options
-from batgraph.session import MotionConfig, Session, dense_observations
+from batgraph.session import PAPER_PHYSICS, MotionConfig, Session, dense_observations
 from batgraph.triangulate import triangulate_ideal
 
 FPS = 100.0
@@ -38,7 +38,8 @@ def make_scene(n_frames=30, n_markers=3, pixel_sigma_px=0.5, seed=0, dist=None, 
         planted[rng.choice(len(obs), int(round(outlier_rate * len(obs))), replace=False)] = True
         n_bad = planted.sum()
         obs.loc[planted, ["u", "v"]] += rng.uniform(20, 40, (n_bad, 2)) * rng.choice([-1, 1], (n_bad, 2))
-    session = Session("g", FPS, rig, obs, MotionConfig(model="random_walk", sigma_m=SIGMA_M, accel_psd_m2_s3=ACCEL_PSD),
+    session = Session("g", FPS, rig, obs, MotionConfig(model="random_walk", sigma_m=SIGMA_M,
+                                                       accel_psd_m2_s3=ACCEL_PSD, **PAPER_PHYSICS),
                       pixel_sigma_px=max(pixel_sigma_px, 1e-4))
     dense = dense_observations(session)
     mask = np.zeros(dense.seen.shape, bool)
@@ -324,5 +325,5 @@ def test_filter_never_sees_the_future():
     np.testing.assert_allclose(part.xyz_m, full.xyz_m[:K], atol=1e-12)
     np.testing.assert_allclose(part.cov_m2, full.cov_m2[:K], atol=1e-15)
     assert full.info["accel_psd_m2_s3"] == ACCEL_PSD  # the session's value, not a data-driven one
-    paper = Session("c", 120.0, session.rig, session.observations)  # default [motion]: the paper's bat
+    paper = Session("c", 120.0, session.rig, session.observations, MotionConfig(**PAPER_PHYSICS))  # the paper's bat
     assert noise.causal_accel_psd(paper) == pytest.approx(8.66, rel=1e-2)

@@ -22,6 +22,7 @@ from functools import cached_property
 import numpy as np
 
 from ..camera import Rig
+from ..geometry import pinhole
 from ..measurement import IdealObservations
 from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
@@ -126,12 +127,8 @@ class _Observations:
         """
         p = np.take(pt, self.cell[rows], axis=1)  # (3, k)
         P = np.take(self.P, self.cam[rows], axis=1)  # (12, k)
-        depth = P[8] * p[0] + P[9] * p[1] + P[10] * p[2] + P[11]
-        front = depth > 0
-        with np.errstate(divide="ignore"):
-            inv_depth = 1.0 / depth
-        u = (P[0] * p[0] + P[1] * p[1] + P[2] * p[2] + P[3]) * inv_depth
-        v = (P[4] * p[0] + P[5] * p[1] + P[6] * p[2] + P[7]) * inv_depth
+        u, v, inv_depth = pinhole.project_rows(P, p)
+        front = (inv_depth > 0) & (inv_depth < np.inf)  # depth > 0 (1 / +0 is +inf: a point on the camera plane)
         e0, e1 = u - self.uv[0, rows], v - self.uv[1, rows]
         if not front.all():
             behind = ~front
@@ -141,8 +138,7 @@ class _Observations:
         r0, r1 = a * e0, b * e0 + c * e1
         if not jacobian:
             return r0, r1, None, None
-        J0 = (P[0:3] - u * P[8:11]) * inv_depth  # d u / d p, (3, k) [px/m]
-        J1 = (P[4:7] - v * P[8:11]) * inv_depth
+        J0, J1 = pinhole.point_jacobian_rows(P, u, v, inv_depth)  # d (u, v) / d p, (3, k) each [px/m]
         Jw0 = a * J0
         J1 *= c
         J1 += b * J0
@@ -573,7 +569,7 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     excluded = np.zeros((C, F, M), bool)
     p_start, v_start = p_init, v_init  # where the next solve starts (a warm start after cleaning)
     if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
-        q0 = q if q is not None else noise.causal_accel_psd(session)
+        q0 = q if q is not None or model == "random_walk" else noise.causal_accel_psd(session)
         xyz0, _, info0 = solve_fast(rig, ideal, p_init, model, level(q0), fps, CLEANING_LOSS, k, v_init=v_init)
         excluded = _rejected(rig, ideal, xyz0)
         p_start = xyz0

@@ -162,8 +162,15 @@ def causal_accel_psd(session: Session) -> float:
     q = 8.7 m^2/s^3; on the simulated flight the truth's own per-frame velocity changes give 9.2 and
     the smoother's marginal likelihood 20. Without a flap (a = 0) q is CAUSAL_Q_FLOOR, 1 (not the
     search range's floor 0.01: a filter that cannot check the data should not assume near-rigid motion).
+    Without physics (data that is not a bat flight) it is ``causal_accel_psd_m2_s3``, measured by
+    reconstruct from the triangulated track: a hyperparameter from the whole session, while each
+    estimate still uses only frames up to its own.
     """
     m, fps = session.motion, session.fps
+    if not m.has_physics:  # no bat physics stated: the value reconstruct measured from the triangulated track
+        if m.causal_accel_psd_m2_s3 is None:
+            raise ValueError("[motion] has no physics and no measured q (batgraph.motion.noise_from_track)")
+        return float(m.causal_accel_psd_m2_s3)
     a = 2 * math.pi * m.flap_hz * math.radians(m.flap_angle_deg) * m.span_m * m.flap_hz
     return max(a * a / fps / 6.0, CAUSAL_Q_FLOOR)
 

@@ -188,7 +188,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     excluded = np.zeros((C, F, M), bool)
     start = None
     if reject:  # steps 1-2: Cauchy from the initial track at q0, flags there
-        q0 = q if q is not None else noise.causal_accel_psd(session)
+        q0 = q if q is not None or model_name == "random_walk" else noise.causal_accel_psd(session)
         graph, start, iterations, obs = _solve_cost(session, ideal, motion(q0), CLEANING_LOSS, options.robust_k,
                                                     p_init, v_init, markers, None)
         excluded = factors.to_exclude(_flags(obs, ideal, start, markers)[1], ideal.seen)
