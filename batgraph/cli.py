@@ -444,6 +444,8 @@ def _add_export(sub):
     p.add_argument("--method", help="which method (default: smoother if present, else the first)")
     p.add_argument("--to", help="dltdv: file prefix (default OUT_DIR/<method>_); c3d/trc: file path")
     p.add_argument("--fps", type=float, help="c3d/trc frame rate [Hz] (default: from summary.json)")
+    p.add_argument("--units", choices=["m", "cm", "mm"],
+                   help="dltdv: world units of xyzpts (default: those of the imported DLTdv project, else m)")
     p.set_defaults(func=_cmd_export)
 
 
@@ -461,7 +463,10 @@ def _cmd_export(args) -> int:
     if args.format == "dltdv":
         from .formats.dltdv import export_dltdv
 
-        paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method)
+        summary = out / "summary.json"
+        imported = json.loads(summary.read_text()).get("import", {}) if summary.is_file() else {}
+        units = args.units or (imported.get("units", "m") if isinstance(imported, dict) else "m")
+        paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method, units=units)
     else:
         from .formats.c3d_trc import write_c3d, write_trc
 

@@ -133,6 +133,7 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
         "pixel_sigma_px": dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
         "pixel_noise": pre.noise, "checks": pre.figures,
         "world": {"units": "m", "world_mirror": session.world_mirror.tolist()},
+        "import": session.extra_toml.get("import", {}),
         "views": {s: int((evaluate.status_of(dense.n_views) == s).sum()) for s in evaluate.STATUSES},
         "warnings": list(session.warnings), "methods": per_method,
     }

@@ -476,12 +476,14 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
 
 
 def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
-                 method: str) -> list[Path]:
+                 method: str, units: str = "m") -> list[Path]:
     """Write one method's result as DLTdv ``{prefix}xyzpts.csv`` and ``{prefix}xyzres.csv``.
 
     Points are numbered in the table's marker order (pt1 = first marker); file row k is frame k
     (rows before the first frame are NaN). The residual of a point is the RMS over cameras of its
-    reprojection error [px] (DLTdv's xyzres is its DLT residual, also in pixels).
+    reprojection error [px] (DLTdv's xyzres is its DLT residual, also in pixels). trajectories are in
+    metres in the user's frame (trajectories.csv); units: those the xyzpts file is written in, the
+    imported project's own ("m", "cm", "mm").
     """
     traj = trajectories[trajectories["method"] == method]
     if traj.empty:
@@ -490,6 +492,7 @@ def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: p
     markers = list(dict.fromkeys(traj["marker"]))
     index = {m: i for i, m in enumerate(markers)}
     xyz = traj.assign(point_index=traj["marker"].map(index))
+    xyz[["x", "y", "z"]] = xyz[["x", "y", "z"]].to_numpy(float) / dlt.UNITS_M[units]  # back to the project's units
     rep = reprojection[reprojection["method"] == method]
     res = (rep.assign(e2=rep["err_px"] ** 2).groupby(["frame", "marker"], as_index=False)["e2"].mean()
            .assign(residual=lambda d: np.sqrt(d["e2"]), point_index=lambda d: d["marker"].map(index)))
