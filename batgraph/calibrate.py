@@ -418,7 +418,10 @@ def calibrate_session(
         initial = "scratch" if wand is not None else "input"
     if initial not in ("input", "scratch"):
         raise InputError(f"calibrate: initial must be 'auto', 'input' or 'scratch', got {initial!r}")
-    sigma = session.pixel_sigma_px
+    # the starting noise scale of the robust loss and thresholds: the session's, else 1 px (the bundle
+    # adjustment's rounds measure the a-posteriori sigma themselves; the input rig may be far off)
+    given = session.pixel_sigma_px
+    sigma = float(np.median(list(given.values()))) if isinstance(given, dict) else float(given or 1.0)
     dense = dense_observations(session)
     if wand is not None:
         for e in (wand.end_a, wand.end_b):
