@@ -81,7 +81,7 @@ def _failure_message(e: BaseException) -> str:
 
 
 def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: Options,
-                viewer: str = "save", calibration: Path | None = None) -> BatchItem:
+                viewer: str = "save", calibration: Path | None = None, validate: bool = False) -> BatchItem:
     """One session -> BatchItem; every exception becomes a status (this is the Dask task).
 
     Module-level so that workers import it by name; returns only the small summary, never the
@@ -89,7 +89,8 @@ def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: O
     """
     t0 = time.perf_counter()
     try:
-        result = reconstruct(session_dir, out_dir, methods, options, viewer=viewer, calibration=calibration)
+        result = reconstruct(session_dir, out_dir, methods, options, viewer=viewer, calibration=calibration,
+                             validate=validate)
     except InputError as e:
         return BatchItem(session_dir, out_dir, "input error", _one_line(e), time.perf_counter() - t0, pid=os.getpid())
     except Exception as e:  # noqa: BLE001 - any crash of one session must not stop the batch
@@ -167,7 +168,8 @@ def _local_cores() -> int:
 
 
 def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], options: Options, viewer: str,
-                    calibration: Path | None, progress: bool, max_in_flight: int | None = None) -> list[BatchItem]:
+                    calibration: Path | None, progress: bool, max_in_flight: int | None = None,
+                    validate: bool = False) -> list[BatchItem]:
     """One task per session, collected as they finish; a task that dies becomes a "failed" item.
 
     max_in_flight: submit at most this many sessions at once (None: all). With one per worker thread,
@@ -186,8 +188,8 @@ def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], o
         # Absolute paths: a worker need not share this process's working directory. pure=False and an
         # explicit key: two sessions must never be merged into one task by Dask's hashing.
         cal = None if calibration is None else calibration.absolute()
-        fut = client.submit(run_session, s.absolute(), o.absolute(), methods, options, viewer, cal, pure=False,
-                            key=f"reconstruct-{i}-{s.name}")
+        fut = client.submit(run_session, s.absolute(), o.absolute(), methods, options, viewer, cal, validate,
+                            pure=False, key=f"reconstruct-{i}-{s.name}")
         index[fut] = (i, time.perf_counter())
         return fut
 
@@ -215,7 +217,7 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
                      methods: list[str] | None = None, options: Options | None = None,
                      scheduler: str | None = None, n_workers: int | None = None,
                      progress: bool = True, viewer: str = "save",
-                     calibration: str | Path | None = None) -> list[BatchItem]:
+                     calibration: str | Path | None = None, validate: bool = False) -> list[BatchItem]:
     """``reconstruct`` on many sessions in parallel on Dask; one BatchItem per session, in input order.
 
     session_dirs: folders and/or glob patterns (see :func:`expand_sessions`).
@@ -228,6 +230,8 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
       single session without a scheduler.
     calibration: one calibration.toml for every session instead of each folder's own (e.g. the day's
       wand calibration); a worker must be able to read it.
+    validate: also run each session's leave-one-camera-out validation (see batgraph.validate; its folds
+      run serially inside a Dask worker, in parallel processes for a single session run here).
 
     Raises InputError for bad arguments (unknown method, glob matching nothing, duplicate session names
     under out_root, n_workers < 1 or given with scheduler, viewer "spawn" with a cluster, unreachable
@@ -255,17 +259,18 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
     if not use_cluster:
         # The common case: no cluster start-up; the method bars of this one session stay as the caller chose.
         one = dataclasses.replace(options, progress=options.progress and progress)
-        items = [run_session(*jobs[0], methods, one, viewer, calibration)]
+        items = [run_session(*jobs[0], methods, one, viewer, calibration, validate)]
     else:
         options = dataclasses.replace(options, progress=False)  # no nested bars from inside workers
-        items = _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress)
+        items = _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress, validate)
 
     if out_root is not None:
         write_batch_summary(items, Path(out_root) / SUMMARY_FILE)
     return items
 
 
-def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress) -> list[BatchItem]:
+def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress,
+                   validate=False) -> list[BatchItem]:
     """Open the client (and a local cluster when no scheduler is given), run, and always close them."""
     import dask
     from distributed import Client, LocalCluster
@@ -276,7 +281,7 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
         except (OSError, ValueError, TypeError) as e:
             raise InputError(f"--scheduler {scheduler}: cannot connect ({_failure_message(e)})") from None
         with client:
-            return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress)
+            return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, validate=validate)
 
     n = min(n_workers or _local_cores(), len(jobs))
     # allowed-failures 0: a session that kills its worker (e.g. a native crash) fails once instead of
@@ -293,7 +298,8 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
                          # keep it on localhost and on a free port instead of 8787
                          scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster, \
             Client(cluster, set_as_default=False) as client:
-        return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, max_in_flight=n)
+        return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, max_in_flight=n,
+                               validate=validate)
 
 
 def batch_table(items: list[BatchItem]) -> pd.DataFrame:
