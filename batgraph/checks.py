@@ -34,6 +34,7 @@ BEHIND_ERROR = 0.5  # fraction of a camera's points behind it that makes the geo
 BEHIND_WARN = 0.05
 SCALE_RANGE_M = (0.05, 50.0)  # plausible camera-to-subject distances [m]
 NOISE_RATIO_WARN = 5.0
+LOOSE_MOTION = (0.1, 1e3)  # (sigma_m [m], q [m^2/s^3]) when the track cannot say: next to no motion prior
 
 
 @dataclass
@@ -147,9 +148,10 @@ def preflight(session: Session, dense: DenseObservations) -> Preflight:
     if not motion.has_physics and (motion.sigma_m is None or motion.causal_accel_psd_m2_s3 is None):
         try:  # info's covariances are those of the measured noise: what the track really carries
             sigma_m, q = noise_from_track(info["xyz_m"], info["cov_m2"], session.fps)
-        except ValueError as e:
-            raise InputError(f"{_where(session)}: {e}; set [motion] sigma_m and accel_psd_m2_s3 "
-                             f"in session.toml") from None
+        except ValueError as e:  # e.g. labelled frames far apart: nothing to measure, so stay loose
+            sigma_m, q = LOOSE_MOTION
+            warnings.append(f"{e}: the filter and the random walk use loose motion noise (q = {q:g} m^2/s^3, "
+                            f"sigma_m = {sigma_m:g} m); set [motion] sigma_m / accel_psd_m2_s3 in session.toml")
         motion = dataclasses.replace(motion, sigma_m=motion.sigma_m if motion.sigma_m is not None else sigma_m,
                                      causal_accel_psd_m2_s3=q)
         figures["motion_from_track"] = {"sigma_m": motion.sigma_m, "causal_accel_psd_m2_s3": q}

@@ -101,10 +101,10 @@ def _cmd_reconstruct(args) -> int:
         return exit_code(items)
     result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer, calibration=args.calibration,
                          validate=args.validate, validate_workers=args.workers)
+    for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong
+        print(f"batgraph: warning: {w}", file=sys.stderr)
     if not args.quiet:
         print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
-        for w in result.session.warnings:
-            print(f"warning: {w}")
         print("\n".join(summary_lines(result.summary)))
         if "validation" in result.summary:
             print("\n".join(validation_lines(result.summary["validation"])))
@@ -164,10 +164,10 @@ def _cmd_validate(args) -> int:
                       accel_psd_m2_s3=args.accel_psd, progress=not args.quiet, solver=args.solver)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)
+    for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong
+        print(f"batgraph: warning: {w}", file=sys.stderr)
     if not args.quiet:
         print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
-        for w in result.session.warnings:
-            print(f"warning: {w}")
         print("\n".join(validation_lines(result.summary["validation"])))
         print(f"report: {result.out_dir / 'report.html'}")
     return 0

@@ -86,11 +86,11 @@ def noise_from_track(xyz_m: np.ndarray, cov_m2: np.ndarray, fps: float) -> tuple
         e, noise = np.where(ok, e, np.nan), np.where(ok, noise, np.nan)
         cut = np.nanpercentile(e, 99.5)
         e, noise = np.where(e <= cut, e, np.nan), np.where(e <= cut, noise, np.nan)
-        with np.errstate(invalid="ignore"):
-            per_marker = (np.nanmean(e, axis=0) - np.nanmean(noise, axis=0)) / (L * dt) ** 4  # (M,)
         enough = np.sum(np.isfinite(e), axis=0) >= 10
+        per_marker = ((np.nanmean(e[:, enough], axis=0) - np.nanmean(noise[:, enough], axis=0))
+                      / (L * dt) ** 4)  # (M',) markers with >= 10 samples
         if enough.any():
-            a2 = max(float(np.percentile(per_marker[enough], TRACK_MARKER_PERCENTILE)), 0.0)
+            a2 = max(float(np.percentile(per_marker, TRACK_MARKER_PERCENTILE)), 0.0)
         if np.nanmean(e) >= TRACK_SNR * np.nanmean(noise):
             break
     return max(sigma_m, 1e-6), max(a2 * dt / 3.0, 0.01)

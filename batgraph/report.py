@@ -551,6 +551,7 @@ CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.2em 2em;color:#222;max-width:1400px}
 h1{font-size:1.5em;margin-bottom:.2em} h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.6em}
 nav a{margin-right:1em;color:#1f5fa0;text-decoration:none} p.note{color:#555;font-size:.9em;max-width:70em}
+div.warn{background:#fff3cd;border:1px solid #d39e00;padding:.3em 1em;max-width:70em}
 table{border-collapse:collapse;font-size:.85em;margin:.6em 0} th,td{border:1px solid #ccc;padding:2px 8px}
 th{background:#f0f0f0} td{text-align:right} td.l,th.l{text-align:left}
 tr.paper td{background:#fff8e0;font-style:italic}
@@ -655,6 +656,57 @@ def _metrics_table(metrics: pd.DataFrame, methods, with_coverage: bool) -> str:
     return _table(header, rows, "status")
 
 
+def _sigma_text(sigma) -> str:
+    if isinstance(sigma, dict):
+        return ", ".join(f"{k} {_fmt(x)} px" for k, x in sigma.items())
+    return f"{_fmt(sigma)} px"
+
+
+def _validation_section(summary: dict) -> str | None:
+    """Leave-one-camera-out table (summary["validation"], see batgraph.validate): rows (held-out camera,
+    method), per (status, subset) group n, median and p90 [px]; None when the run was not validated."""
+    v = _get(summary, "validation")
+    if not isinstance(v, dict):
+        return None
+    from .validate import COLUMNS, SUBSETS, group_label
+
+    t = pd.DataFrame(v.get("table") or [], columns=COLUMNS)
+    present = set(zip(t["status"], t["subset"], strict=True))
+    groups = [(st, sub) for sub in SUBSETS for st in STATUSES[1:] if (st, sub) in present]
+    idx = t.set_index(["held_out", "method", "status", "subset"])
+    rows = []
+    for cam in dict.fromkeys(t["held_out"]):
+        ms = list(dict.fromkeys(t.loc[t["held_out"] == cam, "method"]))
+        for k, m in enumerate(ms):
+            row = [(html.escape("all cameras" if cam == "all" else str(cam)), f'class="l" rowspan="{len(ms)}"')] \
+                if k == 0 else []
+            row.append((html.escape(str(m)), 'class="l"'))
+            for g in groups:
+                r = idx.loc[(cam, m, *g)] if (cam, m, *g) in idx.index else None
+                row += ["–", "–", "–"] if r is None else [_fmt(r["n"], 0), _fmt(r["median_px"]), _fmt(r["p90_px"])]
+            rows.append(row)
+    header = [("held-out camera", 'class="l"'), ("method", 'class="l"')]
+    for g in groups:
+        header += [f"{html.escape(group_label(*g))}: n", "median [px]", "p90 [px]"]
+    failed = v.get("failed") or {}
+    return (
+        '<p class="note">For each camera, every method was run again without that camera\'s observations, and '
+        "its 3D estimate projected into the held-out camera (raw pixels) and compared with that camera's own "
+        "detections: an accuracy figure that needs no ground truth (it includes the held-out camera's own "
+        "detection noise and calibration error). Status: views of the point without the held-out camera "
+        "(observed ≥ 2, 1-view, 0-view). <i>common</i>: the points every method estimates, so methods are "
+        "compared on the same points; <i>no triangulation</i>: points the smoother estimates and per-frame "
+        "triangulation cannot. The folds reuse the full run's pixel noise"
+        + (f" ({html.escape(_sigma_text(v.get('pixel_sigma_px')))})" if v.get("pixel_sigma_px") is not None else "")
+        + f"; {_fmt(v.get('runtime_s'), 1)} s on {_fmt(v.get('workers'), 0)} process(es).</p>"
+        + f"<p><b>Verdict:</b> {html.escape(str(v.get('verdict', '')))}</p>"
+        + (_table(header, rows, "validation") if rows else '<p class="note">No held-out observation could be '
+           "predicted.</p>")
+        + ("".join(f'<p class="note">Fold without {html.escape(str(c))} failed: {html.escape(str(m))}</p>'
+                   for c, m in failed.items()))
+    )
+
+
 def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
                   summary: dict | None) -> str:
     """The report as one HTML string (see the module docstring for its sections).
@@ -697,8 +749,14 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     sections: list[tuple[str, str, str]] = []  # (anchor, title, body html)
 
     # --- overview
+    noise = _get(summary, "pixel_noise", "cameras") or {}
     cam_rows = [[(html.escape(c.name), 'class="l"'), f"{c.size_wh[0]}×{c.size_wh[1]}",
-                 _fmt(c.K[0, 0], 1), _fmt(np.linalg.norm(c.center_world), 2)] for c in session.rig]
+                 _fmt(c.K[0, 0], 1), _fmt(np.linalg.norm(c.center_world), 2),
+                 _fmt(_get(noise, c.name, "sigma_px"), 2), _fmt(_get(summary, "pixel_sigma_px", c.name), 2)]
+                for c in session.rig]
+    warnings = summary.get("warnings") or []
+    warn_html = ('<div class="warn"><p><b>Self-check warnings</b> (checked before any estimator ran):</p><ul>'
+                 + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
     run_rows = []
     for m in methods:
         t = trajectories[trajectories["method"] == m]
@@ -708,13 +766,15 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                          _fmt(_get(summary, "methods", m, "runtime_s"), 2), f"{int(est.sum())} / {len(t)}"]
                         + [str(int(counts.get(s, 0))) for s in STATUSES[1:]])
     overview = (
-        f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
+        warn_html
+        + f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
         f"frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {fps:g} fps, {len(frames) / fps:.2f} s). "
         f"Methods: {', '.join(html.escape(m) for m in methods)}. Compared against the paper's "
         f"<b>{experiment}</b> experiment (chosen from the session name).</p>"
         + _table([("method", 'class="l"'), "runtime [s]", "estimates / rows", "observed (≥ 2 views)",
                   "single view", "unobserved"], run_rows, "runs")
-        + _table([("camera", 'class="l"'), "size [px]", "fx [px]", "distance to origin [m]"], cam_rows, "rig")
+        + _table([("camera", 'class="l"'), "size [px]", "fx [px]", "distance to origin [m]",
+                  "measured noise [px]", "noise used [px]"], cam_rows, "rig")
     )
     sections.append(("overview", "Overview", overview))
 
@@ -810,6 +870,10 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                else '<p class="note">No common (frame, marker) pairs.</p>')
             + _figure_html(fig, "Median over markers of the distance to the reference on each frame [mm, "
                            "log]; dashed: the paper's 1 mm.", "differences to the reference"))))
+
+    validation = _validation_section(summary)
+    if validation is not None:
+        sections.append(("validation", "Leave-one-camera-out validation", validation))
 
     nav = " ".join(f'<a href="#{a}">{html.escape(t)}</a>' for a, t, _ in sections)
     body = "\n".join(f'<section id="{a}"><h2>{html.escape(t)}</h2>\n{b}\n</section>' for a, t, b in sections)

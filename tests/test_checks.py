@@ -177,3 +177,14 @@ def test_calibration_metadata_is_validated(tmp_path):
     (folder / "calibration.toml").write_text(tomli_w.dumps(cal))
     with pytest.raises(InputError, match="world_mirror: expected three values of 1 or -1"):
         read_session(folder)
+
+
+def test_sparse_labelled_frames_fall_back_to_loose_motion_noise(tmp_path):
+    """Labels on every 20th frame only (DANNCE-like) and no physics: nothing to measure the motion from, so
+    a warning says so and the filter runs with loose noise instead of the session failing."""
+    folder = _copy(FLIGHT, tmp_path / "s", drop_noise=False, drop_physics=True)
+    obs = pd.read_csv(folder / "observations.csv")
+    obs[obs["frame"] % 20 == 0].to_csv(folder / "observations.csv", index=False)
+    assert _reconstruct(folder, tmp_path / "o", "--methods", "filter,triangulate") == 0
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert any("loose motion noise" in w for w in summary["warnings"]), summary["warnings"]
