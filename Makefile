@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install demo test bench study samples lint clean
+.PHONY: install demo test bench study realdata samples lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ bench: install
 ## study: the accuracy study (see BENCHMARKS.md / README.md)
 study: install
 	$(BIN)/python scripts/accuracy_study.py
+
+## realdata: every real dataset in ../shared/data/real through reconstruct --validate (docs/real_data.md)
+realdata: install
+	$(BIN)/python scripts/real_data_study.py
 
 ## samples: regenerate the bundled samples (deterministic)
 samples: install
