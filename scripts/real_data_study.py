@@ -126,10 +126,10 @@ def main_study(argv: list[str] | None = None) -> int:
     cases = [
         ("MCSC LED rig (flydra, 4 cameras)", "An LED waved through a fly-tracking rig; DLTdv project, lower-left "
          "pixels, detected.", lambda: _dltdv("mcsc", real_dlt.load_mcsc, out, "m")),
-        ("DANNCE mouse (6 cameras)", "Landmarks labelled in 3D; DLTdv project in millimetres (--units mm), the 81 labelled frames in "
-         "label order. Its 2D labels are the exact projections of its 3D labels (to 5e-13 px with K's skew, "
-         "tests/real_dlt.py), not independent clicks: the noise reads ~0 and every method predicts a held-out "
-         "camera exactly, so this set checks conventions and units, not accuracy.",
+        ("DANNCE mouse (6 cameras)", "Landmarks labelled in 3D; DLTdv project in millimetres (--units mm), "
+         "the 81 labelled frames in label order. Its 2D labels are the exact projections of its 3D labels "
+         "(to 5e-13 px with K's skew, tests/real_dlt.py), not independent clicks: the noise reads ~0 and every "
+         "method predicts a held-out camera exactly, so this set checks conventions and units, not accuracy.",
          lambda: _dltdv("dannce", real_dlt.load_dannce, out, "mm")),
         ("Pose2Sim demo (4 cameras, human)", "OpenPose BODY_25B keypoints, Qualisys calibration; Pose2Sim's "
          "triangulation as the reference.", lambda: _pose2sim(out)),
