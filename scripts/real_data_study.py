@@ -19,11 +19,8 @@ import argparse
 import json
 import sys
 import time
-import tomllib
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,7 +28,6 @@ sys.path.insert(0, str(ROOT / "tests"))  # the dataset loaders are the tests' (o
 
 import real_dlt  # noqa: E402
 
-from batgraph.camera import Camera, Rig  # noqa: E402
 from batgraph.cli import main  # noqa: E402
 from batgraph.session import Session, write_session  # noqa: E402
 
@@ -62,14 +58,7 @@ def _pose2sim(out: Path) -> Path:
 
 
 def _caliscope(out: Path) -> Path:
-    folder = REAL / "caliscope_charuco_4cam"
-    arr = tomllib.loads((folder / "camera_array.toml").read_text())["cameras"]
-    rig = Rig([Camera(f"cam{k}", tuple(v["size"]), v["matrix"], v["distortions"],
-                      cv2.Rodrigues(np.array(v["rotation"]))[0].ravel(), v["translation"])
-               for k, v in sorted(arr.items())])
-    xy = pd.read_csv(folder / "calibration" / "extrinsic" / "CHARUCO" / "xy_CHARUCO.csv")
-    obs = pd.DataFrame({"frame": xy.sync_index.astype(np.int64), "camera": "cam" + xy.cam_id.astype(str),
-                        "marker": "c" + xy.keypoint_id.astype(str), "u": xy.img_loc_x, "v": xy.img_loc_y})
+    rig, obs, _ = real_dlt.load_caliscope()
     write_session(Session("caliscope", 30.0, rig, obs, pixel_sigma_px=None), out / "caliscope")
     return out / "caliscope"
 

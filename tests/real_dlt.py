@@ -72,6 +72,7 @@ published points.
 from __future__ import annotations
 
 import re
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -499,3 +500,28 @@ if __name__ == "__main__":  # print the figures the docstrings quote
                 fig = verify_project(paths, rig.xyz, mirror=opts["mirror"], units=opts["units"])
                 print(f"{rname:7s} {vname:12s} DLT vs published 3D: n={fig['n']} median {fig['median_mm']:.3g} mm, "
                       f"p95 {fig['p95_mm']:.3g} mm, max {fig['max_mm']:.3g} mm")
+
+
+# ----------------------------------------------------------------------------------------------
+# Caliscope ChArUco (caliscope_charuco_4cam): not a DLT rig, but one reading of its files for all users
+# ----------------------------------------------------------------------------------------------
+def load_caliscope():
+    """Caliscope's 4-webcam calibration and its 2175 ChArUco corners.
+
+    Returns (rig: batgraph Rig cam0..cam3 from camera_array.toml (R is a 3x3 cam_from_world, metres),
+    observations: frame (sync_index), camera, marker ("c<keypoint_id>"), u, v [raw px],
+    board: keypoint_id -> obj_loc_x/y/z [m] in the board's frame).
+    """
+    from batgraph.camera import Camera, Rig
+
+    folder = real_folder("caliscope_charuco_4cam")
+    arr = tomllib.loads((folder / "camera_array.toml").read_text())["cameras"]
+    rig = Rig([Camera(f"cam{k}", tuple(v["size"]), v["matrix"], v["distortions"],
+                      cv2.Rodrigues(np.array(v["rotation"]))[0].ravel(), v["translation"])
+               for k, v in sorted(arr.items())])
+    xy = pd.read_csv(folder / "calibration" / "extrinsic" / "CHARUCO" / "xy_CHARUCO.csv")
+    obs = pd.DataFrame({"frame": xy.sync_index.astype(np.int64), "camera": "cam" + xy.cam_id.astype(str),
+                        "marker": "c" + xy.keypoint_id.astype(str), "u": xy.img_loc_x, "v": xy.img_loc_y,
+                        "weight": 1.0})
+    board = xy.groupby("keypoint_id")[["obj_loc_x", "obj_loc_y", "obj_loc_z"]].first()
+    return rig, obs, board

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
 
 import cv2
@@ -12,6 +11,7 @@ import numpy as np
 import pandas as pd
 import pycolmap
 import pytest
+import real_dlt  # tests/real_dlt.py: the real data sets read once for every test
 
 from batgraph.calibrate import (
     calibrate_session,
@@ -272,15 +272,7 @@ def test_bad_wand_table_is_an_input_error():
 
 # ----- real rigs ----------------------------------------------------------------------------------
 def _caliscope_session() -> tuple[Session, pd.DataFrame]:
-    arr = tomllib.loads((CALISCOPE / "camera_array.toml").read_text())["cameras"]
-    rig = Rig([Camera(f"cam{k}", tuple(v["size"]), v["matrix"], v["distortions"],
-                      cv2.Rodrigues(np.array(v["rotation"]))[0].ravel(), v["translation"])
-               for k, v in sorted(arr.items())])
-    xy = pd.read_csv(CALISCOPE / "calibration" / "extrinsic" / "CHARUCO" / "xy_CHARUCO.csv")
-    obs = pd.DataFrame({"frame": xy.sync_index.astype(np.int64), "camera": "cam" + xy.cam_id.astype(str),
-                        "marker": "c" + xy.keypoint_id.astype(str), "u": xy.img_loc_x, "v": xy.img_loc_y,
-                        "weight": 1.0})
-    board = xy.groupby("keypoint_id")[["obj_loc_x", "obj_loc_y", "obj_loc_z"]].first()
+    rig, obs, board = real_dlt.load_caliscope()
     return Session("caliscope", 30.0, rig, obs), board
 
 
