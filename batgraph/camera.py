@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from .geometry import dlt, pinhole, pose
@@ -156,7 +155,7 @@ class Camera:
         """
         L = _as_float(coefs, (11,), f"camera {name!r} DLT coefficients")
         K, R, t = dlt.krt_from_projection(dlt.dlt_matrix(L))
-        rvec = cv2.Rodrigues(R)[0].reshape(3)
+        rvec = pose.rvec_from_R(R)
         return cls(name=name, size_wh=size_wh, K=K, dist=np.zeros(5), rvec=rvec, tvec=t)
 
 
