@@ -206,10 +206,12 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
         result.summary["validation"] = validation.to_summary()
     result.files = write_outputs(result, out, viewer, options)
+    from .validate import CSV_NAME, write_csv
     if validation is not None:
-        from .validate import CSV_NAME, write_csv
         write_csv(validation.table, out / CSV_NAME)
         result.files.append(out / CSV_NAME)
+    else:  # a previous run's validation would be read as this result's
+        (out / CSV_NAME).unlink(missing_ok=True)
     return result
 
 

@@ -164,6 +164,10 @@ def test_cli_validate_writes_validation_csv_summary_and_report(tmp_path, capsys)
     assert not (out3 / "validation.csv").exists()
     assert "validation" not in json.loads((out3 / "summary.json").read_text())
     assert "Leave-one-camera-out" not in (out3 / "report.html").read_text()
+    # a plain run into a folder that holds a validated result leaves no stale validation.csv behind
+    assert main(["reconstruct", str(session), "--out", str(out2), "--methods", "triangulate", "--viewer", "none",
+                 "--quiet"]) == 0
+    assert not (out2 / "validation.csv").exists()
 
 
 @pytest.mark.slow
