@@ -23,8 +23,9 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from . import atomic
+from . import methods as methods_registry
 from .errors import InputError
-from .pipeline import ALL_METHODS, DEFAULT_METHODS, reconstruct
+from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
 
 STATUSES = ("ok", "input error", "failed")
@@ -157,8 +158,7 @@ def output_dirs(sessions: list[Path], out_root: Path | None) -> list[Path]:
 def _check_methods(methods: list[str]) -> list[str]:
     # Checked once here, so that a typo is one error instead of one "input error" per session.
     for m in methods:
-        if m not in ALL_METHODS:
-            raise InputError(f"--methods: unknown method {m!r} (choose from {', '.join(ALL_METHODS)})")
+        methods_registry.get(m)
     return list(methods)
 
 

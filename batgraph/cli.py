@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from .errors import InputError
+from .methods import help_text as methods_help
 
 
 def _positive_int(text: str) -> int:
@@ -29,8 +30,7 @@ def _add_reconstruct(sub):
     p.add_argument("--calibration", metavar="FILE",
                    help="calibration.toml to use instead of each session's own (e.g. from `calibrate` on a wand "
                         "recording); the session folders are not modified")
-    p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
-                                     "(default smoother,filter)")
+    p.add_argument("--methods", help=methods_help())
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
     p.add_argument("--motion", choices=["constant_velocity", "random_walk"],
                    help="motion model (default: session.toml [motion] model, else constant_velocity)")

@@ -7,6 +7,8 @@ Definitions used throughout (also in the README):
 * RMSE = sqrt(mean ||xyz - truth||^2) over (frame, marker) pairs, 3D Euclidean, in metres.
 * coverage95 = fraction of truth points with (x - t)^T Sigma^-1 (x - t) <= 7.8147 (chi-square, 3 DOF, 95 %).
 * status: ``observed`` (>= 2 views), ``single_view`` (1), ``unobserved`` (0), from the input observations.
+* span: ``inside`` (from a marker's first to its last frame with >= 2 views, both included) or ``outside``
+  (before or after: the track's ends, where every method extrapolates).
 """
 
 from __future__ import annotations
@@ -19,8 +21,9 @@ from .result import Estimate
 from .session import DenseObservations, Session
 
 STATUSES = ("observed", "single_view", "unobserved")
+SPANS = ("inside", "outside")
 TRAJ_COLUMNS = ["method", "frame", "time_s", "marker", "x", "y", "z", "cov_xx", "cov_xy", "cov_xz",
-                "cov_yy", "cov_yz", "cov_zz", "n_views", "status"]
+                "cov_yy", "cov_yz", "cov_zz", "n_views", "status", "span"]
 REPROJ_COLUMNS = ["method", "frame", "camera", "marker", "u", "v", "u_hat", "v_hat", "err_px", "outlier"]
 _COV_IDX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 
@@ -28,6 +31,32 @@ _COV_IDX = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 def status_of(n_views: np.ndarray) -> np.ndarray:
     """Status strings for view counts of any shape."""
     return np.where(n_views >= 2, "observed", np.where(n_views == 1, "single_view", "unobserved"))
+
+
+def span_of(n_views: np.ndarray) -> np.ndarray:
+    """Span strings, shape (F, M), for view counts of shape (F, M) (frames in order): ``inside`` from a
+    marker's first to its last frame with >= 2 views, ``outside`` elsewhere (all of a marker never seen twice)."""
+    return np.where(inside_span(n_views), "inside", "outside")
+
+
+def inside_span(n_views: np.ndarray) -> np.ndarray:
+    """Boolean (F, M): frame within [first, last] frame where the marker has >= 2 views."""
+    two = np.asarray(n_views) >= 2
+    seen_before = np.cumsum(two, axis=0) > 0
+    seen_after = np.cumsum(two[::-1], axis=0)[::-1] > 0
+    return seen_before & seen_after
+
+
+def add_span(traj: pd.DataFrame) -> pd.DataFrame:
+    """A trajectories table with its ``span`` column (re)computed from n_views, per method and marker."""
+    out = traj.copy()
+    out["span"] = "outside"
+    for _, g in out.groupby(["method", "marker"], sort=False):
+        two = g.loc[g["n_views"] >= 2, "frame"]
+        if len(two):
+            idx = g.index[(g["frame"] >= two.min()) & (g["frame"] <= two.max())]
+            out.loc[idx, "span"] = "inside"
+    return out
 
 
 def trajectories_table(session: Session, dense: DenseObservations, est: Estimate) -> pd.DataFrame:
@@ -50,6 +79,7 @@ def trajectories_table(session: Session, dense: DenseObservations, est: Estimate
         df[name] = cov[:, i, j]
     df["n_views"] = n_views.reshape(-1)
     df["status"] = status_of(n_views.reshape(-1))
+    df["span"] = span_of(n_views).reshape(-1)
     return df
 
 

@@ -10,7 +10,6 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,53 +18,15 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from . import atomic, checks, evaluate
+from . import methods as methods_registry
 from .errors import InputError
 from .measurement import ideal_observations
 from .result import Estimate, Options
 from .session import Session, dense_observations, read_session
 
-DEFAULT_METHODS = ("smoother", "filter")
-ALL_METHODS = ("smoother", "filter", "ekf", "ukf", "triangulate")
-
-
-def _estimator(name: str, solver: str = "fast") -> Callable:
-    """The run function of a method, imported lazily so that a slow import is paid only when used.
-
-    solver: "fast" or "gtsam" for the smoother and filter (see Options.solver).
-    """
-    if name == "smoother":
-        if solver == "gtsam":
-            from .graph.smoother import run_smoother
-            return run_smoother
-        from .graph.fast import run_smoother_fast
-        return run_smoother_fast
-    if name == "filter":
-        if solver == "gtsam":
-            from .graph.filter import run_filter
-            return run_filter
-        from .graph.fast_filter import run_filter_fast
-        return run_filter_fast
-    if name == "ekf":
-        from .filters.ekf import run_ekf
-        return run_ekf
-    if name == "ukf":
-        from .filters.ukf import run_ukf
-        return run_ukf
-    if name == "triangulate":
-        from .triangulate import run
-        return run
-    raise InputError(f"--methods: unknown method {name!r} (choose from {', '.join(ALL_METHODS)})")
-
-
-def parse_methods(text: str | None, compare: bool) -> list[str]:
-    """``--methods a,b`` (+ ``--compare``) -> ordered unique method names; validates each."""
-    names = [m.strip() for m in (text or ",".join(DEFAULT_METHODS)).split(",") if m.strip()]
-    if compare:
-        names += [m for m in ALL_METHODS if m not in names]
-    for n in names:
-        if n not in ALL_METHODS:
-            raise InputError(f"--methods: unknown method {n!r} (choose from {', '.join(ALL_METHODS)})")
-    return list(dict.fromkeys(names))
+DEFAULT_METHODS = methods_registry.DEFAULT_METHODS
+ALL_METHODS = methods_registry.ALL_METHODS
+parse_methods = methods_registry.parse
 
 
 @dataclass
@@ -116,7 +77,7 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     ideal = ideal_observations(session.rig, dense, pre.sigma_px)
     estimates, trajs, reprojs, per_method = {}, [], [], {}
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
-        run = _estimator(name, options.solver)
+        run = methods_registry.run_function(name, options.solver)
         t0 = time.perf_counter()
         extra = {"on_frame": live.update} if (live is not None and name == "filter") else {}
         est = run(session, dense, ideal, options, **extra)
@@ -216,12 +177,16 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
 
 
 def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Read trajectories.csv and reprojection.csv of a reconstruct output folder (for ``export``)."""
-    from .evaluate import REPROJ_COLUMNS, TRAJ_COLUMNS
+    """Read trajectories.csv and reprojection.csv of a reconstruct output folder (for ``export``).
+
+    A trajectories.csv written before the ``span`` column existed gets it computed from n_views.
+    """
+    from .evaluate import REPROJ_COLUMNS, TRAJ_COLUMNS, add_span
 
     out_dir = Path(out_dir)
     tables = []
-    for name, cols in (("trajectories.csv", TRAJ_COLUMNS), ("reprojection.csv", REPROJ_COLUMNS)):
+    for name, cols in (("trajectories.csv", [c for c in TRAJ_COLUMNS if c != "span"]),
+                       ("reprojection.csv", REPROJ_COLUMNS)):
         path = out_dir / name
         if not path.is_file():
             raise InputError(f"{path}: file not found (is {out_dir} a reconstruct output folder?)")
@@ -230,4 +195,6 @@ def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]
         if missing:
             raise InputError(f"{path}: missing column {missing[0]!r}")
         tables.append(df)
+    if "span" not in tables[0].columns:
+        tables[0] = add_span(tables[0])
     return tables[0], tables[1]

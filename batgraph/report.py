@@ -28,20 +28,10 @@ from matplotlib.patches import Ellipse
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from . import atomic, evaluate
+from . import methods as methods_registry
 from .camera import Rig
 from .motion import CHI2_3DOF_95
 
-METHOD_ORDER = ("smoother", "filter", "ekf", "ukf", "triangulate")
-# (colour, line style): the paper draws EKF dashed and UKF solid (Fig. 5); batgraph's own methods
-# get their own colours so that the two solid lines (ukf, smoother) stay distinguishable.
-METHOD_STYLE = {
-    "smoother": ("#1f77b4", "-"),
-    "filter": ("#ff7f0e", "-."),
-    "ekf": ("#d62728", "--"),
-    "ukf": ("#2ca02c", "-"),
-    "triangulate": ("#7f7f7f", ":"),
-}
-EXTRA_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 # The markers named in the paper's Fig. 6, in its order.
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
 STATUSES = ("all", "observed", "single_view", "unobserved")
@@ -173,12 +163,11 @@ def status_metrics(errors: pd.DataFrame) -> pd.DataFrame:
 def _methods(trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: dict) -> list[str]:
     found = set(trajectories["method"].astype(str)) | set(reprojection["method"].astype(str))
     found |= set((summary or {}).get("methods", {}) or {})
-    return [m for m in METHOD_ORDER if m in found] + sorted(found - set(METHOD_ORDER))
+    return methods_registry.ordered(found)
 
 
 def _style(methods: list[str]) -> dict[str, tuple[str, str]]:
-    extra = iter(EXTRA_COLOURS * 4)
-    return {m: METHOD_STYLE.get(m) or (next(extra), "-") for m in methods}
+    return {m: methods_registry.style(m) for m in methods}
 
 
 def _selected_markers(markers: list[str], n_max: int = 7) -> list[str]:

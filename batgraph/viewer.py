@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from . import methods
 from .atomic import atomic_path
 from .errors import InputError
 from .motion import CHI2_3DOF_95
@@ -59,15 +60,6 @@ CHI2_3D_95 = CHI2_3DOF_95  # 95 % quantile of chi-square, 3 DOF (ellipsoid half-
 RECORDING_NAME = "recording.rrd"
 APPLICATION_ID = "batgraph"
 
-# Colours (RGB) per method, so a method looks the same in 3D and in every camera image.
-METHOD_COLORS = {
-    "smoother": (31, 119, 180),
-    "filter": (255, 127, 14),
-    "ekf": (44, 160, 44),
-    "ukf": (148, 103, 189),
-    "triangulate": (140, 86, 75),
-}
-_FALLBACK_COLORS = [(23, 190, 207), (188, 189, 34), (227, 119, 194), (127, 127, 127)]
 DETECTION_COLOR = (255, 255, 255)
 OUTLIER_COLOR = (214, 39, 40)
 
@@ -85,10 +77,8 @@ def _rr():
 
 
 def method_color(method: str) -> tuple[int, int, int]:
-    """RGB colour of a method; unknown methods get a stable colour from a fallback palette."""
-    if method in METHOD_COLORS:
-        return METHOD_COLORS[method]
-    return _FALLBACK_COLORS[sum(map(ord, method)) % len(_FALLBACK_COLORS)]
+    """RGB colour of a method, from the method registry (the report uses the same)."""
+    return methods.rgb(method)
 
 
 def display_available() -> bool:
