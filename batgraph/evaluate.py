@@ -129,21 +129,53 @@ def errors_against(traj: pd.DataFrame, points: pd.DataFrame) -> pd.DataFrame:
     return j
 
 
+GROUPS = ("all", *STATUSES, *SPANS, *(f"{st}/{sp}" for st in STATUSES for sp in SPANS))
+"""The groups every figure is given for: all points, each status, each span, and each status within each span
+(e.g. ``single_view/inside``: gaps inside a track that one camera sees)."""
+
+
+def group_mask(table: pd.DataFrame, group: str) -> np.ndarray:
+    """Rows of a table with ``status`` and ``span`` columns that belong to ``group`` (one of GROUPS)."""
+    if group == "all":
+        return np.ones(len(table), bool)
+    st, _, sp = group.partition("/")
+    if st in SPANS:
+        return (table["span"] == st).to_numpy()
+    mask = (table["status"] == st).to_numpy()
+    return mask & (table["span"] == sp).to_numpy() if sp else mask
+
+
+def point_errors(traj: pd.DataFrame, points: pd.DataFrame) -> pd.DataFrame:
+    """errors_against restricted to the rows where the method gave an estimate: method, frame, marker,
+    status, span, err_m [m] and mahal2 (NaN without a valid covariance)."""
+    if "span" not in traj.columns:
+        traj = add_span(traj)
+    j = errors_against(traj, points)
+    j = j[np.isfinite(j["err_m"].to_numpy(float))]
+    return j[["method", "frame", "marker", "status", "span", "err_m", "mahal2"]].reset_index(drop=True)
+
+
 def _rmse(err: np.ndarray) -> float | None:
     err = err[np.isfinite(err)]
     return float(np.sqrt(np.mean(err**2))) if len(err) else None
 
 
 def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame) -> dict:
-    """RMSE [m], coverage95 and counts, overall and per status, for one method's table."""
+    """One method's errors against truth per group (GROUPS): rmse_m, mean_m, p95_m [m], coverage95, n (truth
+    points in the group), n_estimated (of those, the ones the method estimates; the figures are over these)."""
+    if "span" not in traj.columns:
+        traj = add_span(traj)
     j = errors_against(traj, truth)
-    out = {"rmse_m": {}, "coverage95": {}, "n": {}, "n_estimated": {}}
-    groups = [("all", j)] + [(s, j[j["status"] == s]) for s in STATUSES]
-    for name, g in groups:
-        est = np.isfinite(g["err_m"].to_numpy())
+    out = {"rmse_m": {}, "mean_m": {}, "p95_m": {}, "coverage95": {}, "n": {}, "n_estimated": {}}
+    for name in GROUPS:
+        g = j[group_mask(j, name)]
+        err = g["err_m"].to_numpy(float)
+        est = np.isfinite(err)
         m2 = g["mahal2"].to_numpy()
-        out["rmse_m"][name] = _rmse(g["err_m"].to_numpy())
         has_cov = np.isfinite(m2)
+        out["rmse_m"][name] = _rmse(err)
+        out["mean_m"][name] = float(err[est].mean()) if est.any() else None
+        out["p95_m"][name] = float(np.percentile(err[est], 95)) if est.any() else None
         out["coverage95"][name] = float(np.mean(m2[has_cov] <= CHI2_3DOF_95)) if has_cov.any() else None
         out["n"][name] = int(len(g))
         out["n_estimated"][name] = int(est.sum())
@@ -151,14 +183,16 @@ def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame) -> dict:
 
 
 def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame) -> dict:
-    """Differences to another tool's 3D (e.g. DLTdv's xyzpts): RMS, median, max [m] and count."""
-    j = errors_against(traj, reference)
-    d = j["err_m"].to_numpy()
-    d = d[np.isfinite(d)]
+    """Differences to another tool's 3D (e.g. DLTdv's xyzpts): RMS, median, max [m] and count, over all
+    common points, plus rms_m and n per group (GROUPS)."""
+    d = point_errors(traj, reference)
     if not len(d):
         return {"n": 0}
-    return {"n": int(len(d)), "rms_m": float(np.sqrt(np.mean(d**2))), "median_m": float(np.median(d)),
-            "max_m": float(d.max())}
+    e = d["err_m"].to_numpy()
+    groups = {g: d.loc[group_mask(d, g), "err_m"].to_numpy() for g in GROUPS}
+    return {"n": int(len(e)), "rms_m": float(np.sqrt(np.mean(e**2))), "median_m": float(np.median(e)),
+            "max_m": float(e.max()), "rms_by_group_m": {g: _rmse(v) for g, v in groups.items()},
+            "n_by_group": {g: int(len(v)) for g, v in groups.items()}}
 
 
 def focal_px(cam) -> float:
@@ -166,33 +200,77 @@ def focal_px(cam) -> float:
     return float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
 
 
-def reprojection_stats(session: Session, reproj: pd.DataFrame, traj: pd.DataFrame) -> dict:
-    """Per camera: n, mean/median/rms/p95 error [px], the mean error in mm at the marker's depth
-    (err_px * depth / focal), and the number flagged as outliers."""
-    xyz = traj.set_index(["frame", "marker"])[["x", "y", "z"]]
+def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, rig) -> pd.DataFrame:
+    """Reprojection errors in millimetres at the marker's depth.
+
+    reprojection: the contract's columns (method, frame, camera, marker, u, v, u_hat, v_hat, err_px, outlier).
+    trajectories: method, frame, marker, x, y, z [m, user frame]: the estimate whose reprojection it is.
+    Returns a copy with ``depth_m`` (z of the estimated point in the camera [m]; NaN behind the camera),
+    ``err_mm = err_px * depth_m / f_px * 1000`` and the signed components ``du_mm, dv_mm`` of
+    (u_hat - u, v_hat - v) scaled the same way; f_px = sqrt(fx fy) (:func:`focal_px`); lens distortion's
+    local scale change is ignored (a few per cent at the edge of a GoPro image).
+    """
+    rep = reprojection.copy()
+    keys = ["method", "frame", "marker"]
+    xyz = (trajectories[keys + ["x", "y", "z"]].drop_duplicates(keys)
+           .set_index(keys).reindex(pd.MultiIndex.from_frame(rep[keys])).to_numpy(float))
+    if len(xyz):
+        xyz = rig.to_user(xyz)  # back to the rig's world (the mirror is its own inverse)
+    depth = np.full(len(rep), np.nan)
+    f = np.full(len(rep), np.nan)
+    cams = rep["camera"].to_numpy()
+    for name in pd.unique(cams):
+        if name not in rig.names:
+            continue
+        sel = cams == name
+        depth[sel] = rig[name].to_cam(xyz[sel])[:, 2]
+        f[sel] = focal_px(rig[name])
+    depth[depth <= 0] = np.nan
+    scale = depth / f * 1000.0  # mm per px
+    rep["depth_m"] = depth
+    rep["err_mm"] = rep["err_px"].to_numpy(float) * scale
+    rep["du_mm"] = (rep["u_hat"] - rep["u"]).to_numpy(float) * scale
+    rep["dv_mm"] = (rep["v_hat"] - rep["v"]).to_numpy(float) * scale
+    return rep
+
+
+def reprojection_stats(session: Session, rep_mm: pd.DataFrame) -> dict:
+    """Per camera, over its inlier observations (outlier False) with an estimate: n, mean/median/rms/p95
+    error [px], mean/median/p95 error in mm at the marker's depth (see :func:`reprojection_in_mm`); plus
+    n_outliers (observations the method flagged, left out of every figure) and outlier_fraction."""
     out = {}
     for cam in session.rig:
-        r = reproj[reproj["camera"] == cam.name]
+        r = rep_mm[rep_mm["camera"] == cam.name]
+        flagged = r["outlier"].fillna(False).astype(bool).to_numpy()
         e = r["err_px"].to_numpy(float)
-        ok = np.isfinite(e)
+        ok = np.isfinite(e) & ~flagged
+        n_out = int(flagged.sum())
         if not ok.any():
-            out[cam.name] = {"n": 0}
+            out[cam.name] = {"n": 0, "n_outliers": n_out}
             continue
-        p = xyz.reindex(pd.MultiIndex.from_frame(r[["frame", "marker"]])).to_numpy(float)
-        depth = cam.to_cam(p)[:, 2]
-        mm = e * depth / focal_px(cam) * 1000
+        mm = r["err_mm"].to_numpy(float)[ok]
+        mm = mm[np.isfinite(mm)]
         out[cam.name] = {
-            "n": int(ok.sum()), "mean_px": float(e[ok].mean()), "median_px": float(np.median(e[ok])),
+            "n": int(ok.sum()), "n_outliers": n_out, "outlier_fraction": n_out / (int(ok.sum()) + n_out),
+            "mean_px": float(e[ok].mean()), "median_px": float(np.median(e[ok])),
             "rms_px": float(np.sqrt(np.mean(e[ok] ** 2))), "p95_px": float(np.percentile(e[ok], 95)),
-            "mean_mm_at_depth": float(np.nanmean(mm[ok])), "n_outliers": int(r["outlier"].sum()),
+            "mean_mm_at_depth": float(mm.mean()) if len(mm) else None,
+            "median_mm_at_depth": float(np.median(mm)) if len(mm) else None,
+            "p95_mm_at_depth": float(np.percentile(mm, 95)) if len(mm) else None,
         }
     return out
 
 
-def method_summary(session: Session, est: Estimate, traj: pd.DataFrame, reproj: pd.DataFrame) -> dict:
-    """summary.json's entry for one method."""
-    s = {"runtime_s": est.runtime_s, "reprojection": reprojection_stats(session, reproj, traj),
-         "n_estimated": int(np.isfinite(traj["x"]).sum()), "n_points": int(len(traj))}
+def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, runtime_s: float | None = None,
+                   info: dict | None = None) -> dict:
+    """summary.json's entry for one method, from its own rows of the two tables."""
+    rep_mm = reprojection_in_mm(reproj, traj, session.rig)
+    t = traj if "span" in traj.columns else add_span(traj)
+    has = np.isfinite(t["x"].to_numpy(float))
+    s = {"runtime_s": runtime_s, "reprojection": reprojection_stats(session, rep_mm),
+         "n_estimated": int(has.sum()), "n_points": int(len(t)),
+         "estimated": {g: int((has & group_mask(t, g)).sum()) for g in GROUPS},
+         "points": {g: int(group_mask(t, g).sum()) for g in GROUPS}}
     if session.truth is not None:
         s["truth"] = truth_stats(traj, session.truth)
     if session.reference is not None:
@@ -204,6 +282,6 @@ def method_summary(session: Session, est: Estimate, traj: pd.DataFrame, reproj: 
         flagged = reproj["outlier"].to_numpy(bool)
         s["outlier_detection"] = {"planted": int(is_planted.sum()), "flagged": int(flagged.sum()),
                                   "flagged_planted": int((flagged & is_planted).sum())}
-    if est.info:
-        s["info"] = est.info
+    if info:
+        s["info"] = info
     return s

@@ -18,7 +18,6 @@ import base64
 import html
 import io
 import math
-import re
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +28,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from . import atomic, evaluate
 from . import methods as methods_registry
-from .camera import Rig
-from .motion import CHI2_3DOF_95
+from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
 
 # The markers named in the paper's Fig. 6, in its order.
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
@@ -42,119 +40,6 @@ MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs sma
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
 DPI = 100
 MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretched so that it stays readable
-
-
-# ----------------------------------------------------------------------------------------------
-# numbers (reusable by evaluate.py)
-# ----------------------------------------------------------------------------------------------
-def focal_px(rig: Rig) -> dict[str, float]:
-    """Per camera name, the focal length that turns pixels into millimetres (evaluate.focal_px) [px]."""
-    return {c.name: evaluate.focal_px(c) for c in rig}
-
-
-def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, rig: Rig) -> pd.DataFrame:
-    """Express reprojection errors in millimetres at the marker's depth.
-
-    reprojection: CONTRACT.md section 3 columns (method, frame, camera, marker, u, v, u_hat, v_hat,
-        err_px [, outlier]); pixels of the raw image.
-    trajectories: method, frame, marker, x, y, z [m, world]; the estimate whose reprojection it is.
-    Returns a copy of ``reprojection`` with ``depth_m`` (z of that method's estimated point in the
-    camera frame [m]), ``err_mm = err_px * depth_m / f_px * 1000``, and the signed components
-    ``du_mm, dv_mm`` of ``(u_hat - u, v_hat - v)`` scaled the same way; NaN where the method has no
-    estimate or the camera is not in the rig. ``f_px`` is sqrt(fx fy) (evaluate.focal_px); lens distortion's
-    local scale change is ignored (a few per cent at the edge of a GoPro image).
-    """
-    rep = reprojection.copy()
-    if "err_px" not in rep:
-        rep["err_px"] = np.hypot(rep["u_hat"] - rep["u"], rep["v_hat"] - rep["v"])
-    keys = ["method", "frame", "marker"]
-    xyz = (trajectories[keys + ["x", "y", "z"]].drop_duplicates(keys)
-           .set_index(keys).reindex(pd.MultiIndex.from_frame(rep[keys])).to_numpy(float))
-    depth = np.full(len(rep), np.nan)
-    f = np.full(len(rep), np.nan)
-    cams = rep["camera"].to_numpy()
-    focal = focal_px(rig)
-    for name in pd.unique(cams):
-        if name not in focal:
-            continue
-        sel = cams == name
-        depth[sel] = rig[name].to_cam(xyz[sel])[:, 2]
-        f[sel] = focal[name]
-    depth[depth <= 0] = np.nan  # behind the camera: no meaningful scale
-    scale = depth / f * 1000.0  # mm per px
-    rep["depth_m"] = depth
-    rep["err_mm"] = rep["err_px"].to_numpy(float) * scale
-    rep["du_mm"] = (rep["u_hat"] - rep["u"]).to_numpy(float) * scale
-    rep["dv_mm"] = (rep["v_hat"] - rep["v"]).to_numpy(float) * scale
-    return rep
-
-
-def camera_error_stats(rep_mm: pd.DataFrame) -> pd.DataFrame:
-    """Per (method, camera) reprojection statistics over inlier observations.
-
-    rep_mm: output of :func:`reprojection_in_mm`. Rows with ``outlier`` True or no observed u, v
-    are left out of the statistics and counted in ``n_outliers``.
-    Returns columns method, camera, n, n_outliers, mean_px, median_px, rms_px, p95_px,
-    mean_mm_at_depth, p95_mm_at_depth.
-    """
-    rep = rep_mm.astype({"err_px": float, "err_mm": float})
-    rep = rep[np.isfinite(rep["err_px"].to_numpy())]
-    out = (rep["outlier"].fillna(False).astype(bool) if "outlier" in rep
-           else pd.Series(False, index=rep.index))
-    inl = rep[~out.to_numpy()].assign(err2=lambda d: d["err_px"] ** 2)
-    g = inl.groupby(["method", "camera"], sort=False)
-    stats = pd.DataFrame({
-        "n": g["err_px"].size(),
-        "mean_px": g["err_px"].mean(),
-        "median_px": g["err_px"].median(),
-        "rms_px": np.sqrt(g["err2"].mean()),
-        "p95_px": g["err_px"].quantile(0.95),
-        "mean_mm_at_depth": g["err_mm"].mean(),
-        "p95_mm_at_depth": g["err_mm"].quantile(0.95),
-    })
-    n_out = out.groupby([rep["method"], rep["camera"]], sort=False).sum().rename("n_outliers")
-    stats = stats.join(n_out, how="outer").reset_index()
-    stats["n"] = stats["n"].fillna(0).astype(int)
-    stats["n_outliers"] = stats["n_outliers"].fillna(0).astype(int)
-    return stats[["method", "camera", "n", "n_outliers", "mean_px", "median_px", "rms_px", "p95_px",
-                  "mean_mm_at_depth", "p95_mm_at_depth"]]
-
-
-def point_errors(trajectories: pd.DataFrame, points: pd.DataFrame) -> pd.DataFrame:
-    """Errors of every estimate against a point table (truth or a reference reconstruction).
-
-    trajectories: CONTRACT.md section 3 columns (cov_* and status optional).
-    points: frame, marker, x, y, z [m, world].
-    Returns method, frame, marker, status, err_m (Euclidean distance [m]) and d2 (squared
-    Mahalanobis distance under the estimate's covariance; NaN without a valid covariance), for the
-    (frame, marker) pairs both tables have and where the method gave an estimate. The arithmetic is
-    evaluate.errors_against's, so report and summary.json agree.
-    """
-    traj = trajectories.assign(**{c: np.nan for c in COV_COLUMNS if c not in trajectories})
-    if "status" not in traj:
-        traj = traj.assign(status="")
-    j = evaluate.errors_against(traj, points)
-    j = j[np.isfinite(j["err_m"].to_numpy(float))]
-    return pd.DataFrame({"method": j["method"].to_numpy(), "frame": j["frame"].to_numpy(),
-                         "marker": j["marker"].to_numpy(), "status": j["status"].astype(str).to_numpy(),
-                         "err_m": j["err_m"].to_numpy(float), "d2": j["mahal2"].to_numpy(float)})
-
-
-def status_metrics(errors: pd.DataFrame) -> pd.DataFrame:
-    """RMSE, mean, p95 distance and 95 % coverage per method and status (plus ``all``).
-
-    errors: output of :func:`point_errors`. Coverage is the fraction of points whose squared
-    Mahalanobis distance is within the 3-DOF 95 % chi-square quantile (7.8147), over points that
-    have a covariance. Returns columns method, status, n, rmse_m, mean_m, p95_m, coverage95.
-    """
-    errors = errors.astype({"err_m": float, "d2": float})
-    both = pd.concat([errors.assign(status="all"), errors[errors["status"].isin(STATUSES[1:])]])
-    both = both.assign(e2=both["err_m"] ** 2, inside=np.where(np.isfinite(both["d2"]),
-                                                                (both["d2"] <= CHI2_3DOF_95).astype(float), np.nan))
-    g = both.groupby(["method", "status"], sort=False)
-    out = pd.DataFrame({"n": g["err_m"].size(), "rmse_m": np.sqrt(g["e2"].mean()), "mean_m": g["err_m"].mean(),
-                        "p95_m": g["err_m"].quantile(0.95), "coverage95": g["inside"].mean()})
-    return out.reset_index()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -173,12 +58,6 @@ def _style(methods: list[str]) -> dict[str, tuple[str, str]]:
 def _selected_markers(markers: list[str], n_max: int = 7) -> list[str]:
     named = [m for m in PAPER_MARKERS if m in markers]
     return named if named else list(markers[:min(n_max, 6)])
-
-
-def _experiment(session) -> str:
-    """Which of the paper's experiments a session resembles: 'ear' or 'flight' (by its name)."""
-    tokens = re.split(r"[^a-z0-9]+", str(getattr(session, "name", "")).lower())
-    return "ear" if "ear" in tokens else "flight"
 
 
 def _png(fig: Figure) -> str:
@@ -477,34 +356,69 @@ def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status
     return fig
 
 
-def _fig_status_bars(metrics: pd.DataFrame, methods, style, value: str, ylabel: str, scale: float,
-                     hline: float | None, title: str, ax):
-    x = np.arange(len(STATUSES))
+def _fig_group_bars(values: dict[str, dict[str, float | None]], methods, style, ylabel: str, scale: float,
+                    hline: float | None, title: str, ax):
+    """Bars per headline group (x) and method (colour): values[method][group]; None draws nothing."""
+    groups = list(HEADLINE_GROUPS)
+    x = np.arange(len(groups))
     w = 0.8 / max(len(methods), 1)
     for k, m in enumerate(methods):
-        mm = metrics[metrics["method"] == m].set_index("status").reindex(STATUSES)
-        ax.bar(x + (k - (len(methods) - 1) / 2) * w, mm[value].to_numpy(float) * scale, w,
+        y = [values.get(m, {}).get(g) for g in groups]
+        ax.bar(x + (k - (len(methods) - 1) / 2) * w, [np.nan if v is None else v * scale for v in y], w,
                color=style[m][0], label=m)
     if hline is not None:
         ax.axhline(hline, color="k", ls="--", lw=0.8)
-    ax.set_xticks(x, [s.replace("_", " ") for s in STATUSES], fontsize=8)
+    ax.set_xticks(x, [HEADLINE_GROUPS[g].replace(" (", "\n(") for g in groups], fontsize=7)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.set_title(title, fontsize=10)
     ax.tick_params(labelsize=7)
 
 
-def _fig_truth(metrics, errors, methods, style, fps):
-    """RMSE by status, 95 % coverage by status, and the error over time (median over markers)."""
-    fig = Figure(figsize=(13.0, 3.4))
-    a1, a2, a3 = fig.subplots(1, 3, gridspec_kw=dict(width_ratios=[1, 1, 1.6]))
-    _fig_status_bars(metrics, methods, style, "rmse_m", "RMSE [mm]", 1000.0, None, "RMSE vs truth by status", a1)
-    _fig_status_bars(metrics, methods, style, "coverage95", "fraction inside", 1.0, 0.95,
-                     "truth inside the 95 % ellipsoid", a2)
+def _fig_truth(summary, errors, methods, style, fps):
+    """RMSE and 95 % coverage per headline group (from summary.json), and the error over time."""
+    fig = Figure(figsize=(14.0, 3.6))
+    a1, a2, a3 = fig.subplots(1, 3, gridspec_kw=dict(width_ratios=[1.2, 1.2, 1.4]))
+    rmse = {m: _get(summary, "methods", m, "truth", "rmse_m") or {} for m in methods}
+    cov = {m: _get(summary, "methods", m, "truth", "coverage95") or {} for m in methods}
+    _fig_group_bars(rmse, methods, style, "RMSE [mm, log]", 1000.0, None, "RMSE vs truth", a1)
+    a1.set_yscale("log")
+    _fig_group_bars(cov, methods, style, "fraction inside", 1.0, 0.95, "truth inside the 95 % ellipsoid", a2)
     a2.set_ylim(0, 1.05)
     _fig_error_time(errors, methods, style, fps, a3, "median error over markers [mm]")
     a3.set_title("error vs truth over time", fontsize=10)
     a1.legend(fontsize=7, frameon=False)
     fig.subplots_adjust(wspace=0.3)
+    return fig
+
+
+_MAP_CODES = {"observed": 0, "single_view": 1, "unobserved": 2, "outside": 3}
+_MAP_COLOURS = ("#2ca02c", "#ff9f1c", "#d62728", "#c7c7c7")
+_MAP_LABELS = ("seen by >= 2 cameras", "seen by 1 camera (gap)", "seen by none (gap)", "track end (extrapolated)")
+
+
+def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: list[str], fps: float):
+    """Marker x frame map of where the data are: observed / single view / unobserved inside each marker's
+    span, and the track ends outside it (the rows of ``method``; status and span are the same for all)."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    t = trajectories[trajectories["method"] == method].drop_duplicates(["frame", "marker"])
+    if not len(t) or "status" not in t:
+        return None
+    code = t["status"].map(_MAP_CODES).to_numpy(float)
+    if "span" in t:
+        code = np.where(t["span"].to_numpy() == "outside", _MAP_CODES["outside"], code)
+    grid = (pd.Series(code, index=pd.MultiIndex.from_frame(t[["marker", "frame"]]))
+            .unstack("frame").reindex(index=markers, columns=frames).to_numpy(float))
+    fig = Figure(figsize=(12.0, 0.9 + 0.17 * len(markers)))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.imshow(np.ma.masked_invalid(grid), aspect="auto", interpolation="nearest", vmin=-0.5, vmax=3.5,
+              cmap=ListedColormap(_MAP_COLOURS), extent=(frames[0] / fps, (frames[-1] + 1) / fps, len(markers), 0))
+    ax.set_yticks(np.arange(len(markers)) + 0.5, markers, fontsize=6 if len(markers) > 30 else 7)
+    ax.set_xlabel("time [s]", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(handles=[Patch(color=c, label=lab) for c, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
+              loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     return fig
 
 
@@ -544,6 +458,7 @@ div.warn{background:#fff3cd;border:1px solid #d39e00;padding:.3em 1em;max-width:
 table{border-collapse:collapse;font-size:.85em;margin:.6em 0} th,td{border:1px solid #ccc;padding:2px 8px}
 th{background:#f0f0f0} td{text-align:right} td.l,th.l{text-align:left}
 tr.paper td{background:#fff8e0;font-style:italic}
+p.verdict{font-size:1.05em;max-width:75em}
 figure{margin:.6em 0} figure img{max-width:100%;height:auto;border:1px solid #eee}
 figcaption{font-size:.85em;color:#444;max-width:75em}
 """
@@ -577,72 +492,88 @@ def _paper_camera_figure(experiment: str, cam_index: int) -> str:
     return "&lt; 3 mm" if cam_index == 0 else "&lt; 20 mm"
 
 
-def _camera_table(stats: pd.DataFrame, summary: dict, methods, cameras, experiment) -> str:
-    """Rows (camera, method); summary.json values override the ones computed from the tables."""
-    keys = ["n", "mean_px", "median_px", "rms_px", "p95_px", "mean_mm_at_depth", "p95_mm_at_depth"]
-    s = stats.set_index(["camera", "method"])
+def _camera_table(summary: dict, methods, cameras, experiment: str | None) -> str:
+    """Rows (camera, method), from summary.json's per-camera reprojection figures (inliers only)."""
     rows = []
     for ci, cam in enumerate(cameras):
-        present = [m for m in methods if (cam, m) in s.index or _get(summary, "methods", m, "reprojection", cam)]
+        present = [m for m in methods if (_get(summary, "methods", m, "reprojection", cam, "n") or 0)
+                   + (_get(summary, "methods", m, "reprojection", cam, "n_outliers") or 0)]
         for k, m in enumerate(present):
-            vals = {c: (s.loc[(cam, m), c] if (cam, m) in s.index else None) for c in keys + ["n_outliers"]}
-            from_summary = _get(summary, "methods", m, "reprojection", cam) or {}
-            for c in keys:
-                if from_summary.get(c) is not None:
-                    vals[c] = from_summary[c]
-            row = []
-            if k == 0:
-                row.append((html.escape(str(cam)), f'class="l" rowspan="{len(present)}"'))
-            row += [(html.escape(m), 'class="l"'), _fmt(vals["n"], 0), _fmt(vals["n_outliers"], 0),
-                    _fmt(vals["mean_px"]), _fmt(vals["median_px"]), _fmt(vals["rms_px"]), _fmt(vals["p95_px"]),
-                    _fmt(vals["mean_mm_at_depth"]), _fmt(vals["p95_mm_at_depth"])]
-            if k == 0:
+            v = _get(summary, "methods", m, "reprojection", cam)
+            frac = v.get("outlier_fraction")
+            row = [(html.escape(str(cam)), f'class="l" rowspan="{len(present)}"')] if k == 0 else []
+            row += [(html.escape(m), 'class="l"'), _fmt(v.get("n"), 0), _fmt(v.get("n_outliers"), 0),
+                    _fmt(None if frac is None else 100 * frac, 1), _fmt(v.get("mean_px")), _fmt(v.get("median_px")),
+                    _fmt(v.get("rms_px")), _fmt(v.get("p95_px")), _fmt(v.get("mean_mm_at_depth")),
+                    _fmt(v.get("p95_mm_at_depth"))]
+            if k == 0 and experiment:
                 row.append((_paper_camera_figure(experiment, ci), f'class="l paper" rowspan="{len(present)}"'
                             ' style="background:#fff8e0"'))
             rows.append(row)
     if not rows:
         return '<p class="note">No reprojection errors.</p>'
-    header = [("camera", 'class="l"'), ("method", 'class="l"'), "n", "outliers", "mean [px]", "median [px]",
-              "RMS [px]", "p95 [px]", "mean [mm at depth]", "p95 [mm at depth]", ("paper (published)", 'class="l"')]
+    header = [("camera", 'class="l"'), ("method", 'class="l"'), "inliers n", "outliers", "outliers [%]",
+              "mean [px]", "median [px]", "RMS [px]", "p95 [px]", "mean [mm at depth]", "p95 [mm at depth]"]
+    if experiment:
+        header.append(("paper (published)", 'class="l"'))
     return _table(header, rows, "cameras")
 
 
-def _truth_metrics(errors: pd.DataFrame, summary: dict, methods) -> pd.DataFrame:
-    """Computed metrics, overridden by summary.json's ``truth`` block where it has a value."""
-    m = status_metrics(errors).set_index(["method", "status"])
-    for meth in methods:
-        tb = _get(summary, "methods", meth, "truth") or {}
-        for key, col in (("rmse_m", "rmse_m"), ("coverage95", "coverage95"), ("n", "n")):
-            for st, v in (tb.get(key) or {}).items():
-                if st in STATUSES and v is not None:
-                    m.loc[(meth, st), col] = v
-    return m.reset_index()
-
-
-def _metrics_table(metrics: pd.DataFrame, methods, with_coverage: bool) -> str:
-    mi = metrics.set_index(["method", "status"])
+def _group_table(summary: dict, methods, block: str) -> str:
+    """Each method's own figures per headline group from summary.json ``methods[m][block]`` (truth or
+    reference): n estimated, RMSE [mm] (and 95 % coverage against truth). Methods are *not* compared on the
+    same points here: see the verdict's table for that."""
     header = [("method", 'class="l"')]
-    for st in STATUSES:
-        header += [f"{st.replace('_', ' ')}: n", "RMSE [mm]"] + (["cov. 95 %"] if with_coverage else
-                                                                   ["mean [mm]", "p95 [mm]"])
+    for g in HEADLINE_GROUPS.values():
+        header += [f"{html.escape(g)}: n", "RMSE [mm]"] + (["cov. 95 %"] if block == "truth" else [])
     rows = []
     for m in methods:
+        b = _get(summary, "methods", m, block) or {}
         row = [(html.escape(m), 'class="l"')]
-        for st in STATUSES:
-            r = mi.loc[(m, st)] if (m, st) in mi.index else None
-
-            def g(col, r=r):
-                return None if r is None else r.get(col)
-
-            rmse, cov = g("rmse_m"), g("coverage95")
-            row += [_fmt(g("n") if r is not None else 0, 0), _fmt(None if rmse is None else rmse * 1000)]
-            if with_coverage:
-                row.append(_fmt(None if cov is None else 100 * cov, 1) + (" %" if _fmt(cov) != "–" else ""))
+        for g in HEADLINE_GROUPS:
+            if block == "truth":
+                n, rmse, cov = (_get(b, "n_estimated", g), _get(b, "rmse_m", g), _get(b, "coverage95", g))
+                row += [_fmt(n, 0), _fmt(None if rmse is None else 1000 * rmse),
+                        _fmt(None if cov is None else 100 * cov, 1) + (" %" if cov is not None else "")]
             else:
-                row += [_fmt(None if g("mean_m") is None else g("mean_m") * 1000),
-                        _fmt(None if g("p95_m") is None else g("p95_m") * 1000)]
+                n, rms = _get(b, "n_by_group", g), _get(b, "rms_by_group_m", g)
+                row += [_fmt(n, 0), _fmt(None if rms is None else 1000 * rms)]
         rows.append(row)
     return _table(header, rows, "status")
+
+
+def _comparison_table(summary: dict, style) -> str:
+    """The like-for-like table: per headline group, the points every listed method estimates (n) and each
+    method's figure on exactly those points (summary.json ``comparison``)."""
+    c = Summary.from_json(summary).comparison
+    if c is None or not c.groups:
+        return '<p class="note">One method ran: nothing to compare.</p>'
+    unit = {"truth": "RMSE vs truth [mm] (95 % coverage)", "reference": "RMS difference to the reference [mm]",
+            "reprojection": "median reprojection error of inlier observations [px]"}[c.against]
+    header = [("points", 'class="l"'), "n"] + [(html.escape(m), f'style="color:{style.get(m, ("#000",))[0]}"')
+                                               for m in c.methods]
+    rows = []
+    for g, label in [("all", "all that every method estimates"), *HEADLINE_GROUPS.items()]:
+        gc = c.groups.get(g)
+        if gc is None:
+            continue
+        row = [(html.escape(label), 'class="l"'), _fmt(gc.n, 0)]
+        for m in c.methods:
+            v = gc.values.get(m)
+            if v is None:
+                row.append("not estimated")
+            elif c.against == "truth":
+                cov = v.get("coverage95")
+                row.append(_fmt(None if v.get("rmse_m") is None else 1000 * v["rmse_m"])
+                           + (f" ({100 * cov:.0f} %)" if cov is not None else ""))
+            elif c.against == "reference":
+                row.append(_fmt(None if v.get("rms_m") is None else 1000 * v["rms_m"]))
+            else:
+                row.append(_fmt(v.get("median_px")))
+        rows.append(row)
+    return (f'<p class="note">Methods compared on the same points: {unit}. n = the points (or observations) '
+            "every method of the row estimates; a method that estimates none of a group is marked, not counted."
+            "</p>" + _table(header, rows, "compare"))
 
 
 def _sigma_text(sigma) -> str:
@@ -702,13 +633,19 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
 
     session: :class:`batgraph.session.Session` (rig, fps, markers, skeleton, truth, reference).
     trajectories, reprojection: CONTRACT.md section 3 tables, every method stacked.
-    summary: the summary.json dict; any key may be missing.
+    summary: the summary.json dict, whose figures are shown as they are; None (or one without ``methods``)
+        computes it from the tables with batgraph.summary.summarize, as reconstruct does.
     """
-    summary = summary or {}
     trajectories = trajectories.copy()
     trajectories["method"] = trajectories["method"].astype(str)
+    if "span" not in trajectories and "n_views" in trajectories:
+        trajectories = evaluate.add_span(trajectories)
     reprojection = reprojection.copy()
     reprojection["method"] = reprojection["method"].astype(str)
+    if not summary or not summary.get("methods"):
+        summary = summarize(session, trajectories, reprojection)
+    elif not summary.get("verdict"):
+        summary = refresh_verdict(dict(summary))
     methods = _methods(trajectories, reprojection, summary)
     style = _style(methods)
     has_xyz = np.isfinite(trajectories[["x", "y", "z"]].to_numpy(float)).all(axis=1)
@@ -723,10 +660,11 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     else:
         frames = session.frames
     selected = _selected_markers(markers)
-    experiment = _experiment(session)
+    experiment = summary.get("paper_experiment")
     rng = np.random.default_rng(0)  # only for thinning scatter plots; fixed so reports are reproducible
     truth = session.truth if session.truth is not None and len(session.truth) else None
     reference = session.reference if session.reference is not None and len(session.reference) else None
+    verdict = Summary.from_json(summary).verdict
 
     status_fm = None
     if "status" in trajectories and plotted:
@@ -737,35 +675,54 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
 
     sections: list[tuple[str, str, str]] = []  # (anchor, title, body html)
 
-    # --- overview
+    # --- the verdict: which result, how good, what to look at, where the gaps are
+    warnings = summary.get("warnings") or []
+    warn_html = ('<div class="warn"><p><b>Warnings</b> (self-checks before any estimator ran, and the noise '
+                 "model's outlier counts):</p><ul>"
+                 + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
+    use = verdict.use if verdict else (plotted[0] if plotted else None)
+    map_fig = _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
+    verdict_html = (
+        (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '
+         f"result: {html.escape(verdict.why)}.</p><p class=\"verdict\"><b>How good:</b> "
+         f"{html.escape(verdict.headline)}.</p>" if verdict else "")
+        + warn_html
+        + _comparison_table(summary, style)
+        + _figure_html(map_fig, "Where the data are, per marker and frame: seen by two or more cameras (green), "
+                       "by one (orange) or none (red) inside the marker's track, and the track ends before its "
+                       "first and after its last frame seen twice (grey), where every method extrapolates. "
+                       "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
+                       "track ends out by default.", "where the data are")
+    )
+    sections.append(("verdict", "Verdict", verdict_html))
+
+    # --- session facts
     noise = _get(summary, "pixel_noise", "cameras") or {}
     cam_rows = [[(html.escape(c.name), 'class="l"'), f"{c.size_wh[0]}×{c.size_wh[1]}",
                  _fmt(c.K[0, 0], 1), _fmt(np.linalg.norm(c.center_world), 2),
                  _fmt(_get(noise, c.name, "sigma_px"), 2), _fmt(_get(summary, "pixel_sigma_px", c.name), 2)]
                 for c in session.rig]
-    warnings = summary.get("warnings") or []
-    warn_html = ('<div class="warn"><p><b>Self-check warnings</b> (checked before any estimator ran):</p><ul>'
-                 + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
     run_rows = []
     for m in methods:
-        t = trajectories[trajectories["method"] == m]
-        est = np.isfinite(t[["x", "y", "z"]].to_numpy(float)).all(axis=1) if len(t) else np.zeros(0, bool)
-        counts = t["status"].value_counts() if "status" in t else pd.Series(dtype=int)
+        est, pts = _get(summary, "methods", m, "estimated") or {}, _get(summary, "methods", m, "points") or {}
         run_rows.append([(html.escape(m), f'class="l" style="color:{style[m][0]}"'),
-                         _fmt(_get(summary, "methods", m, "runtime_s"), 2), f"{int(est.sum())} / {len(t)}"]
-                        + [str(int(counts.get(s, 0))) for s in STATUSES[1:]])
+                         _fmt(_get(summary, "methods", m, "runtime_s"), 2)]
+                        + [f"{_fmt(est.get(g), 0)} / {_fmt(pts.get(g), 0)}" for g in HEADLINE_GROUPS])
     overview = (
-        warn_html
-        + f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
+        f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
         f"frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {fps:g} fps, {len(frames) / fps:.2f} s). "
-        f"Methods: {', '.join(html.escape(m) for m in methods)}. Compared against the paper's "
-        f"<b>{experiment}</b> experiment (chosen from the session name).</p>"
-        + _table([("method", 'class="l"'), "runtime [s]", "estimates / rows", "observed (≥ 2 views)",
-                  "single view", "unobserved"], run_rows, "runs")
+        f"Methods: {', '.join(html.escape(m) for m in methods)}. "
+        + (f"This session is the paper's <b>{experiment}</b> experiment (declared by the session), so the "
+           "paper's published figures are shown beside batgraph's." if experiment else
+           "The paper's published figures are not shown: the session does not declare itself one of the "
+           "paper's scenes (session.toml <code>[paper] experiment = \"flight\"</code> or <code>\"ear\"</code>).")
+        + "</p>"
+        + _table([("method", 'class="l"'), "runtime [s]"] + [f"estimated: {html.escape(g)}"
+                                                              for g in HEADLINE_GROUPS.values()], run_rows, "runs")
         + _table([("camera", 'class="l"'), "size [px]", "fx [px]", "distance to origin [m]",
                   "measured noise [px]", "noise used [px]"], cam_rows, "rig")
     )
-    sections.append(("overview", "Overview", overview))
+    sections.append(("overview", "Session and runs", overview))
 
     # --- 3D trajectories
     truth_all = _points_cube(truth, frames, markers)
@@ -779,20 +736,20 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         "3D trajectories per method")))
 
     # --- reprojection ellipses (Fig. 5 b-f)
-    rep_mm = reprojection_in_mm(reprojection, trajectories, session.rig) if len(reprojection) else None
+    rep_mm = evaluate.reprojection_in_mm(reprojection, trajectories, session.rig) if len(reprojection) else None
     fig = _fig_reprojection_ellipses(rep_mm, methods, style, cameras, rng) if rep_mm is not None else None
     sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", _figure_html(
         fig, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "
         "the marker's depth in that camera (residual × depth / f). Ellipses: 95 % ellipse of each method's "
-        "residuals (mean ± χ²₂ 95 % of their covariance); EKF dashed and UKF solid as in the paper, "
-        "smoother solid blue, filter dash-dot, triangulation dotted. Axes: v downward as in the image.",
+        "residuals (mean ± χ²₂ 95 % of their covariance); line styles and colours as everywhere in batgraph "
+        "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image.",
         "reprojection error ellipses per camera")))
 
     # --- reprojection over image features (Fig. 6)
     sel_idx = [markers.index(m) for m in selected]
     reproj_tracks = {}
     for m in plotted:
-        cube = _trajectory_cube(trajectories, m, frames, markers)[:, sel_idx]
+        cube = session.rig.to_user(_trajectory_cube(trajectories, m, frames, markers)[:, sel_idx])
         reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig}
     fig = _fig_reprojection_image(session, reproj_tracks, plotted, style, cameras, selected, frames) \
         if plotted else None
@@ -817,45 +774,44 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         "marker coordinates over time")))
 
     # --- per-camera table
-    stats = camera_error_stats(rep_mm) if rep_mm is not None else camera_error_stats(
-        pd.DataFrame(columns=["method", "camera", "err_px", "err_mm", "outlier"]))
-    table = _camera_table(stats, summary, methods, cameras, experiment)
-    sections.append(("table", "Reprojection error per camera, next to the paper", (
-        '<p class="note">Per camera and method: inlier observations (n), flagged outliers, pixel '
-        "statistics of |(û, v̂) − (u, v)| on the raw image, and the same error in millimetres at the "
-        "marker's depth (err_px × depth / f × 1000, depth = z of the method's estimate in that camera). "
-        "Values from summary.json where present, otherwise computed from reprojection.csv. The last column "
-        f"is the paper's published figure for its {experiment} experiment"
-        + (" (its camera 1 was the base of a pairwise calibration, hence its smaller error)"
-           if experiment == "flight" else "") + ".</p>" + table
-        + "<p class=\"note\">The paper's published figures (Bender et al., PAPER.md):</p>"
-        + _paper_table(experiment))))
+    table = _camera_table(summary, methods, cameras, experiment)
+    sections.append(("table", "Reprojection error per camera", (
+        '<p class="note">Per camera and method, over the inlier observations only (n): pixel statistics of '
+        "|(û, v̂) − (u, v)| on the raw image, and the same error in millimetres at the marker's depth "
+        "(err_px × depth / f × 1000, depth = z of the method's estimate in that camera). Observations the "
+        "method flagged as outliers are counted, with their share, and left out of every figure."
+        + (f" The last column is the paper's published figure for its {experiment} experiment"
+           + (" (its camera 1 was the base of a pairwise calibration, hence its smaller error)"
+              if experiment == "flight" else "") + "." if experiment else "")
+        + "</p>" + table
+        + ("<p class=\"note\">The paper's published figures (Bender et al., PAPER.md):</p>"
+           + _paper_table(experiment) if experiment else ""))))
 
     # --- truth
     if truth is not None and plotted:
-        errors = point_errors(trajectories[trajectories["method"].isin(plotted)], truth)
-        metrics = _truth_metrics(errors, summary, plotted)
-        fig = _fig_truth(metrics, errors, plotted, style, fps) if len(errors) else None
+        errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], truth)
+        fig = _fig_truth(summary, errors, plotted, style, fps) if len(errors) else None
         sections.append(("truth", "Errors against truth", (
-            '<p class="note">RMSE of the 3D estimate against truth.csv by the status of the (frame, marker): '
-            "observed (≥ 2 views), single view, unobserved (motion model only); and the fraction of truth "
-            "points inside their estimate's 95 % ellipsoid (squared Mahalanobis distance ≤ 7.815, "
-            "χ²₃ 95 %): an honest covariance gives about 95 %.</p>"
-            + _metrics_table(metrics, plotted, with_coverage=True)
-            + _figure_html(fig, "Left: RMSE by status [mm]. Middle: 95 % coverage by status (dashed: the "
+            '<p class="note">Each method\'s own estimates against truth.csv, per kind of point: seen by ≥ 2 '
+            "cameras, gaps inside a track seen by one camera or none, and the track ends (before a marker's first "
+            "and after its last frame seen twice: extrapolation); n = the points the method estimates, so the "
+            "rows differ in n — the verdict's table compares the methods on the same points. Coverage: the "
+            "fraction of truth points inside their estimate's 95 % ellipsoid (squared Mahalanobis distance "
+            "≤ 7.815, χ²₃ 95 %): an honest covariance gives about 95 %.</p>"
+            + _group_table(summary, plotted, "truth")
+            + _figure_html(fig, "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
                            "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
                            "errors against truth"))))
 
     # --- reference
     if reference is not None and plotted:
-        errors = point_errors(trajectories[trajectories["method"].isin(plotted)], reference)
-        metrics = status_metrics(errors) if len(errors) else None
+        errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], reference)
         fig = _fig_reference(errors, plotted, style, fps) if len(errors) else None
         sections.append(("reference", "Differences to the reference reconstruction", (
             '<p class="note">Distance between each method\'s estimate and the reference 3D points '
             "(reference_xyz.csv, e.g. DLTdv's xyzpts from an import) on the frames both have. Paper (ear "
             "data): EKF and UKF within 1 mm of stereo triangulation.</p>"
-            + (_metrics_table(metrics, plotted, with_coverage=False) if metrics is not None
+            + (_group_table(summary, plotted, "reference") if len(errors)
                else '<p class="note">No common (frame, marker) pairs.</p>')
             + _figure_html(fig, "Median over markers of the distance to the reference on each frame [mm, "
                            "log]; dashed: the paper's 1 mm.", "differences to the reference"))))

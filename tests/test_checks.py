@@ -117,8 +117,8 @@ def test_millimetre_calibration_warns_and_units_key_fixes_it(tmp_path):
     assert sum("millimetres read as metres" in w for w in warnings) == 5, warnings
     assert any("camera cam1 is" in w for w in warnings)
     report = (tmp_path / "mm_as_m" / "report.html").read_text()
-    assert "Self-check warnings" in report and "millimetres read as metres" in report  # at the top
-    assert report.index("Self-check warnings") < report.index("Session <b>")
+    assert "<b>Warnings</b>" in report and "millimetres read as metres" in report  # at the top
+    assert report.index("<b>Warnings</b>") < report.index("Session <b>")
 
     cal["metadata"] = {"units": "mm"}
     (folder / "calibration.toml").write_text(tomli_w.dumps(cal))

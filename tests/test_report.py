@@ -16,17 +16,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from batgraph import evaluate
 from batgraph.camera import Camera, Rig
-from batgraph.report import (
-    CHI2_3DOF_95,
-    camera_error_stats,
-    point_errors,
-    render_report,
-    reprojection_in_mm,
-    status_metrics,
-    write_report,
-)
+from batgraph.motion import CHI2_3DOF_95
+from batgraph.report import render_report, write_report
 from batgraph.session import Session
+from batgraph.summary import summarize
 
 MARKERS = ["body2", "shoulder_r", "elbow_r", "wrist_r", "digit3_r", "tail"]
 
@@ -100,8 +95,10 @@ def make_scene(n_cams=3, n_frames=48, markers=MARKERS, fps=120.0, methods=("smoo
         reps.append(rep)
     session = Session(name=name, fps=fps, rig=rig, observations=obs, marker_names=list(markers),
                       skeleton=list(zip(markers[:-1], markers[1:], strict=True)), truth=truth)
-    summary = {"session": name, "methods": {m: {"runtime_s": 0.1 * (k + 1)} for k, m in enumerate(methods)}}
-    return session, pd.concat(trajs, ignore_index=True), pd.concat(reps, ignore_index=True), summary
+    traj = evaluate.add_span(pd.concat(trajs, ignore_index=True))
+    rep = pd.concat(reps, ignore_index=True)
+    summary = summarize(session, traj, rep, runtimes={m: 0.1 * (k + 1) for k, m in enumerate(methods)})
+    return session, traj, rep, summary
 
 
 class _Collector(HTMLParser):
@@ -161,54 +158,61 @@ def test_mm_at_depth_is_exact_on_the_optical_axis():
     rig = Rig([cam])
     traj = pd.DataFrame({"method": ["a", "b"], "frame": [0, 0], "marker": ["m", "m"],
                          "x": [0.0, np.nan], "y": [0.0, np.nan], "z": [2.0, np.nan]})
-    rep = pd.DataFrame({"method": ["a", "b", "a"], "frame": [0, 0, 0], "camera": ["c", "c", "nope"],
-                        "marker": ["m", "m", "m"], "u": [640.0, 640.0, 640.0], "v": [360.0] * 3,
-                        "u_hat": [643.0] * 3, "v_hat": [364.0] * 3, "err_px": [5.0] * 3, "outlier": False})
-    out = reprojection_in_mm(rep, traj, rig)
+    rep = pd.DataFrame({"method": ["a", "b", "a", "a"], "frame": [0, 0, 0, 0], "camera": ["c", "c", "nope", "c"],
+                        "marker": ["m", "m", "m", "m"], "u": [640.0] * 4, "v": [360.0] * 4,
+                        "u_hat": [643.0, 643.0, 643.0, 700.0], "v_hat": [364.0, 364.0, 364.0, 360.0],
+                        "err_px": [5.0, 5.0, 5.0, 60.0], "outlier": [False, False, False, True]})
+    out = evaluate.reprojection_in_mm(rep, traj, rig)
     assert out["depth_m"].iloc[0] == pytest.approx(2.0, abs=1e-12)
     assert out[["err_mm", "du_mm", "dv_mm"]].iloc[0].tolist() == pytest.approx([10.0, 6.0, 8.0], abs=1e-9)
     # no estimate (method b) and a camera missing from the rig give NaN, not an exception
-    assert out["err_mm"].iloc[1:].isna().all()
-    stats = camera_error_stats(out).set_index(["method", "camera"])
-    assert stats.loc[("a", "c"), "mean_mm_at_depth"] == pytest.approx(10.0)
-    assert stats.loc[("a", "c"), "rms_px"] == pytest.approx(5.0)
+    assert out["err_mm"].iloc[1:3].isna().all()
+    session = Session(name="s", fps=100.0, rig=rig, observations=pd.DataFrame())
+    stats = evaluate.reprojection_stats(session, out[out["method"] == "a"])["c"]
+    # the flagged observation (60 px) is counted but left out of every figure
+    assert stats["n"] == 1 and stats["n_outliers"] == 1 and stats["outlier_fraction"] == 0.5
+    assert stats["mean_mm_at_depth"] == pytest.approx(10.0) and stats["rms_px"] == pytest.approx(5.0)
 
 
 def test_truth_metrics_on_a_known_offset():
     """Every estimate off by exactly 3 mm in x: RMSE = 3 mm; d^2 = (3/sigma)^2 is 9 for sigma = 1 mm
     (outside the 95 % ellipsoid, 7.815) and 2.25 for sigma = 2 mm (inside); no tolerance needed
-    beyond float rounding."""
+    beyond float rounding. Groups follow status and span."""
     pts = pd.DataFrame({"frame": [0, 1, 2, 3], "marker": "m", "x": 0.0, "y": 0.0, "z": 1.0})
     rows = []
     for meth, sd in (("tight", 0.001), ("loose", 0.002)):
         rows.append(pts.assign(method=meth, x=0.003, cov_xx=sd**2, cov_xy=0.0, cov_xz=0.0, cov_yy=sd**2,
-                               cov_yz=0.0, cov_zz=sd**2,
+                               cov_yz=0.0, cov_zz=sd**2, n_views=[2, 2, 1, 0],
                                status=["observed", "observed", "single_view", "unobserved"]))
-    traj = pd.concat(rows, ignore_index=True)
+    traj = evaluate.add_span(pd.concat(rows, ignore_index=True))
+    assert traj["span"].tolist()[:4] == ["inside", "inside", "outside", "outside"]
     traj.loc[3, ["x", "y", "z"]] = np.nan  # one missing estimate is skipped, not counted as an error
-    err = point_errors(traj, pts)
+    err = evaluate.point_errors(traj, pts)
     assert len(err) == 7
-    assert err["d2"].to_numpy() == pytest.approx(np.where(err["method"] == "tight", 9.0, 2.25))
+    assert err["mahal2"].to_numpy() == pytest.approx(np.where(err["method"] == "tight", 9.0, 2.25))
     assert 9.0 > CHI2_3DOF_95 > 2.25
-    m = status_metrics(err).set_index(["method", "status"])
-    assert m["rmse_m"].to_numpy() == pytest.approx(0.003)
-    assert m.loc[("tight", "all"), "coverage95"] == 0.0
-    assert m.loc[("loose", "all"), "coverage95"] == 1.0
-    assert m.loc[("tight", "all"), "n"] == 3 and m.loc[("loose", "all"), "n"] == 4
-    assert m.loc[("loose", "observed"), "n"] == 2
+    tight = evaluate.truth_stats(traj[traj["method"] == "tight"], pts)
+    loose = evaluate.truth_stats(traj[traj["method"] == "loose"], pts)
+    assert tight["rmse_m"]["all"] == pytest.approx(0.003) and loose["rmse_m"]["outside"] == pytest.approx(0.003)
+    assert tight["coverage95"]["all"] == 0.0 and loose["coverage95"]["all"] == 1.0
+    assert tight["n_estimated"]["all"] == 3 and loose["n_estimated"]["all"] == 4 and tight["n"]["all"] == 4
+    assert loose["n_estimated"]["observed/inside"] == 2 and loose["n_estimated"]["single_view/outside"] == 1
+    assert tight["n_estimated"]["unobserved"] == 0 and tight["rmse_m"]["unobserved"] is None
 
 
 def test_full_report_has_every_section_and_is_self_contained(tmp_path):
-    """Truth and a reference present: 6 figures, per-camera rows, paper figures, no external links."""
-    session, traj, rep, summary = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
+    """Truth and a reference present: 7 figures, the verdict first, per-camera rows, no external links; every
+    number in a table is summary.json's."""
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
     session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)  # a DLTdv-like reference
+    summary = summarize(session, traj, rep)
     path = write_report(tmp_path / "out" / "report.html", session, traj, rep, summary)
     text = path.read_text(encoding="utf-8")
     assert list(tmp_path.joinpath("out").iterdir()) == [path]  # atomic: no temporary left behind
     p = parse(text)
-    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table", "truth",
-                          "reference"]
-    assert len(p.imgs) == 6
+    assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table",
+                          "truth", "reference"]
+    assert len(p.imgs) == 7
     for src in p.imgs:
         assert src.startswith("data:image/png;base64,")
         png = base64.b64decode(src.split(",", 1)[1])
@@ -218,63 +222,76 @@ def test_full_report_has_every_section_and_is_self_contained(tmp_path):
     assert all(h.startswith("#") for h in p.hrefs)
     assert not re.search(r"<(script|link|iframe)\b", text, re.I)
     assert not re.search(r"(https?:)?//[a-z]", re.sub(r"data:[^\"]+", "", text), re.I)
+    assert "Use the smoother result" in re.sub(r"<[^>]+>", "", text)
 
     cams = table(p, "cameras")
     header, body = cams[0], cams[1:]
-    assert "mean [mm at depth]" in header and "paper (published)" in header
+    assert "mean [mm at depth]" in header and "paper (published)" not in header  # not declared a paper scene
     cam_rows = [r for r in body if r[0] in session.rig.names]  # first row of each camera's group
     assert [r[0] for r in cam_rows] == session.rig.names
     assert len(body) == 3 * 4  # every (camera, method) pair
-    assert cam_rows[0][-1] == "< 3 mm" and all(r[-1] == "< 20 mm" for r in cam_rows[1:])
-    # the computed pixel statistics match the table built from the same rows
-    stats = camera_error_stats(reprojection_in_mm(rep, traj, session.rig)).set_index(["camera", "method"])
-    assert cam_rows[0][2] == f"{stats.loc[('cam1', 'smoother'), 'n']}"
-    assert cam_rows[0][4] == f"{stats.loc[('cam1', 'smoother'), 'mean_px']:.2f}"
-    paper = table(p, "paper")
-    assert any("< 20 mm" in c for r in paper for c in r) and any("within 1 mm" in c for r in paper for c in r)
+    s1 = summary["methods"]["smoother"]["reprojection"]["cam1"]
+    assert cam_rows[0][2] == f"{s1['n']}" and cam_rows[0][3] == "2"  # inliers, and the 2 flagged
+    assert cam_rows[0][5] == f"{s1['mean_px']:.2f}"
+
+    compare = table(p, "compare")
+    rows = {r[0]: r for r in compare[1:]}
+    c = summary["comparison"]["groups"]["observed/inside"]
+    assert rows["seen by >= 2 cameras"][1] == str(c["n"])
+    assert rows["seen by >= 2 cameras"][2].startswith(f"{1000 * c['values']['smoother']['rmse_m']:.2f}")
+    assert rows["gaps seen by 1 camera"][-1] == "not estimated"  # triangulation: one camera is not enough
 
     status_tables = [rows for c, rows in p.tables if c == "status"]
     assert len(status_tables) == 2
     truth_rows = {r[0]: r for r in status_tables[0][1:]}
     assert set(truth_rows) == {"smoother", "ekf", "ukf", "triangulate"}
-    err = point_errors(traj, session.truth)
-    ref = status_metrics(err).set_index(["method", "status"])
-    assert truth_rows["smoother"][2] == f"{ref.loc[('smoother', 'all'), 'rmse_m'] * 1000:.2f}"
-    # triangulate has no estimate without 2 views, so its unobserved cell is empty
-    assert truth_rows["triangulate"][-3] == "0"
-    ref_rows = {r[0]: r for r in status_tables[1][1:]}
-    assert ref_rows["ekf"][0] == "ekf" and ref_rows["ekf"][1] == str(len(err[err["method"] == "ekf"]))
+    t = summary["methods"]["smoother"]["truth"]
+    assert truth_rows["smoother"][2] == f"{t['rmse_m']['observed/inside'] * 1000:.2f}"
+    assert truth_rows["triangulate"][4] == "0"  # n of one-camera gaps: triangulation estimates none
+
+
+def test_paper_figures_only_for_a_declared_paper_scene(tmp_path):
+    """A session named like the paper's ear experiment gets no paper column; one that declares
+    ``[paper] experiment = "flight"`` gets the flight figures."""
+    session, traj, rep, _ = make_scene(n_cams=2, methods=("smoother", "ekf"), name="ear_session")
+    p = parse(render_report(session, traj, rep, summarize(session, traj, rep)))
+    assert "paper (published)" not in table(p, "cameras")[0]
+    session.extra_toml = {"paper": {"experiment": "flight"}}
+    p = parse(render_report(session, traj, rep, summarize(session, traj, rep)))
+    cams = [r for r in table(p, "cameras")[1:] if r[0] in session.rig.names]
+    assert cams[0][-1] == "< 3 mm" and cams[1][-1] == "< 20 mm"
 
 
 def test_report_without_truth_or_reference_omits_those_sections(tmp_path):
-    """No truth, no reference, an empty summary and a method with no estimate at all still render."""
+    """No truth, no reference, and a method with no estimate at all still render; the comparison is then
+    on reprojection."""
     session, traj, rep, _ = make_scene(n_cams=2, methods=("filter", "triangulate"), name="ear_session")
     session.truth = None
     traj.loc[traj["method"] == "triangulate", ["x", "y", "z"]] = np.nan
     rep = rep[rep["method"] == "filter"]
-    text = write_report(tmp_path / "report.html", session, traj, rep, {}).read_text(encoding="utf-8")
+    text = write_report(tmp_path / "report.html", session, traj, rep, None).read_text(encoding="utf-8")
     p = parse(text)
-    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.imgs) == 4
+    assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
+    assert len(p.imgs) == 5
     assert "Errors against truth" not in text and "reference reconstruction" not in text.split("</nav>")[0]
     cams = table(p, "cameras")[1:]
-    assert [r[0] for r in cams] == ["cam1", "cam2"] and all(r[-1] == "≤ 5 px (≈ 2 mm)" for r in cams)
+    assert [r[0] for r in cams] == ["cam1", "cam2"]
     runs = {r[0]: r for r in table(p, "runs")[1:]}
-    assert runs["triangulate"][1] == "–" and runs["triangulate"][2].startswith("0 / ")
+    assert runs["triangulate"][2].startswith("0 / ")
 
 
-def test_summary_values_take_precedence(tmp_path):
-    """Numbers present in summary.json are shown as given; missing ones are computed."""
+def test_report_shows_summary_numbers_as_given(tmp_path):
+    """The report draws summary.json's figures and recomputes none of them."""
     session, traj, rep, summary = make_scene(methods=("smoother", "ukf"))
-    summary["methods"]["smoother"]["reprojection"] = {"cam2": {"mean_px": 123.456}}
-    summary["methods"]["ukf"]["truth"] = {"rmse_m": {"all": 0.04321}, "coverage95": {"observed": 0.5}}
+    summary["methods"]["smoother"]["reprojection"]["cam2"]["mean_px"] = 123.456
+    summary["methods"]["ukf"]["truth"]["rmse_m"]["observed/inside"] = 0.04321
+    summary["methods"]["ukf"]["truth"]["coverage95"]["observed/inside"] = 0.5
     p = parse(render_report(session, traj, rep, summary))
     cams = table(p, "cameras")[1:]
     row = next(i for i, r in enumerate(cams) if r[0] == "cam2")
-    assert cams[row][1] == "smoother" and cams[row][4] == "123.46"
-    assert cams[row][5] != "–"  # median not in the summary: computed
+    assert cams[row][1] == "smoother" and cams[row][5] == "123.46"
     truth = {r[0]: r for r in table(p, "status")[1:]}
-    assert truth["ukf"][2] == "43.21" and truth["ukf"][6] == "50.0 %"
+    assert truth["ukf"][2] == "43.21" and truth["ukf"][3] == "50.0 %"
 
 
 def test_degenerate_inputs_still_render(tmp_path):
@@ -282,9 +299,9 @@ def test_degenerate_inputs_still_render(tmp_path):
     and the truth section (nothing to compare) is left out."""
     session, traj, rep, _ = make_scene(n_cams=2, n_frames=12, methods=("smoother",))
     traj[["x", "y", "z"]] = np.nan
-    text = render_report(session, traj, rep.iloc[:0], {"methods": {"smoother": None}})
+    text = render_report(session, traj, rep.iloc[:0], None)
     p = parse(text)
-    assert p.sections == ["overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.imgs) == 0
+    assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
+    assert len(p.imgs) == 1  # the marker x frame map: where the data are, even without an estimate
     assert text.count("No data to draw") == 4
     assert "No reprojection errors." in text
