@@ -1,0 +1,160 @@
+"""The typed summary (batgraph.summary): like-for-like comparisons, spans, the verdict, and one set of numbers
+shown the same way by the terminal and the report.
+
+The scene is the simulator's bat flight (its own truth), small enough to run every method in a few seconds;
+the figures are checked against a direct recomputation from trajectories.csv's rows, not against the
+summary's own code path.
+"""
+
+from __future__ import annotations
+
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from batgraph import evaluate, simulate
+from batgraph.cli import summary_lines
+from batgraph.pipeline import run_methods
+from batgraph.report import render_report
+from batgraph.result import Options
+from batgraph.summary import HEADLINE_GROUPS, OUTLIER_WARN_FRACTION, Summary, outlier_warnings, paper_experiment
+
+
+@pytest.fixture(scope="module")
+def flight():
+    """A 4-camera simulated flight run through smoother, filter, ekf and triangulate."""
+    session = simulate.simulate_flight(np.random.default_rng(3), n_cameras=4, n_markers=14, n_frames=60)
+    result = run_methods(session, ["smoother", "filter", "ekf", "triangulate"], Options(progress=False))
+    return session, result
+
+
+def test_span_is_first_to_last_frame_seen_twice():
+    n_views = np.array([[0, 2], [1, 0], [2, 1], [0, 0], [3, 1], [1, 0]])  # (F=6, M=2)
+    assert evaluate.span_of(n_views)[:, 0].tolist() == ["outside", "outside", "inside", "inside", "inside",
+                                                        "outside"]
+    assert evaluate.span_of(n_views)[:, 1].tolist() == ["inside"] + ["outside"] * 5
+    assert evaluate.span_of(np.ones((3, 1))).tolist() == [["outside"]] * 3  # never seen twice: no span
+
+
+def test_comparison_is_on_the_points_every_method_estimates(flight):
+    """Each group's n and each method's RMSE equal a direct recomputation on the intersection of the
+    (frame, marker) pairs the group's methods estimate."""
+    session, result = flight
+    traj, truth = result.trajectories, session.truth.set_index(["frame", "marker"])
+    comp = result.summary["comparison"]
+    assert comp["against"] == "truth"
+    checked = 0
+    for group, gc in comp["groups"].items():
+        keys = None
+        for m in gc["values"]:
+            t = traj[traj["method"] == m]
+            t = t[evaluate.group_mask(t, group) & np.isfinite(t["x"].to_numpy())]
+            k = set(zip(t["frame"], t["marker"], strict=True))
+            keys = k if keys is None else keys & k
+        assert gc["n"] == len(keys), group
+        for m, v in gc["values"].items():
+            t = traj[traj["method"] == m].set_index(["frame", "marker"]).loc[sorted(keys)]
+            d = t[["x", "y", "z"]].to_numpy() - truth.loc[sorted(keys), ["x", "y", "z"]].to_numpy()
+            assert v["rmse_m"] == pytest.approx(np.sqrt(np.mean(np.sum(d**2, axis=1))), rel=1e-9), (group, m)
+            checked += 1
+    assert checked >= 10
+    # triangulation estimates no point seen by one camera: it is left out of that group, not zeroed
+    if "single_view/inside" in comp["groups"]:
+        assert "triangulate" not in comp["groups"]["single_view/inside"]["values"]
+    assert set(comp["groups"]["observed/inside"]["values"]) == {"smoother", "filter", "ekf", "triangulate"}
+
+
+def test_summary_json_round_trip(flight):
+    _, result = flight
+    s = Summary.from_json(result.summary)
+    assert s.to_json() == result.summary
+    assert s.verdict.use == "smoother" and "RMSE" in s.verdict.headline
+
+
+class _Tables(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.tables, self._cls, self._row, self._cell = {}, None, None, None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "table":
+            self._cls = a.get("class")
+            self.tables[self._cls] = []
+        elif tag == "tr" and self._cls:
+            self._row = []
+        elif tag in ("td", "th") and self._row is not None:
+            self._cell = ""
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self._row.append(self._cell.strip())
+            self._cell = None
+        elif tag == "tr" and self._row is not None:
+            self.tables[self._cls].append(self._row)
+            self._row = None
+        elif tag == "table":
+            self._cls = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell += data
+
+
+def _ranking(values: dict[str, float]) -> list[str]:
+    return sorted(values, key=values.get)
+
+
+def test_terminal_and_report_show_the_same_numbers_and_ranking(flight):
+    session, result = flight
+    lines = summary_lines(result.summary)
+    methods = list(result.summary["methods"])
+    header = next(i for i, line in enumerate(lines) if line.strip().startswith("n "))
+    terminal = {}
+    for line in lines[header + 1:]:
+        for label in HEADLINE_GROUPS.values():
+            if line.startswith(label):
+                cells = re.findall(r"(\d+\.\d+|not estimated)(?: \(\d+%\))?", line[27 + 6:])
+                terminal[label] = dict(zip(methods, cells, strict=False))
+    p = _Tables()
+    p.feed(render_report(session, result.trajectories, result.reprojection, result.summary))
+    report = {r[0]: dict(zip(p.tables["compare"][0][2:], [c.split(" (")[0] for c in r[2:]], strict=True))
+              for r in p.tables["compare"][1:]}
+    assert terminal, lines
+    for label, vals in terminal.items():
+        assert vals == {m: report[label][m] for m in vals}, label
+        finite = {m: float(v) for m, v in vals.items() if v != "not estimated"}
+        assert _ranking(finite) == _ranking({m: float(report[label][m]) for m in finite})
+    # and on points seen twice the smoother ranks first on this scene (the point of comparing like for like)
+    assert _ranking({m: float(v) for m, v in terminal["seen by >= 2 cameras"].items()})[0] == "smoother"
+
+
+def test_outlier_warning_above_five_percent():
+    ok = {"reprojection": {"a": {"n": 96, "n_outliers": 4}, "b": {"n": 90, "n_outliers": 10}}}
+    w = outlier_warnings(ok, "smoother")
+    assert len(w) == 1 and w[0].startswith("camera b: the smoother flagged 10 of its 100 observations (10 %)")
+    assert 4 / 100 < OUTLIER_WARN_FRACTION < 10 / 100
+
+
+def test_paper_experiment_is_declared_never_guessed_from_the_name():
+    class S:
+        name = "flight_paper_ear"
+        extra_toml: dict = {}
+    assert paper_experiment(S()) is None
+    S.extra_toml = {"paper": {"experiment": "ear"}}
+    assert paper_experiment(S()) == "ear"
+    S.extra_toml = {"simulation": {"scene": "flight"}}
+    assert paper_experiment(S()) == "flight"
+
+
+def test_span_column_in_trajectories_and_counts_in_summary(flight):
+    _, result = flight
+    traj = result.trajectories
+    one = traj[traj["method"] == "smoother"]
+    assert set(one["span"]) <= {"inside", "outside"}
+    assert (one.loc[one["status"] == "observed", "span"] == "inside").all()
+    assert result.summary["spans"] == one["span"].value_counts().reindex(["inside", "outside"], fill_value=0).to_dict()
+    assert pd.api.types.is_string_dtype(one["span"]) or one["span"].dtype == object
