@@ -104,17 +104,10 @@ def interpolation_estimate(tri: Estimate, fps: float) -> Estimate:
 
 
 def inside_gaps(n_views: np.ndarray) -> np.ndarray:
-    """Points strictly between a marker's first and last triangulable (>= 2 views) frame, bool (F, M).
-
-    n_views: views per point (F, M). Outside this span (sequence ends, before a marker is first
-    triangulated or after it is last) interpolation is only a constant and a motion model extrapolates;
-    inside it every method has data on both sides of an occlusion gap.
-    """
-    ok = n_views >= 2
-    k = np.arange(len(n_views))[:, None]
-    first = np.where(ok.any(0), ok.argmax(0), len(n_views))
-    last = np.where(ok.any(0), len(n_views) - 1 - ok[::-1].argmax(0), -1)
-    return (k > first) & (k < last)
+    """Points inside a marker's span (batgraph.evaluate.inside_span: from its first to its last frame with
+    >= 2 views), bool (F, M); single-view and unobserved points there lie inside occlusion gaps, with data on
+    both sides, while outside it (the track ends) interpolation is a constant and a motion model extrapolates."""
+    return evaluate.inside_span(n_views)
 
 
 def record(scene: str, seed: int, row: str, s: dict, traj: pd.DataFrame, truth: pd.DataFrame,
