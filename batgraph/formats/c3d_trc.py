@@ -1,4 +1,4 @@
-"""One method's trajectories table -> C3D (biomechanics readers) and TRC (OpenSim) files, and a TRC reader.
+"""One method's trajectories table -> C3D (biomechanics readers), TRC (OpenSim) and analysis tables; a TRC reader.
 
 Input is the ``trajectories`` table of CONTRACT.md section 3 (metres, world frame, NaN xyz where a
 method has no estimate). The world frame is written as it is: no axis swap (OpenSim's Y-up is the
@@ -6,27 +6,63 @@ user's business, as it is for Pose2Sim's files, see :func:`read_trc`). Frame ``k
 time ``k / fps``; C3D and TRC count frames from 1, so session frame ``k`` is file frame ``k + 1``.
 This module does not estimate, filter or fill anything: a missing point stays missing.
 
-C3D (written with ezc3d, 32-bit float data):
+Range (``keep``, the CLI's ``--range``), applied by :func:`keep_range` to every writer here:
+
+* ``"span"`` (default, also for reconstruct's trajectories.c3d / .trc): points inside each marker's span
+  (``span == "inside"``: from its first to its last frame with >= 2 views). The track ends, where every
+  method extrapolates from the motion model alone, are written as missing.
+* ``"observed"``: only points with ``status == "observed"`` (>= 2 views that frame).
+* ``"all"``: every estimate the method made.
+
+A table without ``span`` gets it from n_views (:func:`batgraph.evaluate.add_span`); without ``status``,
+from n_views too.
+
+C3D (C3D.org's "3D Data - Floating-point Format"), 32-bit float, Intel byte order:
 
 * ``POINT:UNITS = "mm"``: C3D readers (Mokka, Visual3D, OpenSim's C3D adapter) assume millimetres,
-  so coordinates are metres x 1000.
-* ``POINT:LABELS`` = marker names; ``POINT:RATE`` = fps; header first frame = first session frame.
-* Residual of a point = ``sqrt(trace(cov) / 3)`` in mm, the RMS of the three per-axis standard
-  deviations. C3D stores it as an 8-bit count of ``|POINT:SCALE|`` mm (the spec's float format:
-  low byte of the 4th word), so it is quantised to :data:`C3D_RESIDUAL_STEP_MM` and saturates at
-  255 steps (25.5 mm): a quality flag for C3D tools. The full covariance is in trajectories.csv.
-  A point with an estimate but no covariance gets residual 0 (C3D: "computed, no residual").
-* A missing point has coordinates 0 and residual -1, the C3D convention for "invalid"; ezc3d and
-  other readers give NaN for it.
+  so coordinates are metres x 1000. ``POINT:LABELS`` = marker names; ``POINT:RATE`` = fps; header first
+  frame = first session frame + 1.
+* ``POINT:SCALE`` is negative (float data) and the header's scale factor is the same number (py-c3d
+  refuses a file where they differ). Its magnitude is the residual's unit and, as the spec asks, is
+  derived from the largest coordinate: the smallest of 0.1, 0.2, 0.5, 1, 2, 5, ... mm that is
+  >= max|coordinate| / 32000 (:func:`c3d_point_scale_mm`), so 0.1 mm for a rig within 3.2 m of its origin.
+* The 4th word of a point is a float holding a 16-bit integer: low byte = residual / |POINT:SCALE|,
+  high byte = camera mask (bit k = camera k + 1 contributed), -1 = invalid point.
+  Residual = ``sqrt(trace(cov) / 3)`` in mm, the RMS of the three per-axis posterior standard
+  deviations (not the spec's "average of the measurement residuals": batgraph's own quality figure), rounded to
+  steps of |POINT:SCALE|, at least one step and saturating at 255 steps (a quality flag; the full
+  covariance is in trajectories.csv and in ``export csv|parquet``). An estimate without covariance gets
+  residual 0 (C3D: "computed, not measured").
+* Camera mask: the cameras whose observation of that marker in that frame is in the reprojection table
+  and not flagged as an outlier (the cameras that contributed); bit order = ``cameras`` (the rig's order),
+  recorded in the parameter ``BATGRAPH:CAMERAS``. The spec has room for 7 cameras: with more, or without a
+  reprojection table, the mask is 0 (n_views alone cannot say which cameras).
+* A missing point (no estimate, or outside the range) has coordinates 0 and 4th word -1.
+* ezc3d (1.7) writes the file, then batgraph rewrites the header scale factor and every 4th word:
+  ezc3d puts the residual in the high byte and the mask in the low byte, the reverse of the spec
+  (pyomeca/ezc3d#386), so ezc3d reads batgraph's residual as a camera mask and vice versa; its
+  coordinates and missing points (NaN) are right. py-c3d, which follows the spec, reads both right.
 
 TRC (tab-separated text, the OpenSim marker format): header ``PathFileType 4 (X/Y/Z)``, then
 DataRate, CameraRate, NumFrames, NumMarkers, Units, OrigDataRate, OrigDataStartFrame, OrigNumFrames,
-then ``Frame#  Time  name1 . .  name2 ...`` and ``X1 Y1 Z1 X2 ...``. Units are metres by default
-(``units="mm"`` writes millimetres); a missing point is three empty cells.
+then ``Frame#  Time  name1 . .  name2 ...``, ``X1 Y1 Z1 X2 ...`` and a blank line. Units are metres by
+default (``units="mm"`` or ``"cm"``). Every data row has exactly 2 + 3 x NumMarkers cells, and a missing
+point is written ``NaN NaN NaN``: OpenSim 4.6's TRCFileAdapter accepts NaN (and writes ``nan`` itself)
+and accepts empty cells inside a row, but its tokenizer drops a row's trailing empty cell, so a missing
+last marker written as empty cells fails with "Unexpected number of columns".
+
+Analysis table (:func:`analysis_table`, ``batgraph export csv|parquet``): long format, one row per
+method, frame and marker (every frame x marker of the method, points outside the range with empty
+position and uncertainty): ``method, frame, time_s, marker, x_U, y_U, z_U, sd_x_U, sd_y_U, sd_z_U, r_xy,
+r_xz, r_yz, n_views, status, span`` with ``U`` the unit (m, cm or mm) in the column names; ``sd_*`` are the
+per-axis posterior standard deviations and ``r_*`` the correlations (the covariance is
+``sd_i sd_j r_ij``; NaN where a standard deviation is 0). Read with ``pandas.read_csv`` /
+``pandas.read_parquet`` or R's ``read.csv`` / ``arrow::read_parquet``.
 """
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,10 +73,43 @@ import pandas as pd
 from ..atomic import atomic_path, write_text
 from ..errors import InputError
 
+RANGES = ("span", "observed", "all")
+"""Values of ``keep`` / ``--range``; the first is the default."""
+
 C3D_RESIDUAL_STEP_MM = 0.1
-"""Resolution of the C3D residual [mm] (|POINT:SCALE|); the largest storable residual is 255 steps."""
+"""The smallest |POINT:SCALE| [mm], the finest residual step; see :func:`c3d_point_scale_mm`."""
+
+C3D_MAX_CAMERAS = 7
+"""Cameras a C3D camera mask can name (the high byte's 8th bit is the sign of "invalid")."""
 
 _UNIT_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
+_COV_COLS = ["cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz"]
+
+
+def keep_range(trajectories: pd.DataFrame, keep: str = "span") -> pd.DataFrame:
+    """The table with positions and covariances outside the range set to NaN (see the module docstring).
+
+    keep: "span" (span == inside), "observed" (status == observed) or "all" (unchanged).
+    Adds ``status`` / ``span`` from n_views where the table lacks them. Rows are kept, in order.
+    """
+    from ..evaluate import add_span, status_of
+
+    if keep not in RANGES:
+        raise ValueError(f"keep must be one of {', '.join(RANGES)}; got {keep!r}")
+    t = trajectories.copy()
+    if keep == "all":
+        return t
+    if "status" not in t.columns or "span" not in t.columns:
+        if "n_views" not in t.columns:
+            raise ValueError(f"range {keep!r} needs the table's n_views (or its status and span columns)")
+        if "status" not in t.columns:
+            t["status"] = status_of(t["n_views"].to_numpy())
+        if "span" not in t.columns:
+            t = add_span(t) if "method" in t.columns else add_span(t.assign(method="")).drop(columns="method")
+    inside = (t["span"] == "inside") if keep == "span" else (t["status"] == "observed")
+    cols = ["x", "y", "z"] + [c for c in _COV_COLS if c in t.columns]
+    t.loc[~inside.to_numpy(), cols] = np.nan
+    return t
 
 
 @dataclass
@@ -98,70 +167,154 @@ def dense_trajectories(trajectories: pd.DataFrame, markers: list[str] | None = N
     return DenseTrajectories(frames, names, xyz, cov)
 
 
-def c3d_residual_mm(cov_m2: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The C3D residual written for each point, shape (...) [mm].
+def c3d_point_scale_mm(max_abs_mm: float) -> float:
+    """|POINT:SCALE| [mm] for float data whose largest |coordinate| is ``max_abs_mm``: the smallest of
+    0.1, 0.2, 0.5, 1, 2, 5, ... mm with ``32000 x scale >= max_abs_mm`` (the spec derives the scale from
+    the largest coordinate, so that an integer conversion fits), never below :data:`C3D_RESIDUAL_STEP_MM`."""
+    need = max_abs_mm / 32000.0 if np.isfinite(max_abs_mm) else 0.0
+    scale = C3D_RESIDUAL_STEP_MM
+    decade = C3D_RESIDUAL_STEP_MM
+    while scale < need * (1 - 1e-12):
+        for m in (1.0, 2.0, 5.0):
+            scale = round(decade * m, 10)
+            if scale >= need * (1 - 1e-12):
+                break
+        decade *= 10
+    return scale
 
-    cov_m2: covariances (..., 3, 3) [m^2]; valid: bool (...), True where the point has an estimate.
-    Returns ``sqrt(trace / 3)`` in mm, quantised to :data:`C3D_RESIDUAL_STEP_MM`, at least one step
-    and at most 255 steps; 0 where valid without a finite covariance; -1 where not valid.
+
+def c3d_residual_counts(cov_m2: np.ndarray, valid: np.ndarray, scale_mm: float = C3D_RESIDUAL_STEP_MM) -> np.ndarray:
+    """The C3D residual byte of each point (integer, shape (...)): residual / |POINT:SCALE|.
+
+    cov_m2: covariances (..., 3, 3) [m^2]; valid: bool (...), True where the point is written.
+    ``round(sqrt(trace / 3) [mm] / scale_mm)`` clipped to 1..255; 0 where valid without a finite
+    covariance; -1 where not valid. Times ``scale_mm`` it is the residual in mm a reader gets.
     """
     rms_mm = np.sqrt(np.trace(cov_m2, axis1=-2, axis2=-1) / 3.0) * 1e3
-    step = C3D_RESIDUAL_STEP_MM
-    q = np.clip(np.round(rms_mm / step), 1, 255) * step
-    return np.where(valid, np.where(np.isfinite(rms_mm), q, 0.0), -1.0)
+    with np.errstate(invalid="ignore"):
+        q = np.clip(np.round(rms_mm / scale_mm), 1, 255)
+    return np.where(valid, np.where(np.isfinite(rms_mm), q, 0), -1).astype(np.int32)
+
+
+def c3d_residual_mm(cov_m2: np.ndarray, valid: np.ndarray, scale_mm: float = C3D_RESIDUAL_STEP_MM) -> np.ndarray:
+    """The residual [mm] a C3D reader gets for each point: :func:`c3d_residual_counts` x ``scale_mm``, -1 if invalid."""
+    n = c3d_residual_counts(cov_m2, valid, scale_mm)
+    return np.where(n >= 0, n * scale_mm, -1.0)
+
+
+def c3d_camera_masks(reprojection: pd.DataFrame | None, d: DenseTrajectories, method: str | None,
+                     cameras: list[str] | None) -> tuple[np.ndarray, list[str]]:
+    """Camera mask (F, M) int for :func:`write_c3d` and the cameras its bits name (bit k = cameras[k]).
+
+    A camera contributes to a point when the reprojection table has its observation of that marker in that
+    frame, for this method, not flagged as an outlier. ``cameras``: bit order (the rig's); None = order of
+    first appearance in the table. More than :data:`C3D_MAX_CAMERAS` cameras, or no table: all 0, no names.
+    """
+    F, M = d.xyz_m.shape[:2]
+    mask = np.zeros((F, M), np.int32)
+    if reprojection is None or len(reprojection) == 0:
+        return mask, []
+    r = reprojection
+    if method is not None and "method" in r.columns:
+        r = r[r["method"] == method]
+    names = list(cameras) if cameras is not None else list(dict.fromkeys(r["camera"].astype(str)))
+    if not names or len(names) > C3D_MAX_CAMERAS:
+        return mask, []
+    if "outlier" in r.columns:
+        r = r[~r["outlier"].astype(bool)]
+    fi = r["frame"].to_numpy(np.int64) - int(d.frames[0])
+    mi = r["marker"].astype(str).map({n: i for i, n in enumerate(d.markers)}).to_numpy(float)
+    bit = r["camera"].astype(str).map({n: k for k, n in enumerate(names)}).to_numpy(float)
+    ok = (fi >= 0) & (fi < F) & np.isfinite(mi) & np.isfinite(bit)
+    np.bitwise_or.at(mask, (fi[ok], mi[ok].astype(np.int64)), (1 << bit[ok].astype(np.int32)).astype(np.int32))
+    return mask, names
+
+
+def _patch_c3d(path: Path, word4: np.ndarray, scale: float) -> None:
+    """Set the header scale factor to ``scale`` and every point's 4th word to ``word4`` (F, M) in the
+    float C3D ezc3d wrote at ``path`` (Intel byte order, points only, frames in order)."""
+    b = bytearray(path.read_bytes())
+    F, M = word4.shape
+    param_start = (b[0] - 1) * 512
+    n_points, n_analog = struct.unpack_from("<HH", b, 2)
+    data_start = (struct.unpack_from("<H", b, 16)[0] - 1) * 512
+    if (b[1] != 0x50 or b[param_start + 3] != 84 or n_points != M or n_analog != 0
+            or struct.unpack_from("<f", b, 12)[0] >= 0 or len(b) < data_start + F * M * 16):
+        raise RuntimeError(f"{path}: ezc3d wrote an unexpected C3D layout; cannot set residuals and camera masks")
+    struct.pack_into("<f", b, 12, -scale)
+    data = np.frombuffer(b, dtype="<f4", count=F * M * 4, offset=data_start).reshape(F, M, 4).copy()
+    data[..., 3] = word4.astype(np.float32)
+    b[data_start:data_start + data.nbytes] = data.tobytes()
+    end = data_start + -(-data.nbytes // 512) * 512  # the data's last 512-byte block
+    if not any(b[end:]):  # ezc3d appends a whole zero block after block-aligned data; readers warn about it
+        del b[end:]
+    path.write_bytes(bytes(b))
 
 
 def write_c3d(path: str | Path, trajectories: pd.DataFrame, fps: float, markers: list[str] | None = None,
-              method: str | None = None) -> Path:
+              method: str | None = None, keep: str = "span", reprojection: pd.DataFrame | None = None,
+              cameras: list[str] | None = None) -> Path:
     """Write one method's trajectories to a C3D file (mm, see the module docstring). Atomic.
 
     path: output ``.c3d``; trajectories: CONTRACT.md section 3 table [m]; fps: frame rate [Hz];
-    markers: label order (None = order in the table); method: see :func:`dense_trajectories`.
+    markers: label order (None = order in the table); method: see :func:`dense_trajectories`;
+    keep: range, see :func:`keep_range`; reprojection: the reprojection table, for the camera masks;
+    cameras: the rig's camera order (bit k of the mask = cameras[k]); see :func:`c3d_camera_masks`.
     """
-    d = dense_trajectories(trajectories, markers, method)
+    d = dense_trajectories(keep_range(trajectories, keep), markers, method)
     valid = np.isfinite(d.xyz_m).all(axis=-1)  # (F, M)
     F, M = valid.shape
+    xyz_mm = np.where(valid[..., None], d.xyz_m * 1e3, 0.0)
+    scale = c3d_point_scale_mm(float(np.abs(xyz_mm).max(initial=0.0)))
     pts = np.zeros((4, M, F))
-    pts[:3] = np.where(valid[..., None], d.xyz_m * 1e3, 0.0).transpose(2, 1, 0)
+    pts[:3] = xyz_mm.transpose(2, 1, 0)
     pts[3] = 1.0
+    if method is None and "method" in trajectories.columns and len(trajectories):
+        method = str(trajectories["method"].iloc[0])
+    mask, cam_names = c3d_camera_masks(reprojection, d, method, cameras)
+    counts = c3d_residual_counts(d.cov_m2, valid, scale)
+    word4 = np.where(valid, mask * 256 + counts, -1)
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(fps)]
     c["parameters"]["POINT"]["LABELS"]["value"] = tuple(d.markers)
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = tuple(
         "batgraph; residual = RMS of per-axis std [mm]" for _ in d.markers)
-    # negative scale = float data; its magnitude is the residual's unit (C3D spec)
-    c["parameters"]["POINT"]["SCALE"]["value"] = [-C3D_RESIDUAL_STEP_MM]
+    c["parameters"]["POINT"]["SCALE"]["value"] = [-scale]
     c.add_parameter("POINT", "UNITS", "mm")
+    c.add_parameter("BATGRAPH", "RANGE", keep)
+    if cam_names:
+        c.add_parameter("BATGRAPH", "CAMERAS", tuple(cam_names))
     c["header"]["points"]["first_frame"] = int(d.frames[0])
     c["data"]["points"] = pts
-    res = c3d_residual_mm(d.cov_m2, valid)
-    # the file holds residual / |scale| as an integer and ezc3d truncates: a quarter step up makes
-    # truncation and rounding both land on the intended count
-    res = np.where(res > 0, res + C3D_RESIDUAL_STEP_MM / 4, res)
-    c["data"]["meta_points"]["residuals"] = res.T[None]
     path = Path(path)
     with atomic_path(path) as tmp:
         c.write(str(tmp))
+        _patch_c3d(Path(tmp), word4, scale)
     return path
 
 
+TRC_MISSING = "NaN"
+"""A missing coordinate in a TRC file (OpenSim reads it as NaN; an empty last cell would be dropped)."""
+
+
 def _fmt(values: np.ndarray, fmt: str) -> np.ndarray:
-    """Numbers -> strings, NaN -> '' (TRC's missing cell)."""
+    """Numbers -> strings, NaN -> :data:`TRC_MISSING`."""
     out = np.char.mod(fmt, np.nan_to_num(values))
-    return np.where(np.isfinite(values), out, "")
+    return np.where(np.isfinite(values), out, TRC_MISSING)
 
 
 def write_trc(path: str | Path, trajectories: pd.DataFrame, fps: float, markers: list[str] | None = None,
-              method: str | None = None, units: str = "m") -> Path:
+              method: str | None = None, units: str = "m", keep: str = "span") -> Path:
     """Write one method's trajectories to an OpenSim TRC file (see the module docstring). Atomic.
 
-    units: "m" (default, the table's own unit) or "mm". Frame# = session frame + 1, Time = frame / fps.
+    units: "m" (default, the table's own unit), "cm" or "mm". Frame# = session frame + 1, Time = frame / fps.
+    keep: range, see :func:`keep_range`. Every data row has 2 + 3 x NumMarkers cells; missing = NaN.
     """
-    if units not in ("m", "mm"):
-        raise ValueError(f"units must be 'm' or 'mm', got {units!r}")
-    d = dense_trajectories(trajectories, markers, method)
+    if units not in _UNIT_TO_M:
+        raise ValueError(f"units must be one of {', '.join(_UNIT_TO_M)}; got {units!r}")
+    d = dense_trajectories(keep_range(trajectories, keep), markers, method)
     F, M = d.xyz_m.shape[:2]
-    scale = 1.0 if units == "m" else 1e3
+    scale = 1.0 / _UNIT_TO_M[units]
     first = int(d.frames[0]) + 1
     rate = f"{float(fps):g}"
     lines = [
@@ -180,6 +333,52 @@ def write_trc(path: str | Path, trajectories: pd.DataFrame, fps: float, markers:
     body = "\n".join("\t".join(row) for row in cells)
     write_text(path, "\n".join(lines) + "\n" + body + "\n")
     return Path(path)
+
+
+def analysis_table(trajectories: pd.DataFrame, units: str = "m", keep: str = "span",
+                   method: str | None = None) -> pd.DataFrame:
+    """The long analysis table of the module docstring from a trajectories table (no recomputation).
+
+    units: "m", "cm" or "mm" for positions and standard deviations (in the column names);
+    keep: range (:func:`keep_range`); method: keep only this method (None = every method in the table).
+    """
+    if units not in _UNIT_TO_M:
+        raise ValueError(f"units must be one of {', '.join(_UNIT_TO_M)}; got {units!r}")
+    t = trajectories if method is None else trajectories[trajectories["method"] == method]
+    t = keep_range(t, keep).reset_index(drop=True)
+    s = 1.0 / _UNIT_TO_M[units]
+    out = t[[c for c in ("method", "frame", "time_s", "marker") if c in t.columns]].copy()
+    for a in "xyz":
+        out[f"{a}_{units}"] = t[a].to_numpy(float) * s
+    var = {a: t[f"cov_{a}{a}"].to_numpy(float) if f"cov_{a}{a}" in t.columns else np.full(len(t), np.nan)
+           for a in "xyz"}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sd = {a: np.sqrt(v) for a, v in var.items()}
+        for a in "xyz":
+            out[f"sd_{a}_{units}"] = sd[a] * s
+        for a, b in (("x", "y"), ("x", "z"), ("y", "z")):
+            cov = t[f"cov_{a}{b}"].to_numpy(float) if f"cov_{a}{b}" in t.columns else np.full(len(t), np.nan)
+            den = sd[a] * sd[b]
+            out[f"r_{a}{b}"] = np.where(den > 0, cov / np.where(den > 0, den, 1.0), np.nan)
+    for c in ("n_views", "status", "span"):
+        if c in t.columns:
+            out[c] = t[c].to_numpy()
+    return out
+
+
+def write_table(path: str | Path, trajectories: pd.DataFrame, units: str = "m", keep: str = "span",
+                method: str | None = None) -> Path:
+    """Write :func:`analysis_table` as CSV or Parquet (by the suffix: ``.csv`` or ``.parquet``). Atomic."""
+    path = Path(path)
+    table = analysis_table(trajectories, units, keep, method)
+    if path.suffix == ".parquet":
+        with atomic_path(path) as tmp:
+            table.to_parquet(tmp, index=False)
+    elif path.suffix == ".csv":
+        write_text(path, table.to_csv(index=False, float_format="%.9g"))
+    else:
+        raise ValueError(f"{path}: the suffix must be .csv or .parquet")
+    return path
 
 
 @dataclass
@@ -243,7 +442,8 @@ def read_trc(path: str | Path) -> Trc:
         raise InputError(f"{path}: no data rows")
     table = pd.DataFrame(rows)
     num = table.apply(lambda col: pd.to_numeric(col.str.strip().replace("", np.nan), errors="coerce"))
-    bad = num.isna().to_numpy() & (table.apply(lambda col: col.str.strip()) != "").to_numpy()
+    text = table.apply(lambda col: col.str.strip().str.lower())
+    bad = num.isna().to_numpy() & ~text.isin(["", "nan"]).to_numpy()  # empty and NaN cells are missing
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise InputError(f"{path} line {line_no[r]}, column {c + 1}: {table.iat[r, c]!r} is not a number")
