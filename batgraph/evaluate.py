@@ -102,6 +102,41 @@ def reprojection_table(session: Session, dense: DenseObservations, est: Estimate
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=REPROJ_COLUMNS)
 
 
+def dense_from_table(table: pd.DataFrame, frames: np.ndarray | None = None, markers: list[str] | None = None,
+                     method: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """The inverse of :func:`trajectories_table`: rows -> dense arrays (the one converter every module uses).
+
+    table: frame, marker, x, y, z [m] (cov_* and method optional; truth.csv works too).
+    frames: the frame axis (sorted ints); None = contiguous from the table's first to its last frame.
+    markers: the marker axis; None = order of first appearance. Rows outside either axis are dropped.
+    method: keep only that method's rows (None: the table must hold one method, or no method column).
+    Returns (xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2], frames, markers); NaN where the table has no value.
+    """
+    t = table
+    if "method" in t.columns:
+        if method is not None:
+            t = t[t["method"] == method]
+        elif t["method"].nunique() > 1:
+            raise ValueError(f"the table holds several methods {list(pd.unique(t['method']))}; pass method=")
+    names = list(markers) if markers is not None else list(dict.fromkeys(t["marker"].astype(str)))
+    frame = t["frame"].to_numpy(np.int64)
+    if frames is None:
+        frames = np.arange(frame.min(), frame.max() + 1) if len(frame) else np.zeros(0, np.int64)
+    frames = np.asarray(frames, np.int64)
+    F, M = len(frames), len(names)
+    fi = np.searchsorted(frames, frame)
+    mi = t["marker"].astype(str).map({n: i for i, n in enumerate(names)}).to_numpy(float)
+    ok = (fi < F) & np.isfinite(mi)
+    ok[ok] = frames[fi[ok]] == frame[ok]
+    fi, mi = fi[ok], mi[ok].astype(int)
+    xyz = np.full((F, M, 3), np.nan)
+    cov = np.full((F, M, 3, 3), np.nan)
+    xyz[fi, mi] = t[["x", "y", "z"]].to_numpy(float)[ok]
+    if all(c in t.columns for c in TRAJ_COLUMNS[7:13]):
+        cov[fi, mi] = cov_matrices(t[ok])
+    return xyz, cov, frames, names
+
+
 def cov_matrices(traj: pd.DataFrame) -> np.ndarray:
     """(n, 3, 3) covariance matrices from a trajectories table's cov_* columns."""
     c = traj[TRAJ_COLUMNS[7:13]].to_numpy(float)

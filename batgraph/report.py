@@ -112,19 +112,14 @@ def _status_runs(frames: np.ndarray, mask: np.ndarray) -> list[tuple[int, int]]:
 def _trajectory_cube(trajectories: pd.DataFrame, method: str, frames: np.ndarray,
                      markers: list[str]) -> np.ndarray:
     """xyz of one method as a dense array (F, M, 3) [m], NaN where absent."""
-    t = trajectories[trajectories["method"] == method].drop_duplicates(["frame", "marker"])
-    idx = pd.MultiIndex.from_product([frames, markers], names=["frame", "marker"])
-    return t.set_index(["frame", "marker"])[["x", "y", "z"]].reindex(idx).to_numpy(float).reshape(
-        len(frames), len(markers), 3)
+    return evaluate.dense_from_table(trajectories, frames, markers, method=method)[0]
 
 
 def _points_cube(points: pd.DataFrame | None, frames: np.ndarray, markers: list[str]) -> np.ndarray | None:
+    """xyz of truth / reference points as (F, M, 3) [m], or None without any."""
     if points is None or len(points) == 0:
         return None
-    t = points.drop_duplicates(["frame", "marker"])
-    idx = pd.MultiIndex.from_product([frames, markers], names=["frame", "marker"])
-    return t.set_index(["frame", "marker"])[["x", "y", "z"]].reindex(idx).to_numpy(float).reshape(
-        len(frames), len(markers), 3)
+    return evaluate.dense_from_table(points.drop_duplicates(["frame", "marker"]), frames, markers)[0]
 
 
 def _legend_handles(methods, style, extra=()):

@@ -72,6 +72,7 @@ import pandas as pd
 
 from ..atomic import atomic_path, write_text
 from ..errors import InputError
+from ..evaluate import dense_from_table
 
 RANGES = ("span", "observed", "all")
 """Values of ``keep`` / ``--range``; the first is the default."""
@@ -138,32 +139,13 @@ def dense_trajectories(trajectories: pd.DataFrame, markers: list[str] | None = N
     The frame axis runs contiguously from the first to the last frame of the table.
     """
     t = trajectories
-    if "method" in t.columns:
-        methods = list(dict.fromkeys(t["method"]))
-        if method is None and len(methods) > 1:
-            raise ValueError(f"trajectories hold several methods {methods}; pass method=")
-        if method is not None:
-            t = t[t["method"] == method]
+    if "method" in t.columns and method is None and t["method"].nunique() > 1:
+        raise ValueError(f"trajectories hold several methods {list(dict.fromkeys(t['method']))}; pass method=")
+    if "method" in t.columns and method is not None:
+        t = t[t["method"] == method]
     if len(t) == 0:
         raise ValueError(f"no trajectories{f' for method {method!r}' if method else ''}")
-    names = list(markers) if markers is not None else list(dict.fromkeys(t["marker"].astype(str)))
-    t = t[t["marker"].astype(str).isin(names)]
-    frame = t["frame"].to_numpy(np.int64)
-    frames = np.arange(frame.min(), frame.max() + 1)
-    fi = frame - frames[0]
-    mi = t["marker"].astype(str).map({n: i for i, n in enumerate(names)}).to_numpy()
-    F, M = len(frames), len(names)
-    xyz = np.full((F, M, 3), np.nan)
-    xyz[fi, mi] = t[["x", "y", "z"]].to_numpy(float)
-    cov = np.full((F, M, 3, 3), np.nan)
-    cols = ["cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz"]
-    if all(c in t.columns for c in cols):
-        c6 = t[cols].to_numpy(float)
-        iu = np.triu_indices(3)
-        block = np.empty((len(t), 3, 3))
-        block[:, iu[0], iu[1]] = c6
-        block[:, iu[1], iu[0]] = c6
-        cov[fi, mi] = block
+    xyz, cov, frames, names = dense_from_table(t, markers=markers)
     return DenseTrajectories(frames, names, xyz, cov)
 
 
