@@ -210,13 +210,12 @@ def headline(summary: dict, use: str) -> str:
     m = (summary.get("methods") or {}).get(use) or {}
     t = m.get("truth")
     if t:
-        parts.append(f"against truth: RMSE {_mm(t['rmse_m'].get('observed/inside'))} where seen by >= 2 cameras "
-                     f"(n={t['n_estimated'].get('observed/inside', 0)}), "
-                     f"{_mm(t['rmse_m'].get('single_view/inside'))} in one-camera gaps "
-                     f"(n={t['n_estimated'].get('single_view/inside', 0)}), "
-                     f"{_mm(t['rmse_m'].get('unobserved/inside'))} in unseen gaps "
-                     f"(n={t['n_estimated'].get('unobserved/inside', 0)}), "
-                     f"{_mm(t['rmse_m'].get('outside'))} at track ends (n={t['n_estimated'].get('outside', 0)})")
+        parts.append("against truth: RMSE " + ", ".join(
+            f"{_mm(t['rmse_m'].get(g))} {where} (n={t['n_estimated'].get(g, 0)})"
+            for g, where in (("observed/inside", "where seen by >= 2 cameras"),
+                             ("single_view/inside", "in one-camera gaps"), ("unobserved/inside", "in unseen gaps"),
+                             ("outside", "at track ends"))
+            if t["n_estimated"].get(g)))
     rep = [c for c in (m.get("reprojection") or {}).values() if c.get("median_px") is not None]
     if rep:
         med = float(np.median([c["median_px"] for c in rep]))
