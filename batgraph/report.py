@@ -548,7 +548,7 @@ def _comparison_table(summary: dict, style) -> str:
     header = [("points", 'class="l"'), "n"] + [(html.escape(m), f'style="color:{style.get(m, ("#000",))[0]}"')
                                                for m in c.methods]
     rows = []
-    for g, label in [("all", "all that every method estimates"), *HEADLINE_GROUPS.items()]:
+    for g, label in HEADLINE_GROUPS.items():
         gc = c.groups.get(g)
         if gc is None:
             continue

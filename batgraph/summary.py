@@ -198,7 +198,8 @@ def _mm(x) -> str:
 
 def headline(summary: dict, use: str) -> str:
     """The headline accuracy of method ``use``: held-out-camera error when validated, truth RMSE when known,
-    else the inlier reprojection error (median over cameras of each camera's median)."""
+    the difference to a reference when there is one, and the inlier reprojection error (median over cameras
+    of each camera's median)."""
     parts = []
     v = summary.get("validation") or {}
     rows = [r for r in v.get("table") or [] if r.get("held_out") == "all" and r.get("method") == use
@@ -216,6 +217,9 @@ def headline(summary: dict, use: str) -> str:
                              ("single_view/inside", "in one-camera gaps"), ("unobserved/inside", "in unseen gaps"),
                              ("outside", "at track ends"))
             if t["n_estimated"].get(g)))
+    ref = m.get("reference") or {}
+    if ref.get("n"):
+        parts.append(f"{_mm(ref.get('rms_m'))} RMS from the reference 3D (reference_xyz.csv, n={ref['n']})")
     rep = [c for c in (m.get("reprojection") or {}).values() if c.get("median_px") is not None]
     if rep:
         med = float(np.median([c["median_px"] for c in rep]))
