@@ -1,12 +1,56 @@
-"""Atomic file writes: a crash never leaves a half-written file under its final name."""
+"""Atomic writes: a crash never leaves a half-written file under its final name, nor a half-replaced result folder.
+
+Files: :func:`atomic_path`, :func:`write_text`, :func:`write_bytes` write a temporary beside the file and
+rename it over the final name.
+
+Folders: :func:`result_folder` stages a whole set of files (one ``reconstruct`` result) in a temporary folder
+beside the target, on the same file system, and swaps it in at the end. The hidden siblings of a folder
+``NAME`` are
+
+=====================================  ===========================================================
+``.NAME.batgraph-tmp-<pid>-<random>``  being written by process ``<pid>``; incomplete
+``.NAME.batgraph-new``                 complete, about to replace ``NAME``
+``.NAME.batgraph-old``                 the previous ``NAME``, about to be removed
+=====================================  ===========================================================
+
+and the swap is: rename tmp -> new (the new set is complete), NAME -> old, new -> NAME, remove old.
+A kill at any point leaves ``NAME`` holding the previous complete result or the new complete one (between
+the two renames, for a moment, only ``.NAME.batgraph-new`` and ``.NAME.batgraph-old``); the next
+:func:`result_folder` (or :func:`recover_folder`) on ``NAME`` first removes the temporaries of dead
+processes and finishes a half-done swap (the complete new result wins; the previous one is restored only
+when no complete new one exists).
+
+Files in the folder that are not in the set (the user's notes, ``calibrate``'s calibration.toml, exports)
+are carried over into the new folder as hard links (copies where the file system has none), so they are
+never lost; a file of the set that this run does not write (e.g. recording.rrd of an earlier run, now run
+with ``--viewer none``) is not carried over: the folder then holds one result, not a mix of two.
+
+Where a folder cannot be renamed (it is the working directory or one of its parents, a mount point, or its
+parent is not writable) the set is staged inside the folder and its files are renamed in one at a time:
+each file is still whole, but a kill can leave a mix of two results.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
+import shutil
 import tempfile
-from collections.abc import Iterator
+import uuid
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+TMP_TAG = ".batgraph-tmp-"
+NEW_TAG = ".batgraph-new"
+OLD_TAG = ".batgraph-old"
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextlib.contextmanager
@@ -14,7 +58,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
 
     For writers that want a file name (ezc3d, rerun, matplotlib). The temporary keeps the
-    final suffix so that libraries choosing a format by extension still work.
+    final suffix so that libraries choosing a format by extension still work. The file gets the
+    permissions of an ordinary new file (0666 less the umask), not mkstemp's 0600.
     """
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
@@ -23,6 +68,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.exists():
+            os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, final)
     finally:
         if tmp_path.exists():
@@ -39,3 +86,200 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+# ----------------------------------------------------------------------------------------------
+# result folders
+# ----------------------------------------------------------------------------------------------
+def _siblings(target: Path) -> tuple[Path, Path]:
+    """(new, old) hidden siblings of a result folder."""
+    return target.parent / f".{target.name}{NEW_TAG}", target.parent / f".{target.name}{OLD_TAG}"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # someone else's process (or unknowable): leave its folder alone
+    return True
+
+
+def _stale_temporaries(folder: Path, prefix: str) -> list[Path]:
+    """``prefix<pid>-<random>`` entries of ``folder`` whose process is gone."""
+    pat = re.compile(re.escape(prefix) + r"(\d+)-[0-9a-f]+$")
+    out = []
+    try:
+        entries = list(folder.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return out
+    for p in entries:
+        m = pat.fullmatch(p.name)
+        if m and not _pid_alive(int(m.group(1))):
+            out.append(p)
+    return out
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _is_leftover_of(name: str, owned: set[str]) -> bool:
+    """A temporary of :func:`atomic_path` for a file of the set (``.stem.XXXX.suffix``), left by a kill."""
+    for o in owned:
+        stem, suffix = os.path.splitext(o)
+        if re.fullmatch(rf"\.{re.escape(stem)}\.[A-Za-z0-9_]{{8}}{re.escape(suffix)}", name):  # mkstemp's name
+            return True
+    return name.startswith(TMP_TAG)
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(src, dst, follow_symlinks=False)
+
+
+def _carry(src: Path, dst: Path, owned: set[str]) -> list[str]:
+    """Hard-link (or copy) the entries of ``src`` that are not in the set and not yet in ``dst``; returns names."""
+    carried = []
+    for p in sorted(src.iterdir()):
+        if p.name in owned or _is_leftover_of(p.name, owned) or os.path.lexists(dst / p.name):
+            continue
+        if p.is_symlink():
+            os.symlink(os.readlink(p), dst / p.name)
+        elif p.is_dir():
+            shutil.copytree(p, dst / p.name, symlinks=True, copy_function=_link_or_copy)
+        else:
+            _link_or_copy(str(p), str(dst / p.name))
+        carried.append(p.name)
+    return carried
+
+
+def recover_folder(target: str | os.PathLike, owned: Iterable[str] = ()) -> list[str]:
+    """Clean up after a killed :func:`result_folder` on ``target``; returns what was done (for messages).
+
+    Removes the staging folders of processes that no longer run (beside and inside ``target``), then
+    finishes a half-done swap: a complete ``.NAME.batgraph-new`` becomes ``NAME`` (files of ``NAME`` or
+    ``.NAME.batgraph-old`` outside the set ``owned`` carried over), a lone ``.NAME.batgraph-old`` is
+    restored as ``NAME``, and one beside a complete ``NAME`` is removed.
+    """
+    target = Path(os.path.realpath(target))
+    owned = set(owned)
+    done = []
+    for p in _stale_temporaries(target.parent, f".{target.name}{TMP_TAG}") + _stale_temporaries(target, TMP_TAG):
+        _remove(p)
+        done.append(f"removed the unfinished {p.name} of a killed run")
+    new, old = _siblings(target)
+    if new.is_dir():
+        if target.is_dir():  # killed after new was complete, before target moved aside
+            _remove(old)
+            os.rename(target, old)
+        if old.is_dir():
+            _carry(old, new, owned)
+        os.rename(new, target)
+        done.append(f"finished replacing {target.name} by the complete result of a killed run")
+    if old.is_dir():
+        if target.is_dir():
+            _carry(old, target, owned)  # a file added while the swap was half done
+            _remove(old)
+        else:
+            os.rename(old, target)
+            done.append(f"restored the previous {target.name} of a killed run")
+    elif os.path.lexists(old):
+        _remove(old)
+    return done
+
+
+def _renamable(target: Path) -> bool:
+    """Whether ``target`` can be swapped by renaming (see the module doc for when it cannot)."""
+    try:
+        cwd = Path(os.path.realpath(os.getcwd()))
+    except OSError:
+        cwd = None
+    if cwd is not None and (cwd == target or target in cwd.parents):
+        return False
+    if target.is_dir() and os.path.ismount(target):
+        return False
+    return os.access(target.parent, os.W_OK | os.X_OK)
+
+
+def _folder_mode(target: Path) -> int:
+    return (target.stat().st_mode & 0o7777) if target.is_dir() else (0o777 & ~_umask())
+
+
+@contextlib.contextmanager
+def result_folder(target: str | os.PathLike, owned: Iterable[str], in_place: bool = False) -> Iterator[Path]:
+    """Yield an empty staging folder; when the block completes, it replaces ``target`` as a whole.
+
+    owned: names of the files that make one result (everything else in ``target`` is carried over).
+    in_place: stage inside ``target`` and rename file by file (used when ``target`` is, e.g., the
+        session folder itself); also chosen automatically when ``target`` cannot be renamed.
+    If the block raises (or the process is killed), ``target`` is left as it was. A half-done swap
+    of a killed earlier run is finished first (:func:`recover_folder`).
+    """
+    final = Path(os.path.realpath(target))
+    owned = set(owned)
+    if os.path.lexists(final) and not final.is_dir():
+        from .errors import InputError
+
+        raise InputError(f"{target}: exists and is not a folder")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    recover_folder(final, owned)
+    in_place = in_place or not _renamable(final)
+    tag = f"{TMP_TAG}{os.getpid()}-{uuid.uuid4().hex[:12]}"
+    if in_place:
+        final.mkdir(exist_ok=True)
+        stage = final / tag
+    else:
+        stage = final.parent / f".{final.name}{tag}"
+    stage.mkdir()
+    try:
+        yield stage
+        if in_place:
+            _commit_in_place(stage, final, owned)
+        else:
+            _commit_swap(stage, final, owned)
+    finally:
+        if stage.exists():
+            _remove(stage)
+
+
+def _commit_swap(stage: Path, final: Path, owned: set[str]) -> None:
+    new, old = _siblings(final)
+    if final.is_dir():
+        _carry(final, stage, owned)
+    os.chmod(stage, _folder_mode(final))
+    os.rename(stage, new)  # the new result is complete
+    if final.is_dir():
+        os.rename(final, old)
+    try:
+        os.rename(new, final)
+    except OSError:
+        if not final.exists() and old.is_dir():
+            os.rename(old, final)
+        raise
+    _remove(old)
+
+
+def _commit_in_place(stage: Path, final: Path, owned: set[str]) -> None:
+    written = {p.name for p in stage.iterdir()}
+    for name in sorted(written):
+        dst = final / name
+        if dst.is_dir() and not dst.is_symlink():
+            shutil.rmtree(dst)
+        os.replace(stage / name, dst)
+    for name in owned - written:
+        with contextlib.suppress(FileNotFoundError):
+            _remove(final / name)
+    try:
+        stage.rmdir()
+    except OSError as e:
+        if e.errno not in (errno.ENOENT,):
+            raise

@@ -66,6 +66,9 @@ GAUGES = ("camera0", "input")
 # The camera holding COLMAP's scale gauge has one translation coordinate fixed (zero variance); a
 # prior needs an invertible covariance, so that coordinate gets this std [m], far below any real one.
 GAUGE_FLOOR_M = 1e-6
+CHI2_3DOF_95 = 7.8147  # chi-square quantile, 3 degrees of freedom, 0.95 (95 % radius of a 3D Gaussian)
+# Without a metric reference the refined rig must predict held-out frames at least this much better (RMS ratio)
+HELD_OUT_GAIN = 0.9
 
 
 @dataclass
@@ -379,55 +382,28 @@ def _initial_rig_from_scratch(rig: Rig, dense: DenseObservations, ref: int, sigm
 
 
 # ==================================================================================================
-# the public entry points
+# one adjustment, the held-out check and the verdict
 # ==================================================================================================
-def calibrate_session(
-    session: Session, *, refine_intrinsics: bool = False, refine_distortion: bool = False,
-    gauge: str = "camera0", ref_camera: int = 0, wand: Wand | tuple[str, str, float] | None = None,
-    initial: str = "auto", max_iterations: int = 10, max_points: int | None = 20000,
-    progress: bool = True,
-) -> tuple[Rig, dict]:
-    """Refine the session's rig by bundle adjustment of all cameras at once.
+@dataclass
+class _Fit:
+    """One bundle adjustment of a rig on some observations (before the gauge's scale)."""
 
-    refine_intrinsics: also refine focal lengths and principal points (per camera).
-    refine_distortion: also refine distortion (refitted to the 5-parameter model, see module doc).
-    gauge: "camera0" or "input" (see module docstring); ref_camera: index of the reference camera.
-    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present.
-    initial: "input" starts from the session's calibration, "scratch" from the essential matrix
-        and PnP (intrinsics from the session), "auto" = "scratch" when a wand is given, else "input".
-    max_iterations: outlier-rejection rounds (each a full adjustment).
-    max_points: at most this many (frame, marker) points (evenly thinned), None = all.
-    Returns (rig with pose_cov (6, 6) per camera, report) where report has "cameras" (per camera:
-    rms_before_px, rms_after_px, median_after_px, n_obs, n_used, n_rejected, moved_mm, turned_deg,
-    and with a true rig error_mm / error_deg), "pixel_sigma_px" (a-posteriori), "gauge", "scale",
-    "rounds", "n_points".
-    """
-    if gauge not in GAUGES:
-        raise InputError(f"calibrate: gauge must be one of {', '.join(GAUGES)}, got {gauge!r}")
-    rig_in = session.rig
-    C = len(rig_in)
-    if C < 2:
-        raise InputError("calibrate: at least 2 cameras are needed")
-    if not 0 <= ref_camera < C:
-        raise InputError(f"calibrate: ref_camera must be in 0..{C - 1}, got {ref_camera}")
-    if wand is None:
-        wand = wand_from_session(session)
-    elif not isinstance(wand, Wand):
-        wand = Wand(str(wand[0]), str(wand[1]), float(wand[2]))
-    if initial == "auto":
-        initial = "scratch" if wand is not None else "input"
-    if initial not in ("input", "scratch"):
-        raise InputError(f"calibrate: initial must be 'auto', 'input' or 'scratch', got {initial!r}")
-    # the starting noise scale of the robust loss and thresholds: the session's, else 1 px (the bundle
-    # adjustment's rounds measure the a-posteriori sigma themselves; the input rig may be far off)
-    given = session.pixel_sigma_px
-    sigma = float(np.median(list(given.values()))) if isinstance(given, dict) else float(given or 1.0)
-    dense = dense_observations(session)
-    if wand is not None:
-        for e in (wand.end_a, wand.end_b):
-            if e not in dense.markers:
-                raise InputError(f"calibrate: wand end {e!r} has no observations")
-    rig0 = _initial_rig_from_scratch(rig_in, dense, ref_camera, sigma) if initial == "scratch" else rig_in
+    rig: Rig  # with pose_cov where computed
+    prob: _Problem
+    used: np.ndarray  # (n_obs,) inliers that are in the final adjustment
+    err: np.ndarray  # (n_obs,) residual [px] under ``rig``
+    n_points: int
+    var_px2: float  # a-posteriori pixel variance
+    rounds: list
+    fit_px: list
+    termination: str
+
+
+def _adjust(rig0: Rig, dense: DenseObservations, ref: int, sigma: float, *, refine_intrinsics: bool,
+            refine_distortion: bool, max_iterations: int, max_points: int | None, progress: bool,
+            covariance: bool = True) -> _Fit:
+    """Outlier-rejection rounds (robust loss), then a plain least-squares adjustment with covariances."""
+    C = len(rig0)
     xyz0, _ = triangulate(rig0, dense, sigma)
     prob, xyz_p = _problem_from_dense(dense, xyz0, max_points)
     if len(xyz_p) == 0:
@@ -437,12 +413,12 @@ def calibrate_session(
     rig_cur, rounds = rig0, []
     bar = _progress(max_iterations, progress)
     for it in range(max_iterations):
-        rec, ids = _build_reconstruction(rig_cur, prob, keep, xyz_p, ref_camera)
+        rec, ids = _build_reconstruction(rig_cur, prob, keep, xyz_p, ref)
         # robust loss while outliers may remain; the covariance round below is plain least squares
         _solve(rec, refine_focal=refine_intrinsics, refine_pp=refine_intrinsics,
                refine_distortion=refine_distortion, loss="CAUCHY", loss_scale_px=3.0 * sigma,
                max_iterations=100, covariance=False)
-        rig_cur, _ = _rig_from_reconstruction(rec, rig_cur, refine_distortion, ref_camera)
+        rig_cur, _ = _rig_from_reconstruction(rec, rig_cur, refine_distortion, ref)
         xyz_p = np.where((ids >= 0)[:, None], _points_from_reconstruction(rec, ids), xyz_p)
         err = _residuals_px(rig_cur, prob, xyz_p)
         inl = keep & np.isfinite(err)
@@ -463,13 +439,13 @@ def calibrate_session(
     bar.close()
 
     # final adjustment on the inliers, plain least squares, with covariances
-    rec, ids = _build_reconstruction(rig_cur, prob, keep, xyz_p, ref_camera)
-    t_start = {c: np.asarray(rec.image(_image_id(c, ref_camera, C)).cam_from_world().translation).copy()
+    rec, ids = _build_reconstruction(rig_cur, prob, keep, xyz_p, ref)
+    t_start = {c: np.asarray(rec.image(_image_id(c, ref, C)).cam_from_world().translation).copy()
                for c in range(C)}
     ba, (summary, cov) = _solve(rec, refine_focal=refine_intrinsics, refine_pp=refine_intrinsics,
                                 refine_distortion=refine_distortion, loss="TRIVIAL", loss_scale_px=1.0,
-                                max_iterations=100, covariance=True)
-    rig_ba, fit_px = _rig_from_reconstruction(rec, rig_cur, refine_distortion, ref_camera)
+                                max_iterations=100, covariance=covariance)
+    rig_ba, fit_px = _rig_from_reconstruction(rec, rig_cur, refine_distortion, ref)
     xyz_p = np.where((ids >= 0)[:, None], _points_from_reconstruction(rec, ids), xyz_p)
     used = keep & (ids[prob.point_idx] >= 0)
     err = _residuals_px(rig_ba, prob, xyz_p)
@@ -481,7 +457,7 @@ def calibrate_session(
 
     cams = []
     for c, cam in enumerate(rig_ba):
-        pc = None if cov is None else cov.get_cam_cov_from_world(_image_id(c, ref_camera, C))
+        pc = None if cov is None else cov.get_cam_cov_from_world(_image_id(c, ref, C))
         full = None
         if pc is not None and pc.shape == (6, 6):
             full = pose_cov_gtsam_from_colmap(pc * var_px2, cam.R, cam.tvec)
@@ -495,7 +471,189 @@ def calibrate_session(
             cc[fixed, fixed] = GAUGE_FLOOR_M**2  # keeps the prior invertible; see GAUGE_FLOOR_M
             full = pose_cov_gtsam_from_colmap(cc, cam.R, cam.tvec)
         cams.append(Camera(cam.name, cam.size_wh, cam.K, cam.dist, cam.rvec, cam.tvec, full))
-    rig_out = Rig(cams)
+    return _Fit(Rig(cams), prob, used, err, int((ids >= 0).sum()), var_px2, rounds, fit_px,
+                str(summary.termination_type))
+
+
+def _subset_frames(dense: DenseObservations, sel: np.ndarray) -> DenseObservations:
+    return DenseObservations(dense.cameras, dense.frames[sel], dense.markers, dense.uv_px[:, sel], dense.weight[:, sel])
+
+
+def _held_out_check(rig0: Rig, dense: DenseObservations, ref: int, sigma: float, fraction: float,
+                    **adjust) -> dict:
+    """Refine on most frames, then compare how the starting rig and the refined one explain the others.
+
+    Frames are cut into 20 consecutive blocks and every ``round(1 / fraction)``-th block is held out
+    (neighbouring frames see nearly the same points, so single frames would not be held out really).
+    Each rig triangulates the held-out points itself (all cameras) and its reprojection RMS is taken over
+    the observations that the refined rig does not reject as outliers (the same set for both).
+    Returns {} when there are too few frames.
+    """
+    F = len(dense.frames)
+    step = max(2, round(1 / fraction))
+    block = np.minimum(np.arange(F) * 20 // max(F, 1), 19)
+    test = block % step == step - 1
+    if test.sum() < 2 or (~test).sum() < 2:
+        return {}
+    try:
+        fit = _adjust(rig0, _subset_frames(dense, ~test), ref, sigma, covariance=False, progress=False, **adjust)
+    except InputError:
+        return {}
+    held = _subset_frames(dense, test)
+    errs = []
+    for rig in (rig0, fit.rig):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xyz, _ = triangulate(rig, held, sigma)
+        prob, xyz_p = _problem_from_dense(held, xyz, None)
+        errs.append(_residuals_px(rig, prob, xyz_p))
+    sigma_hat = fit.rounds[-1]["sigma_hat_px"] if fit.rounds else sigma
+    ok = np.isfinite(errs[0]) & np.isfinite(errs[1]) & (errs[1] <= math.sqrt(CHI2_2DOF_999) * sigma_hat)
+    if not ok.any():
+        return {}
+    return {"fraction": float(test.mean()), "n_frames": int(test.sum()), "n_observations": int(ok.sum()),
+            "rms_input_px": _rms(errs[0][ok]), "rms_refined_px": _rms(errs[1][ok])}
+
+
+def _pose_change(cam_in: Camera, cam_out: Camera) -> tuple[float, float, float, float]:
+    """(moved [m], turned [rad], position Mahalanobis^2 and its dof) of cam_in against cam_out's covariance.
+
+    The covariance is GTSAM's, of world_from_cam: the translation block is the centre's in camera axes.
+    The direction held by COLMAP's scale gauge (variance at GAUGE_FLOOR_M) is left out.
+    """
+    moved = float(np.linalg.norm(cam_in.center_world - cam_out.center_world))
+    turned = float(pose.rotation_angle(cam_in.R, cam_out.R))
+    if cam_out.pose_cov is None:
+        return moved, turned, float("nan"), 0
+    d = cam_out.R @ (cam_in.center_world - cam_out.center_world)
+    w, v = np.linalg.eigh(cam_out.pose_cov[3:, 3:])
+    keep = w > (10 * GAUGE_FLOOR_M) ** 2
+    z = (v[:, keep].T @ d) / np.sqrt(w[keep])
+    return moved, turned, float(z @ z), int(keep.sum())
+
+
+def _r95(cov: np.ndarray | None) -> tuple[float, float]:
+    """95 % radius [m] of a camera's position and [rad] of its rotation: sqrt(chi2_3(0.95) * largest variance)."""
+    if cov is None:
+        return 0.0, 0.0
+    k = math.sqrt(CHI2_3DOF_95)
+    return (k * math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)),
+            k * math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+
+
+def _assess(rig_start: Rig, rig_out: Rig, metric: bool, held_out: dict, initial: str) -> dict:
+    """Whether the refinement is determined by the observations, and why not (see :func:`calibrate_session`)."""
+    reasons = []
+    cams = {}
+    worst_in_pos = worst_in_rot = worst_out_pos = worst_out_rot = 0.0
+    for ci, co in zip(rig_start, rig_out, strict=True):
+        moved, turned, d2, dof = _pose_change(ci, co)
+        r95_pos, r95_rot = _r95(co.pose_cov)
+        cams[co.name] = {"moved_mm": 1000 * moved, "turned_deg": math.degrees(turned),
+                         "r95_position_mm": 1000 * r95_pos, "r95_rotation_deg": math.degrees(r95_rot),
+                         "position_mahalanobis2": d2, "position_dof": dof}
+        # the input's error is at least |change| - r95 (triangle inequality), the refinement's at most r95
+        worst_in_pos, worst_out_pos = max(worst_in_pos, moved - r95_pos), max(worst_out_pos, r95_pos)
+        worst_in_rot, worst_out_rot = max(worst_in_rot, turned - r95_rot), max(worst_out_rot, r95_rot)
+    if held_out and held_out["rms_refined_px"] > (HELD_OUT_GAIN if not metric else 1.0) * held_out["rms_input_px"]:
+        reasons.append(f"on the {held_out['n_frames']} held-out frames the refined rig predicts the observations "
+                       f"no better than the input ({held_out['rms_refined_px']:.2f} px vs "
+                       f"{held_out['rms_input_px']:.2f} px RMS)")
+    if not metric:
+        if initial == "scratch":
+            reasons.append("no metric reference: started from scratch without a wand, the scale is arbitrary")
+        elif not (worst_in_pos > worst_out_pos and worst_in_rot > worst_out_rot):
+            reasons.append(
+                "no metric reference (wand), and the pose covariances do not show the refinement to be better than "
+                f"the input: a camera moved by at most {_max_of(cams, 'moved_mm'):.2f} mm and "
+                f"{_max_of(cams, 'turned_deg'):.3f} deg, while the refined poses are known to "
+                f"{1000 * worst_out_pos:.2f} mm and {math.degrees(worst_out_rot):.3f} deg (95 %)")
+    return {"determined": not reasons, "reasons": reasons, "metric_reference": metric, "held_out": held_out,
+            "cameras": cams,
+            "input_error_at_least_mm": 1000 * max(worst_in_pos, 0.0),
+            "input_error_at_least_deg": math.degrees(max(worst_in_rot, 0.0)),
+            "refined_error_at_most_mm": 1000 * worst_out_pos,
+            "refined_error_at_most_deg": math.degrees(worst_out_rot)}
+
+
+def _max_of(cams: dict, key: str) -> float:
+    return max((c[key] for c in cams.values()), default=0.0)
+
+
+# ==================================================================================================
+# the public entry points
+# ==================================================================================================
+def calibrate_session(
+    session: Session, *, refine_intrinsics: bool = False, refine_distortion: bool = False,
+    gauge: str = "camera0", ref_camera: int = 0, wand: Wand | tuple[str, str, float] | None = None,
+    initial: str = "auto", max_iterations: int = 10, max_points: int | None = 20000,
+    progress: bool = True, hold_out: float = 0.2, keep_input_if_undetermined: bool = True,
+) -> tuple[Rig, dict]:
+    """Refine the session's rig by bundle adjustment of all cameras at once.
+
+    refine_intrinsics: also refine focal lengths and principal points (per camera).
+    refine_distortion: also refine distortion (refitted to the 5-parameter model, see module doc).
+    gauge: "camera0" or "input" (see module docstring); ref_camera: index of the reference camera.
+    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present.
+    initial: "input" starts from the session's calibration, "scratch" from the essential matrix
+        and PnP (intrinsics from the session), "auto" = "scratch" when a wand is given, else "input".
+    max_iterations: outlier-rejection rounds (each a full adjustment).
+    max_points: at most this many (frame, marker) points (evenly thinned), None = all.
+    hold_out: fraction of frames (in blocks) held out of a second adjustment to check that the
+        refinement predicts observations it did not see better than the starting rig; 0 skips it.
+    keep_input_if_undetermined: when the refinement is not determined (see below) and it started from
+        the input rig, return the input rig unchanged (``report["kept_input"]``); False returns the
+        refined rig anyway.
+
+    Determined (``report["assessment"]``): with a wand (metric reference), when the refined rig predicts
+    the held-out frames at least as well as the starting rig. Without one, the scale and the world frame
+    come from the input rig, which the images cannot check, so the refinement must also show that it is
+    better than the input: it must predict the held-out frames at least 10 % better (RMS), and the
+    largest change of a camera (minus its 95 % radius from the pose covariance: a lower bound of the
+    input's error) must exceed the largest 95 % radius of a refined camera (an upper bound of the
+    refinement's error), for positions and for rotations. From scratch without a wand the scale is
+    arbitrary: never determined. These bounds are conditional on the gauge: with ``gauge="camera0"``
+    the reference camera is taken as exact.
+
+    Returns (rig, report). rig: the refined rig with pose_cov (6, 6) per camera, or the input rig when it
+    was kept. report has "cameras" (per camera of the refined rig: rms_before_px, rms_after_px,
+    median_after_px, n_obs, n_used, n_rejected, moved_mm, turned_deg, and with a true rig error_mm /
+    error_deg, input_error_mm / input_error_deg), "pixel_sigma_px" (a-posteriori), "gauge", "scale",
+    "rounds", "n_points", "assessment" (determined, reasons, held_out, per-camera bounds) and
+    "kept_input".
+    """
+    if gauge not in GAUGES:
+        raise InputError(f"calibrate: gauge must be one of {', '.join(GAUGES)}, got {gauge!r}")
+    rig_in = session.rig
+    C = len(rig_in)
+    if C < 2:
+        raise InputError("calibrate: at least 2 cameras are needed")
+    if not 0 <= ref_camera < C:
+        raise InputError(f"calibrate: ref_camera must be in 0..{C - 1}, got {ref_camera}")
+    if wand is None:
+        wand = wand_from_session(session)
+    elif not isinstance(wand, Wand):
+        wand = Wand(str(wand[0]), str(wand[1]), float(wand[2]))
+    if initial == "auto":
+        initial = "scratch" if wand is not None else "input"
+    if initial not in ("input", "scratch"):
+        raise InputError(f"calibrate: initial must be 'auto', 'input' or 'scratch', got {initial!r}")
+    if not 0 <= hold_out < 1:
+        raise InputError(f"calibrate: hold_out must be in [0, 1), got {hold_out}")
+    # the starting noise scale of the robust loss and thresholds: the session's, else 1 px (the bundle
+    # adjustment's rounds measure the a-posteriori sigma themselves; the input rig may be far off)
+    given = session.pixel_sigma_px
+    sigma = float(np.median(list(given.values()))) if isinstance(given, dict) else float(given or 1.0)
+    dense = dense_observations(session)
+    if wand is not None:
+        for e in (wand.end_a, wand.end_b):
+            if e not in dense.markers:
+                raise InputError(f"calibrate: wand end {e!r} has no observations")
+    rig0 = _initial_rig_from_scratch(rig_in, dense, ref_camera, sigma) if initial == "scratch" else rig_in
+    adjust = {"refine_intrinsics": refine_intrinsics, "refine_distortion": refine_distortion,
+              "max_iterations": max_iterations, "max_points": max_points}
+    fit = _adjust(rig0, dense, ref_camera, sigma, progress=progress, **adjust)
+    rig_out, prob, used, err, fit_px = fit.rig, fit.prob, fit.used, fit.err, fit.fit_px
+    held_out = _held_out_check(rig0, dense, ref_camera, sigma, hold_out, **adjust) if hold_out > 0 else {}
 
     # gauge: origin/axes, then scale
     scale_info: dict
@@ -528,14 +686,21 @@ def calibrate_session(
         scale_info["median_length_after_m"] = float(np.median(_wand_lengths(rig_out, dense, wand, sigma)))
 
     report = _report(session, rig0, rig_out, prob, used, err, dense, sigma)
+    assessment = _assess(rig_in, rig_out, wand is not None, held_out, initial)
+    if gauge == "camera0":
+        assessment["gauge_note"] = (f"camera {rig_in[ref_camera].name!r} is held at its input pose: the bounds take "
+                                    "it as exact (if it is off, every camera is off with it; --gauge input fits the "
+                                    "world frame to all input cameras instead)")
+    kept = not assessment["determined"] and keep_input_if_undetermined and initial == "input"
     report.update({"gauge": {"origin_axes": gauge, "ref_camera": rig_in[ref_camera].name}, "scale": scale_info,
-                   "initial": initial, "rounds": rounds, "n_points": int((ids >= 0).sum()),
-                   "pixel_sigma_px": math.sqrt(var_px2), "refine_intrinsics": refine_intrinsics,
+                   "initial": initial, "rounds": fit.rounds, "n_points": fit.n_points,
+                   "pixel_sigma_px": math.sqrt(fit.var_px2), "refine_intrinsics": refine_intrinsics,
                    "refine_distortion": refine_distortion,
                    "distortion_refit_max_px": dict(zip(rig_in.names, fit_px, strict=True)),
-                   "ceres_termination": str(summary.termination_type),
-                   "camera_model": "FULL_OPENCV with k4 = k5 = k6 = 0 (= OpenCV k1 k2 p1 p2 k3)"})
-    return rig_out, report
+                   "ceres_termination": fit.termination,
+                   "camera_model": "FULL_OPENCV with k4 = k5 = k6 = 0 (= OpenCV k1 k2 p1 p2 k3)",
+                   "assessment": assessment, "kept_input": kept})
+    return (rig_in if kept else rig_out), report
 
 
 def _report(session: Session, rig_in: Rig, rig_out: Rig, prob: _Problem, used: np.ndarray,

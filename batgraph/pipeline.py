@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from tqdm.auto import tqdm
 
 from . import atomic, checks, evaluate
 from . import methods as methods_registry
+from . import summary as summary_mod
 from .errors import InputError
 from .measurement import ideal_observations
 from .result import Estimate, Options
@@ -55,17 +57,6 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _clean(o):
-    """NaN/inf -> None so summary.json is strict JSON."""
-    if isinstance(o, dict):
-        return {str(k): _clean(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_clean(v) for v in o]
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return o
-
-
 def run_methods(session: Session, methods: list[str], options: Options, live=None) -> Result:
     """Run ``methods`` on a loaded session; returns tables and summary (nothing written).
 
@@ -75,31 +66,24 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
     session = dataclasses.replace(pre.session, warnings=list(session.warnings) + pre.warnings)
     ideal = ideal_observations(session.rig, dense, pre.sigma_px)
-    estimates, trajs, reprojs, per_method = {}, [], [], {}
+    estimates, trajs, reprojs = {}, [], []
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
         run = methods_registry.run_function(name, options.solver)
         t0 = time.perf_counter()
         extra = {"on_frame": live.update} if (live is not None and name == "filter") else {}
         est = run(session, dense, ideal, options, **extra)
         est.runtime_s = est.runtime_s or time.perf_counter() - t0
-        traj = evaluate.trajectories_table(session, dense, est)
-        reproj = evaluate.reprojection_table(session, dense, est)
-        estimates[name], per_method[name] = est, evaluate.method_summary(session, est, traj, reproj)
-        trajs.append(traj)
-        reprojs.append(reproj)
-    summary = {
-        "session": session.name, "fps": session.fps, "n_cameras": len(session.rig),
-        "n_frames": int(len(dense.frames)), "n_markers": len(dense.markers),
-        "n_observations": int(dense.seen.sum()),
-        "pixel_sigma_px": dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
-        "pixel_noise": pre.noise, "checks": pre.figures,
-        "world": {"units": "m", "world_mirror": session.world_mirror.tolist()},
-        "import": session.extra_toml.get("import", {}),
-        "views": {s: int((evaluate.status_of(dense.n_views) == s).sum()) for s in evaluate.STATUSES},
-        "warnings": list(session.warnings), "methods": per_method,
-    }
-    return Result(session, Path(), pd.concat(trajs, ignore_index=True), pd.concat(reprojs, ignore_index=True),
-                  _clean(summary), estimates, dense=dense)
+        estimates[name] = est
+        trajs.append(evaluate.trajectories_table(session, dense, est))
+        reprojs.append(evaluate.reprojection_table(session, dense, est))
+    traj_all, reproj_all = pd.concat(trajs, ignore_index=True), pd.concat(reprojs, ignore_index=True)
+    summary = summary_mod.summarize(
+        session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},
+        infos={m: e.info for m, e in estimates.items()},
+        pixel_sigma_px=dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
+        pixel_noise=pre.noise, checks=pre.figures)
+    session.warnings[:] = summary["warnings"]  # the noise-model warnings join the self-checks'
+    return Result(session, Path(), traj_all, reproj_all, summary, estimates, dense=dense)
 
 
 def export_method(result: Result) -> str:
@@ -108,11 +92,38 @@ def export_method(result: Result) -> str:
     return "smoother" if "smoother" in methods else methods[0]
 
 
-def write_outputs(result: Result, out_dir: Path, viewer: str = "save", options: Options | None = None) -> list[Path]:
-    """Write every output file of CONTRACT.md section 3 atomically into ``out_dir``.
+#: The files of one result folder (CONTRACT.md section 3, and validation.csv): a folder holds one result,
+#: so one of these that a run does not write is not carried over from the previous result.
+OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
+                "trajectories.trc", "recording.rrd", "validation.csv")
 
-    viewer: "save" or "spawn" write recording.rrd; "none" skips it.
+
+def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
+                  validation_table: pd.DataFrame | None = None) -> list[Path]:
+    """Write the whole output set of CONTRACT.md section 3 into ``out_dir`` as one atomic replacement.
+
+    viewer: "save" or "spawn" write recording.rrd; "none" skips it. validation_table: also write
+    validation.csv (batgraph.validate). Every file is written into a staging folder beside ``out_dir``
+    that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash or kill leaves the previous
+    complete result or the new one, never a mix; files in ``out_dir`` that are not in :data:`OUTPUT_FILES`
+    are carried over. Returns the paths written (under ``out_dir``).
     """
+    out_dir = Path(out_dir)
+    session_dir = result.session.path
+    # the session folder itself (--out SESSION) or a folder holding it is not swapped: file by file there
+    in_place = session_dir is not None and Path(os.path.realpath(out_dir)) in (
+        Path(os.path.realpath(session_dir)), *Path(os.path.realpath(session_dir)).parents)
+    with atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place) as stage:
+        files = _write_files(result, stage, viewer, options)
+        if validation_table is not None:
+            from .validate import CSV_NAME, write_csv
+            write_csv(validation_table, stage / CSV_NAME)
+            files.append(stage / CSV_NAME)
+    return [out_dir / p.name for p in files]
+
+
+def _write_files(result: Result, out_dir: Path, viewer: str = "save", options: Options | None = None) -> list[Path]:
+    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``."""
     from .formats.c3d_trc import write_c3d, write_trc
     from .report import write_report
 
@@ -125,8 +136,9 @@ def write_outputs(result: Result, out_dir: Path, viewer: str = "save", options: 
     steps = [("report.html", lambda p: write_report(p, s, result.trajectories, result.reprojection, result.summary))]
     method = export_method(result)
     one = result.trajectories[result.trajectories["method"] == method]
-    steps += [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers)),
-              ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers))]
+    steps += [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers, keep="span",
+                                                       reprojection=result.reprojection, cameras=s.rig.names)),
+              ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers, keep="span"))]
     if viewer != "none":
         from .viewer import RECORDING_NAME, write_recording
         steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
@@ -166,13 +178,11 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         from .validate import validate_session
         validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
         result.summary["validation"] = validation.to_summary()
-    result.files = write_outputs(result, out, viewer, options)
-    from .validate import CSV_NAME, write_csv
-    if validation is not None:
-        write_csv(validation.table, out / CSV_NAME)
-        result.files.append(out / CSV_NAME)
-    else:  # a previous run's validation would be read as this result's
-        (out / CSV_NAME).unlink(missing_ok=True)
+        summary_mod.refresh_verdict(result.summary)
+    # one atomic replacement of the whole folder; without --validate a previous validation.csv is not kept
+    # (it would be read as this result's)
+    result.files = write_outputs(result, out, viewer, options,
+                                 validation_table=None if validation is None else validation.table)
     return result
 
 

@@ -107,12 +107,18 @@ def _port_open(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
-def _require_display(what: str) -> None:
+def _require_display(what: str, hint: str | None = None) -> None:
+    """Raise ViewerUnavailable without a display; ``hint`` says what to do instead (default: reconstruct's)."""
     if not display_available():
-        raise ViewerUnavailable(
-            f"cannot {what}: no display (DISPLAY / WAYLAND_DISPLAY unset); use --viewer save and open "
-            f"{RECORDING_NAME} on a machine with a screen (batgraph view OUT_DIR or rerun {RECORDING_NAME})"
-        )
+        hint = hint or (f"use --viewer save and open {RECORDING_NAME} on a machine with a screen "
+                        f"(batgraph view OUT_DIR or rerun {RECORDING_NAME})")
+        raise ViewerUnavailable(f"cannot {what}: no display (DISPLAY / WAYLAND_DISPLAY unset); {hint}")
+
+
+def shown_method(names) -> str | None:
+    """The method a recording opens with: the smoother when it ran, else the first (the others are hidden)."""
+    names = [str(n) for n in names]
+    return "smoother" if "smoother" in names else (names[0] if names else None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -258,11 +264,12 @@ def log_session(rec, session, dense=None) -> None:
 
 
 def _send_method_frames(rec, method: str, frames: np.ndarray, fps: float, xyz: np.ndarray, cov: np.ndarray,
-                        edges: np.ndarray, windows: np.ndarray | None) -> None:
+                        edges: np.ndarray, windows: np.ndarray | None, labels: bool = True) -> None:
     """Log one method's 3D entities on the given frames.
 
     xyz (F, M, 3) [m]; cov (F, M, 3, 3) [m^2] (NaN: no ellipsoid); edges (E, 2) marker indices;
-    windows (F, M, n, 3) trail windows or None (no trails).
+    windows (F, M, n, 3) trail windows or None (no trails); labels: show the marker names next to the
+    points (one method only, so that names are not drawn once per method on top of each other).
     """
     rr = _rr()
     color = method_color(method)
@@ -271,7 +278,8 @@ def _send_method_frames(rec, method: str, frames: np.ndarray, fps: float, xyz: n
 
     path = _path("world", method, "markers")
     ok = np.isfinite(xyz).all(axis=-1)  # (F, M)
-    rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(4.0)), static=True)
+    rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(4.0), show_labels=labels),
+            static=True)
     rec.send_columns(path, indexes=times, columns=rr.Points3D.columns(
         positions=xyz[ok], class_ids=_class_ids(ok)).partition(ok.sum(axis=1)))
 
@@ -356,7 +364,7 @@ def _send_reprojection(rec, method: str, camera: str, frames: np.ndarray, fps: f
     path = _path("world", "cameras", camera, "image", "reproj", method)
     ok = np.isfinite(uv_hat).all(axis=1)
     colors = np.where(outlier[ok, None], np.array(OUTLIER_COLOR, np.uint8), color)
-    rec.log(path, rr.Points2D.from_fields(radii=rr.Radius.ui_points(2.5)), static=True)
+    rec.log(path, rr.Points2D.from_fields(radii=rr.Radius.ui_points(2.5), show_labels=False), static=True)
     rec.send_columns(path, indexes=times, columns=rr.Points2D.columns(
         positions=uv_hat[ok].astype(np.float32), class_ids=class_ids[ok].astype(np.uint16), colors=colors,
     ).partition(np.bincount(frame_idx[ok], minlength=len(frames))))
@@ -386,11 +394,13 @@ def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataF
         return
     frames = np.unique(np.concatenate(frame_sets))
     edges = _edges(session, markers)
+    shown = shown_method(pd.unique(trajectories["method"].astype(str)))
     for method, table in trajectories.groupby("method", sort=False):
         # the table is in the user's frame; the cameras are logged in the rig's (right-handed) world
         xyz, cov = session.rig.to_user(*_dense_results(table, frames, markers))
         windows = _trail_windows(xyz, trail_frames) if trail_frames > 1 else None
-        _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows)
+        _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows,
+                            labels=str(method) == shown)
     if reprojection is None or not len(reprojection):
         return
     rp = reprojection
@@ -408,13 +418,30 @@ def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataF
                            fi[sl], ids[sl], uv[sl], uv_hat[sl], outlier[sl])
 
 
-def default_blueprint(session):
-    """Layout: the 3D world on the left, one tab per camera image on the right."""
+def default_blueprint(session, methods=(), *, live: bool = False):
+    """How a recording opens: the 3D world on the left, one tab per camera image on the right.
+
+    methods: the methods in the recording. Only :func:`shown_method` (the smoother when it ran) is
+    visible; the others are in the recording, hidden (tick them in the blueprint panel), in 3D and in
+    the camera views, where each camera shows its detections and the shown method's reprojections.
+    The time panel is on the ``frame`` timeline at the session's frame rate, paused, so a saved
+    recording opens on its first frame (the Rerun blueprint has no time-cursor field; a paused
+    viewer starts at the beginning of the timeline); live: following the newest frame instead.
+    """
     import rerun.blueprint as rrb
 
-    cams = [rrb.Spatial2DView(origin=_path("world", "cameras", c.name, "image"), name=c.name) for c in session.rig]
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="3D"), rrb.Tabs(*cams),
-                                        column_shares=[2, 1]), collapse_panels=False)
+    shown = shown_method(methods)
+    hidden = [str(m) for m in methods if str(m) != shown]
+    world = {_path("world", m): rrb.EntityBehavior(visible=False) for m in hidden}
+    cams = [rrb.Spatial2DView(
+        origin=_path("world", "cameras", c.name, "image"), name=c.name,
+        overrides={_path("world", "cameras", c.name, "image", "reproj", m): rrb.EntityBehavior(visible=False)
+                   for m in hidden}) for c in session.rig]
+    time_panel = rrb.TimePanel(timeline="frame", fps=float(session.fps), state="expanded",
+                               play_state="following" if live else "paused")
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="3D", overrides=world),
+                                        rrb.Tabs(*cams), column_shares=[2, 1]),
+                         time_panel, collapse_panels=False)
 
 
 def write_recording(path: str | os.PathLike, session, dense, trajectories: pd.DataFrame,
@@ -428,8 +455,9 @@ def write_recording(path: str | os.PathLike, session, dense, trajectories: pd.Da
     rr = _rr()
     path = Path(path)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+    methods = list(pd.unique(trajectories["method"].astype(str))) if len(trajectories) else []
     with atomic_path(path) as tmp:
-        rec.save(tmp, default_blueprint=default_blueprint(session))
+        rec.save(tmp, default_blueprint=default_blueprint(session, methods))
         try:
             rec.send_recording_name(session.name)
             log_session(rec, session, dense)
@@ -470,7 +498,7 @@ class LiveViewer:
         self._edges = _edges(session, markers)
         self._history = np.full((max(self.trail_frames, 1), self._n_class, 3), np.nan)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
-        blueprint = default_blueprint(session)
+        blueprint = default_blueprint(session, [method], live=True)
         if mode == "spawn":
             _require_display("spawn the Rerun viewer")
             try:
@@ -541,15 +569,72 @@ def open_recording(path: str | os.PathLike, *, wait: bool = True) -> subprocess.
 
     path: an output folder (its ``recording.rrd`` is opened) or an .rrd file.
     wait: block until the viewer window is closed and return its exit code; False returns the
-        running process.
+        running process. While waiting, SIGINT and SIGTERM are passed on to the viewer, which is then
+        given 5 s to exit and killed after that: it never outlives this process. A signal ends the wait
+        as it would have ended this process: KeyboardInterrupt for SIGINT, SystemExit(128 + 15) for SIGTERM.
     Raises :class:`InputError` if there is no recording, :class:`ViewerUnavailable` without a display.
     """
     path = Path(path)
     rrd = path / RECORDING_NAME if path.is_dir() else path
     if not rrd.is_file():
-        where = f"{path}: no {RECORDING_NAME} (run reconstruct with --viewer save)" if path.is_dir() else \
+        where = f"{path}: no {RECORDING_NAME} (run batgraph reconstruct with --viewer save)" if path.is_dir() else \
             f"{path}: file not found"
         raise InputError(where)
-    _require_display(f"open {rrd}")
-    proc = subprocess.Popen([_rerun_executable(), str(rrd)], env={**os.environ, "RERUN_APP_ONLY": "true"})
-    return proc.wait() if wait else proc
+    _require_display(f"open {rrd}", hint=f"copy {rrd} to a machine with a screen and open it there "
+                                         f"(batgraph view {rrd.name} or rerun {rrd.name})")
+    cmd = [_rerun_executable(), str(rrd)]
+    env = {**os.environ, "RERUN_APP_ONLY": "true"}
+    if not wait:
+        return subprocess.Popen(cmd, env=env)
+    return run_child(cmd, env=env)
+
+
+def run_child(cmd: list[str], env: dict | None = None, grace_s: float = 5.0) -> int:
+    """Run ``cmd`` to completion, passing SIGINT/SIGTERM on to it; it is always reaped, never orphaned.
+
+    The child gets its own process group, so a Ctrl-C in the terminal reaches it once, through this
+    process. On a signal the child has ``grace_s`` to exit, then it is killed; then the signal takes
+    effect here (KeyboardInterrupt for SIGINT, SystemExit(128 + signum) otherwise). Returns the
+    child's exit code when it ends by itself. (Signal handlers can only be set from the main thread;
+    elsewhere the child is still killed when the wait is interrupted.)
+    """
+    import signal
+    import threading
+    import time
+
+    proc = subprocess.Popen(cmd, env=env, start_new_session=True)
+    received: list[int] = []
+
+    def forward(signum, _frame):
+        received.append(signum)
+        try:
+            proc.send_signal(signum)
+        except (ProcessLookupError, OSError):
+            pass
+
+    sigs = [signal.SIGINT, signal.SIGTERM]
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, forward) for sig in sigs}
+    try:
+        deadline = None
+        while True:
+            try:
+                rc = proc.wait(timeout=0.2)
+                break
+            except subprocess.TimeoutExpired:
+                if received and deadline is None:
+                    deadline = time.monotonic() + grace_s
+                if deadline is not None and time.monotonic() > deadline:
+                    proc.kill()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if proc.poll() is None:  # an exception (e.g. from another thread's interrupt) while waiting
+            proc.kill()
+            proc.wait()
+    if received:
+        if received[0] == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + received[0])
+    return rc

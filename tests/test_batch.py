@@ -109,26 +109,37 @@ def test_one_calibration_for_every_session_reaches_the_workers(make_session_fold
     assert os.getpid() not in {it.pid for it in items}
 
 
-def test_single_session_runs_here_and_a_crash_is_reported(make_session_folder, tmp_path):
+def test_single_session_runs_here_and_a_crash_is_reported(make_session_folder, tmp_path, monkeypatch):
     """One session, no scheduler: no cluster (runs in this process); a non-input exception -> "failed".
 
-    The crash is real: a plain file sits where the session's output folder must go, so mkdir raises.
+    The crash: the report writer raises (a bug, not bad input); the output folder is left as it was.
+    A plain file where the output folder must go is the user's input error, named in one line.
     """
+    import batgraph.report
+
     session = make_session_folder("only")
     out_root = tmp_path / "results"
     out_root.mkdir()
     (out_root / "only").write_text("in the way")
+    (item,) = reconstruct_many([session], out_root, ["triangulate"], progress=False, viewer="none")
+    assert item.status == "input error" and "exists and is not a folder" in item.message
+    (out_root / "only").unlink()
 
+    def crash(*a, **kw):
+        raise OSError("disk on fire\nsecond line")
+
+    monkeypatch.setattr(batgraph.report, "write_report", crash)
     (item,) = reconstruct_many([session], out_root, ["triangulate"], progress=False, viewer="none")
 
     assert item.pid == os.getpid()
     assert item.status == "failed"
-    assert item.message.startswith("FileExistsError: ") and "\n" not in item.message
-    assert "Traceback" in item.traceback and "mkdir" in item.traceback
+    assert item.message == "OSError: disk on fire"
+    assert "Traceback" in item.traceback and "crash" in item.traceback
     assert "Traceback" in format_batch_table([item], verbose=True)
     assert "Traceback" not in format_batch_table([item])
     table = pd.read_csv(out_root / SUMMARY_FILE, keep_default_na=False)
     assert list(table["status"]) == ["failed"]
+    assert sorted(p.name for p in out_root.iterdir()) == [SUMMARY_FILE]  # no half result, no temporary
 
 
 def test_glob_expands_sorted_to_folders_once(make_session_folder, tmp_path):

@@ -352,3 +352,86 @@ def test_simulated_wand_recording_calibrates_the_flight_rig(tmp_path):
     assert max(rms) / min(rms) < 1.25
     for c in cams[1:]:
         assert c["error_mm"] < 2.0 and c["error_deg"] < 0.1
+
+
+# ----- refusing to make the rig worse -------------------------------------------------------------
+def _max_errors(rig: Rig, truth: Rig) -> tuple[float, float]:
+    """Largest camera position error [mm] and rotation error [deg] of ``rig`` against ``truth``."""
+    mm = max(1000 * np.linalg.norm(a.center_world - b.center_world) for a, b in zip(rig, truth, strict=True))
+    deg = max(np.degrees(np.linalg.norm(cv2.Rodrigues(a.R @ b.R.T)[0])) for a, b in zip(rig, truth, strict=True))
+    return float(mm), float(deg)
+
+
+@pytest.mark.parametrize("seed, frames, noise_px, expect", [
+    (15, 60, 2.0, "kept"),  # short, noisy: the refined cam2 would be 7.4 mm off (input 5 mm)
+    (7, 60, 2.0, "kept"),
+    (0, 160, 1.0, "refined"),  # 2.57 mm, 0.03 deg after
+    (1, 160, 1.0, "refined"),  # 0.92 mm, 0.05 deg after
+])
+def test_without_a_wand_the_written_rig_is_never_worse(seed, frames, noise_px, expect):
+    """`simulate flight --calib-rot-deg 0.5 --calib-trans-mm 5` scenes (cameras 2-5 off by 5 mm, 0.5 deg),
+    no wand. The refinement is applied only when its covariances bound it below the input's error;
+    otherwise the input rig comes back unchanged with the reason. Measured: 60 frames at 2 px, the
+    refinement would be 7.40 / 2.96 mm off (seeds 15 / 7, bound 8.25 / 7.83 mm): kept; 160 frames at
+    1 px: 2.57 / 0.92 mm after (bound 2.44 / 2.49 mm, input at least 2.81 / 3.23 mm off): applied."""
+    s = simulate_flight(np.random.default_rng(seed), n_cameras=5, n_frames=frames, pixel_sigma_px=noise_px,
+                        calib_rot_deg=0.5, calib_trans_mm=5.0)
+    rig, rep = calibrate_session(s, progress=False)
+    a = rep["assessment"]
+    before, after = _max_errors(s.rig, s.true_rig), _max_errors(rig, s.true_rig)
+    assert after[0] <= before[0] + 1e-9 and after[1] <= before[1] + 1e-9
+    assert a["held_out"]["rms_refined_px"] < 0.9 * a["held_out"]["rms_input_px"]  # the relative poses improve
+    if expect == "kept":
+        assert rep["kept_input"] and not a["determined"] and "no metric reference" in a["reasons"][0]
+        assert all(np.array_equal(x.tvec, y.tvec) for x, y in zip(rig, s.rig, strict=True))
+    else:
+        assert a["determined"] and not rep["kept_input"]
+        assert after[0] < 0.6 * before[0] and after[1] < 0.2 * before[1]
+
+
+def test_an_exact_rig_is_kept():
+    """Nothing to correct: the held-out frames are predicted no better by the refinement (1.25 vs 1.25 px)."""
+    s = simulate_flight(np.random.default_rng(3), n_cameras=5, n_frames=160)
+    rig, rep = calibrate_session(s, progress=False)
+    assert rep["kept_input"] and len(rep["assessment"]["reasons"]) == 2
+    assert rig is s.rig
+
+
+def test_with_a_wand_the_refinement_is_determined(tmp_path):
+    """The same rig error filmed on a wand recording (`simulate wand`): metric scale, determined, and every
+    camera within 1.5 mm / 0.05 deg (measured 0.21-1.30 mm, 0.011-0.032 deg) from 5 mm / 0.5 deg."""
+    from batgraph.simulate import simulate_wand
+
+    s = simulate_wand(np.random.default_rng(15), calib_rot_deg=0.5, calib_trans_mm=5.0)
+    rig, rep = calibrate_session(s, progress=False)
+    assert rep["assessment"]["determined"] and rep["assessment"]["metric_reference"] and not rep["kept_input"]
+    mm, deg = _max_errors(rig, s.true_rig)
+    assert mm < 1.5 and deg < 0.05
+
+
+def test_cli_keeps_the_input_rig_or_refuses_an_explicit_refinement(tmp_path, capsys):
+    """`calibrate` (exit 0, a warning, the input rig written) and `calibrate --refine-intrinsics` (exit 2,
+    nothing written) on the short noisy scene; --force writes the refinement."""
+    from batgraph.cli import main
+
+    sess = tmp_path / "s"
+    assert main(["simulate", "flight", str(sess), "--frames", "60", "--noise-px", "2", "--seed", "15",
+                 "--calib-rot-deg", "0.5", "--calib-trans-mm", "5"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "cal.toml"
+    assert main(["calibrate", str(sess), "--out", str(out), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert "kept the input rig" in cap.err and "no metric reference" in cap.err
+    assert cap.out.strip().splitlines() == [f"wrote {out} (the input rig, unchanged)"]
+    kept, given = read_calibration(out), read_calibration(sess / "calibration.toml")
+    assert all(np.allclose(a.tvec, b.tvec, atol=1e-12) for a, b in zip(kept, given, strict=True))
+
+    out2 = tmp_path / "cal2.toml"
+    assert main(["calibrate", str(sess), "--out", str(out2), "--refine-intrinsics", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--refine-intrinsics" in err and "nothing written" in err and len(err.strip().splitlines()) == 1
+    assert not out2.exists()
+
+    assert main(["calibrate", str(sess), "--out", str(out2), "--force", "--quiet"]) == 0
+    forced = read_calibration(out2)
+    assert not all(np.allclose(a.tvec, b.tvec) for a, b in zip(forced, given, strict=True))

@@ -316,3 +316,98 @@ def test_no_display_gives_a_clear_error(scene, tmp_path, monkeypatch):
     (tmp_path / "recording.rrd").write_bytes(b"")
     with pytest.raises(viewer.ViewerUnavailable, match="no display"):
         viewer.open_recording(tmp_path)
+
+
+# ----- how a recording opens ------------------------------------------------------------------------
+def _blueprint_rows(path) -> dict[str, list[dict]]:
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    out = defaultdict(list)
+    for store in reader.blueprints():
+        for chunk in reader.stream(store=store):
+            out[chunk.entity_path].extend(chunk.to_record_batch().to_pylist())
+    return out
+
+
+def test_recording_opens_on_the_smoother_with_the_others_hidden(written, scene):
+    """Blueprint: every method but the smoother hidden (3D and each camera's reprojections), the frame
+    timeline paused (so the viewer opens on the first frame), marker names drawn for one method only."""
+    from rerun.blueprint.components import PlayState
+
+    _, path, ents = written
+    bp = _blueprint_rows(path)
+    hidden = {p.split("/ViewContents/overrides", 1)[1].removesuffix("/visualizers")
+              for p, rows in bp.items() if "/ViewContents/overrides/" in p
+              and any(r.get("EntityBehavior:visible") == [False] for r in rows)}
+    cams = scene[0].rig.names
+    assert hidden == {"/world/triangulate"} | {f"/world/cameras/{c}/image/reproj/triangulate" for c in cams}
+    panel = {k: v for r in bp["/time_panel"] for k, v in r.items() if v is not None}
+    assert panel["TimePanelBlueprint:timeline"] == ["frame"]
+    assert panel["TimePanelBlueprint:play_state"] == [PlayState.Paused.value]
+    assert panel["TimePanelBlueprint:fps"] == [FPS]
+    views = [p for p in bp if p.startswith("/view/") and p.count("/") == 2]
+    assert len(views) == 1 + len(cams)  # 3D and one 2D view per camera (detections + reprojections)
+
+    def labels(method):
+        return [r["Points3D:show_labels"] for r in ents[f"/world/{method}/markers"] if r.get("Points3D:show_labels")]
+    assert labels("smoother") == [[True]] and labels("triangulate") == [[False]]
+
+
+# ----- `batgraph view`: the rerun child process -------------------------------------------------------
+VIEW_SCRIPT = """
+import sys
+from batgraph import viewer
+from batgraph.cli import main
+viewer._rerun_executable = lambda: sys.argv[2]
+sys.exit(main(["view", sys.argv[1]]))
+"""
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals and a shell script as the viewer")
+@pytest.mark.parametrize("sig, stubborn, code", [(signal.SIGTERM, False, 143), (signal.SIGINT, False, 130),
+                                                 (signal.SIGTERM, True, 143)])
+def test_view_passes_signals_on_and_never_leaves_the_viewer_running(tmp_path, sig, stubborn, code):
+    """A fake rerun (a shell script that records its pid and sleeps; 'stubborn' ignores the signal): the
+    signal to `batgraph view` reaches it, `view` exits 128 + signal, and the child is gone (killed after 5 s
+    when it ignores the signal)."""
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    pidfile = tmp_path / "pid"
+    fake = tmp_path / "rerun"
+    trap = "trap '' TERM INT\n" if stubborn else ""
+    fake.write_text(f"#!/bin/sh\n{trap}echo $$ > {pidfile}\nwhile true; do sleep 0.05; done\n")
+    fake.chmod(0o755)
+    script = tmp_path / "view.py"
+    script.write_text(VIEW_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path), str(fake)],
+                            env={**os.environ, "DISPLAY": ":99"}, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not (pidfile.exists() and pidfile.read_text().strip()):
+        assert time.time() - t0 < 60 and proc.poll() is None, proc.stderr.read() if proc.poll() is not None else ""
+        time.sleep(0.05)
+    child = int(pidfile.read_text())
+    proc.send_signal(sig)
+    assert proc.wait(timeout=30) == code
+    assert not _pid_alive(child)
+    assert "Traceback" not in proc.stderr.read()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="display detection is X11/Wayland specific")
+def test_view_without_display_names_no_option_it_does_not_have(tmp_path, monkeypatch, capsys):
+    """`batgraph view` has no --viewer option: its message must not suggest one."""
+    from batgraph.cli import main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    assert main(["view", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "no display" in err and "--" not in err.replace(str(tmp_path), "")
