@@ -176,14 +176,9 @@ def _window_strips(win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _dense_results(table: pd.DataFrame, frames: np.ndarray, markers: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """One method's trajectory rows -> xyz (F, M, 3) [m] and cov (F, M, 3, 3) [m^2], NaN where absent."""
-    F, M = len(frames), len(markers)
-    fi = np.searchsorted(frames, table["frame"].to_numpy(np.int64))
-    mi = _codes(table["marker"], markers)
-    xyz = np.full((F, M, 3), np.nan)
-    cov = np.full((F, M, 3, 3), np.nan)
-    xyz[fi, mi] = table[["x", "y", "z"]].to_numpy(float)
-    c = table[["cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz"]].to_numpy(float)
-    cov[fi, mi] = c[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    from .evaluate import dense_from_table
+
+    xyz, cov, _, _ = dense_from_table(table, frames, markers)
     return xyz, cov
 
 
