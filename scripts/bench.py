@@ -7,7 +7,12 @@ Prints a table and ratios measured in this run (medians over repeats); nothing h
     that both reach the same optimum;
 (b) the filters' frames per second (iSAM2 and the fast per-marker filter) and their difference;
 (c) per-frame triangulation time;
-(d) how the paper's stacked EKF's time and memory grow with the number of markers.
+(d) how the paper's stacked EKF's time and memory grow with the number of markers;
+(e) whole commands as a user runs them (first, it is quick): ``batgraph reconstruct`` of the bundled
+    5-camera flight with the default methods and with ``--methods triangulate``, and ``batgraph --help``,
+    each a fresh process: wall time, CPU time (user + system) and peak resident memory, medians over
+    repeats; with ``--baseline-tree DIR`` (an older checkout, e.g. ``git worktree add /tmp/old HEAD~5``)
+    the same commands from that tree, run alternately, and the new / old ratios.
 """
 
 from __future__ import annotations
@@ -17,7 +22,9 @@ import gc
 import os
 import platform
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -318,6 +325,78 @@ def bench_ekf(args) -> list[tuple[str, str, str]]:
     return rows
 
 
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "data" / "samples" / "flight_5cam"
+
+
+# The command runs in a child that writes its own peak resident memory (VmHWM of /proc/self/status: the
+# high-water mark of its address space after exec) on exit; rusage's ru_maxrss would include the pages
+# the child shared with this process at fork.
+_CHILD = ("import atexit, os, runpy, sys\n"
+          "def _hwm():\n"
+          "    with open('/proc/self/status') as f, open(os.environ['BENCH_HWM'], 'w') as out:\n"
+          "        out.write(next(l.split()[1] for l in f if l.startswith('VmHWM')))\n"
+          "atexit.register(_hwm)\n"
+          "sys.argv = ['batgraph', *sys.argv[1:]]\n"
+          "runpy.run_module('batgraph.cli', run_name='__main__', alter_sys=True)\n")
+
+
+def run_process(cli: list[str], cwd: Path) -> dict:
+    """``python -m batgraph.cli *cli`` in a fresh process from ``cwd`` (so that tree's batgraph is imported):
+    wall [s], CPU = user + system [s] (rusage of the child), peak resident memory [MiB] (its VmHWM)."""
+    with tempfile.NamedTemporaryFile(suffix=".hwm") as hwm:
+        env = {**os.environ, "BENCH_HWM": hwm.name}
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-c", _CHILD, *cli], cwd=cwd, env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        err = proc.stderr.read().decode(errors="replace")
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.stderr.close()
+        code = os.waitstatus_to_exitcode(status)
+        proc.returncode = code
+        if code != 0:
+            raise RuntimeError(f"batgraph {' '.join(cli)} in {cwd} failed ({code}): {err[-2000:]}")
+        peak_kib = float(Path(hwm.name).read_text() or "nan")
+    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss": peak_kib / 1024}
+
+
+def bench_commands(args) -> list[tuple[str, str, str]]:
+    """(e): whole commands, fresh processes, medians; against ``--baseline-tree`` when given (alternating)."""
+    trees = {"new": ROOT}
+    if args.baseline_tree:
+        trees["old"] = Path(args.baseline_tree).resolve()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        commands = {
+            "reconstruct flight_5cam (default methods)": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/a",
+                                                          "--viewer", "none", "--quiet"],
+            "reconstruct flight_5cam --methods triangulate": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/b",
+                                                              "--viewer", "none", "--quiet", "--methods",
+                                                              "triangulate"],
+            "batgraph --help": ["--help"],
+        }
+        for what, cli in commands.items():
+            got: dict[str, list[dict]] = {name: [] for name in trees}
+            for _ in range(args.repeats):
+                for name, tree in trees.items():  # alternate old and new so both see the same machine load
+                    got[name].append(run_process(cli, tree))
+            med = {name: {k: statistics.median(r[k] for r in runs) for k in ("wall", "cpu", "rss")}
+                   for name, runs in got.items()}
+            for name in trees:
+                walls = ", ".join(f"{r['wall']:.2f}" for r in got[name])
+                print(f"(e) {what} [{name}]: wall {med[name]['wall']:.2f} s ({walls}), CPU {med[name]['cpu']:.2f} s, "
+                      f"peak RSS {med[name]['rss']:.0f} MiB")
+                rows.append((f"{what} [{name}]", f"{med[name]['wall']:.2f} s",
+                             f"median of {args.repeats}; CPU {med[name]['cpu']:.2f} s; peak RSS "
+                             f"{med[name]['rss']:.0f} MiB"))
+            if "old" in trees:
+                r = {k: med["new"][k] / med["old"][k] for k in ("wall", "cpu", "rss")}
+                rows.append((f"  ratio new / old: {what}", f"{r['wall']:.2f}",
+                             f"wall; CPU {r['cpu']:.2f}; peak RSS {r['rss']:.2f}"))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cameras", type=int, default=30)
@@ -328,12 +407,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the GTSAM baseline on this many markers (default: all, or a subset if too slow)")
     ap.add_argument("--ekf-frames", type=int, default=12, help="frames per EKF run in section (d)")
     ap.add_argument("--ekf-limit-s", type=float, default=20.0, help="stop (d) when one frame takes longer")
-    ap.add_argument("--skip", default="", help="comma list of sections to skip: smoother,filter,triangulate,ekf")
+    ap.add_argument("--skip", default="",
+                    help="comma list of sections to skip: commands,smoother,filter,triangulate,ekf")
+    ap.add_argument("--baseline-tree", default=None,
+                    help="(e): also run the commands from this older source tree and print new / old ratios")
     args = ap.parse_args(argv)
     skip = set(filter(None, args.skip.split(",")))
     info = machine()
     print(f"machine: {info['nproc']} cores, {info['cpu']}, {info['ram_gib']:.1f} GiB RAM, "
           f"Python {info['python']}, numpy {info['numpy']}")
+    rows = []
+    if "commands" not in skip:
+        rows += bench_commands(args)
     t0 = time.perf_counter()
     session = simulate_flight(np.random.default_rng(0), n_cameras=args.cameras, n_markers=args.markers,
                               n_frames=args.frames)
@@ -342,7 +427,6 @@ def main(argv: list[str] | None = None) -> int:
     C, F, M = ideal.seen.shape
     print(f"scene: simulate_flight(default_rng(0)): {C} cameras x {M} markers x {F} frames, "
           f"{int(ideal.seen.sum())} observations ({time.perf_counter() - t0:.1f} s to simulate)")
-    rows = []
     if "smoother" not in skip:
         rows += bench_smoother(session, dense, ideal, args)
     if "filter" not in skip:

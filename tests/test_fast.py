@@ -416,3 +416,59 @@ def test_rejects_bad_input(scene):
         fast.solve_fast(session, ideal, p_init, "jerk", 1.0, FPS)
     with pytest.raises(ValueError, match="p_init"):
         fast.solve_fast(session, ideal, p_init[:-1], "random_walk", SIGMA_M, FPS)
+
+
+def test_solve_levels_equals_solve_fast_per_candidate(scene):
+    """The q search's batch (candidates x markers as one Levenberg-Marquardt run, no covariances) gives each
+    candidate what solve_fast gives alone with that row of noise levels: positions to 1e-8 m, cost and
+    log det to 1e-8 relative (the columns are independent; only rounding differs, measured <= 1e-12)."""
+    session, dense, ideal, p_init = scene
+    M = p_init.shape[1]
+    levels = np.array([[ACCEL_PSD] * M, [2.0] * M, np.geomspace(0.5, 500.0, M)])
+    batch = fast.solve_levels(session.rig, ideal, p_init, "constant_velocity", levels, FPS, "huber", 2.0)
+    small = fast.solve_levels(session.rig, ideal, p_init, "constant_velocity", levels, FPS, "huber", 2.0, max_rows=1)
+    for k, row in enumerate(levels):
+        xyz, cov, info = fast.solve_fast(session, ideal, p_init, "constant_velocity", row, FPS, "huber", 2.0,
+                                         covariances=False)
+        assert cov is None
+        for got in (batch, small):  # one group of 3 candidates, and one candidate per group
+            np.testing.assert_allclose(got["position"][k], xyz, rtol=0, atol=1e-8)
+            np.testing.assert_allclose(got["velocity"][k], info["velocity"], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(got["cost"][k], info["cost_per_marker"], rtol=1e-8)
+            np.testing.assert_allclose(got["logdet"][k], info["logdet_per_marker"], rtol=1e-8)
+        _, _, with_cov = fast.solve_fast(session, ideal, p_init, "constant_velocity", row, FPS, "huber", 2.0)
+        np.testing.assert_allclose(info["logdet_per_marker"], with_cov["logdet_per_marker"], rtol=1e-10)
+
+
+def test_tiled_observations_keep_frame_order(scene):
+    """_Observations.tile: K copies of every marker as columns m + j M', rows sorted by frame."""
+    session, dense, ideal, p_init = scene
+    obs = fast._observations(session.rig, ideal, np.isfinite(p_init).all(axis=(0, 2)))
+    t = obs.tile(3)
+    assert t.n_markers == 3 * obs.n_markers and len(t.f) == 3 * len(obs.f)
+    assert np.all(np.diff(t.f) >= 0) and np.all(np.diff(t.cell) >= 0)
+    for j in range(3):
+        rows = (t.m >= j * obs.n_markers) & (t.m < (j + 1) * obs.n_markers)
+        np.testing.assert_array_equal(t.m[rows] - j * obs.n_markers, obs.m)
+        np.testing.assert_array_equal(t.uv[:, rows], obs.uv)
+
+
+def test_logdet_alone_equals_marginals():
+    """fast.logdet (forward sweep only, what the q search uses) equals the log det of fast.marginals."""
+    rng = np.random.default_rng(2)
+    F, M, d = 9, 3, 6
+    B = rng.normal(size=(M, d, d))
+    X = rng.normal(size=(F, M, d, d))
+    D = X @ np.swapaxes(X, -1, -2) + 3 * np.abs(B).sum(axis=(1, 2))[None, :, None, None] * np.eye(d)
+    np.testing.assert_allclose(fast.logdet(D, B), fast.marginals(D, B)[1], rtol=1e-12)
+
+
+def test_fast_paths_do_not_import_gtsam():
+    """The numpy solvers, the noise rules and the cost import without GTSAM (a 0.1-0.3 s import);
+    only the GTSAM reference modules load it."""
+    import subprocess
+    import sys
+
+    code = ("import sys, batgraph.graph.fast, batgraph.graph.fast_filter, batgraph.graph.noise, "
+            "batgraph.graph.cost; assert 'gtsam' not in sys.modules, 'gtsam imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,8 +1,13 @@
 """GTSAM factor graphs for marker trajectories: the batch smoother and the iSAM2 filter.
 
-Modules: :mod:`.factors` (keys, projection / motion / prior factors, camera variables),
-:mod:`.smoother` (batch Levenberg-Marquardt + marginals), :mod:`.filter` (iSAM2, frame by frame),
-:mod:`.noise` (motion noise: given, or the constant-velocity q chosen from the data).
+Modules, imports flowing one way (cost -> noise -> fast -> fast_filter; factors -> smoother, filter):
+:mod:`.cost` (the cost's constants, motion parameters, robust losses, residuals and rejection rule, in
+numpy), :mod:`.noise` (motion noise: given, the filter's causal q, the marginal-likelihood formulas),
+:mod:`.fast` (the numpy smoother for a fixed rig, and the per-marker q search), :mod:`.fast_filter`
+(the numpy filter); the GTSAM reference: :mod:`.factors` (keys, projection / motion / prior factors,
+camera variables), :mod:`.smoother` (batch Levenberg-Marquardt + marginals), :mod:`.filter` (iSAM2).
+Only the last three import GTSAM; the fast paths hand over to them (imported then) when the rig has
+camera pose covariances.
 
 The cost (shared with any fast path), per estimated marker m and frame k of the session's range:
 projection factors on ideal pixels whitened by the mapped pixel covariance (Huber / Cauchy / none);

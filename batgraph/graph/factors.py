@@ -5,7 +5,8 @@ ideal (undistorted) pixels with the mapped pixel noise, a random-walk or constan
 prior along every marker's frames, weak gauge priors on each marker's first frame, and (where the
 calibration carries a pose covariance) camera poses as variables with priors. This module builds
 factors and initial values only; solving is in :mod:`batgraph.graph.smoother` and
-:mod:`batgraph.graph.filter`.
+:mod:`batgraph.graph.filter`. What needs no GTSAM (constants, the motion model's parameters, the initial
+track, residuals and the rejection rule) is in :mod:`batgraph.graph.cost` and re-exported here.
 
 Why ideal pixels and not GTSAM's Cal3DS2 on raw pixels: Cal3DS2 has no k3 (GoPro-like lenses need
 it), while undistorting once with all five OpenCV coefficients and carrying the pixel noise through
@@ -17,7 +18,6 @@ same k3 = 0 scene both ways and bounds their difference.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -26,17 +26,22 @@ from ..camera import Camera, Rig
 from ..geometry import pose as geometry_pose
 from ..measurement import IdealObservations
 from ..motion import constant_velocity_Q
+from .cost import (  # noqa: F401  (re-exported: the numpy part of the cost, importable without GTSAM)
+    CHI2_2DOF_999,
+    MOTION_MODELS,
+    PRIOR_POSITION_SIGMA_M,
+    PRIOR_VELOCITY_SIGMA_MPS,
+    REJECT_SQ_RESIDUAL,
+    ROBUST_LOSSES,
+    MotionModel,
+    initial_track,
+    outlier_flags,
+    to_exclude,
+    velocity_mps,
+    whitened_sq_residuals,
+    without_observations,
+)
 
-PRIOR_POSITION_SIGMA_M = 10.0  # gauge prior on p[m, first frame] (cost spec, factor 3)
-PRIOR_VELOCITY_SIGMA_MPS = 10.0  # gauge prior on v[m, first frame] (constant velocity only)
-CHI2_2DOF_999 = 13.8155  # 99.9 % quantile of chi-square, 2 DOF: outlier threshold on |r|^2
-# Outlier rejection drops an observation when |r|^2 > 25 (|r| > 5 sigma; Gaussian tail exp(-12.5) =
-# 4e-6): at 13.8155 an excluded inlier drifts away from the solution that no longer sees it and stays
-# flagged (measured: 25 of 12000 clean observations excluded, +2.6 % RMSE), at 25 none were, while
-# 595 of 601 planted mislabels still were (the rest within 5 sigma, harmless under Huber).
-REJECT_SQ_RESIDUAL = 25.0
-MOTION_MODELS = ("random_walk", "constant_velocity")
-ROBUST_LOSSES = ("huber", "cauchy", "none")
 _FRAME_BITS = 32  # key index = marker << 32 | frame: room for 2^32 frames and 2^24 markers
 # Symbols: positions 'x', velocities 'v', camera poses 'c'. Velocities sort before positions on
 # purpose: see _CvFactorMaker.
@@ -65,37 +70,6 @@ def pose_key(c: int) -> int:
 
 
 # ----- motion ---------------------------------------------------------------------------------------
-def velocity_mps(u_m_per_frame: np.ndarray, dt_s: float) -> np.ndarray:
-    """Velocity variables' values (..., 3) [m/frame] -> velocities [m/s]."""
-    return np.asarray(u_m_per_frame) / dt_s
-
-
-@dataclass(frozen=True)
-class MotionModel:
-    """A motion prior between consecutive frames.
-
-    name: "random_walk" (p[k+1] = p[k] + w, per-axis std ``sigma_m`` [m], paper eq. 3-5) or
-        "constant_velocity" (state [p, v], white-noise acceleration of PSD ``accel_psd_m2_s3``).
-    dt_s: frame interval 1 / fps [s].
-    """
-
-    name: str
-    dt_s: float
-    sigma_m: float | None = None
-    accel_psd_m2_s3: float | None = None
-
-    def __post_init__(self):
-        if self.name not in MOTION_MODELS:
-            raise ValueError(f"motion model must be one of {MOTION_MODELS}, got {self.name!r}")
-        need = self.sigma_m if self.name == "random_walk" else self.accel_psd_m2_s3
-        if need is None or not need > 0:
-            raise ValueError(f"{self.name} needs a positive noise level, got {need!r}")
-
-    @property
-    def has_velocity(self) -> bool:
-        return self.name == "constant_velocity"
-
-
 def cv_whitened_blocks(accel_psd_m2_s3: float, dt_s: float) -> np.ndarray:
     """Whitened Jacobian of the constant-velocity residual, shape (6, 12), columns [p_k, u_k, p_k+1, u_k+1].
 
@@ -273,71 +247,6 @@ class ObservationFactors:
                              cam.pose_cov)
             cams.append(cam)
         return Rig(cams)
-
-
-# ----- initial values and residuals -----------------------------------------------------------------
-def initial_track(xyz_tri_m: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Initial positions and velocities from per-frame triangulation (cost spec).
-
-    xyz_tri_m: triangulated positions (F, M, 3) [m], NaN where < 2 views.
-    Returns p_init (F, M, 3) [m] (linear interpolation over NaN frames, constant at the ends),
-    v_init (F, M, 3) [m/s] (np.gradient of p_init times fps), and ``estimated`` bool (M,): markers
-    triangulated on at least one frame (the others stay NaN).
-    """
-    F, M = xyz_tri_m.shape[:2]
-    ok = np.isfinite(xyz_tri_m).all(axis=-1)  # (F, M)
-    estimated = ok.any(axis=0)
-    p = np.full((F, M, 3), np.nan)
-    v = np.full((F, M, 3), np.nan)
-    frames = np.arange(F)
-    for m in np.flatnonzero(estimated):
-        for a in range(3):
-            p[:, m, a] = np.interp(frames, frames[ok[:, m]], xyz_tri_m[ok[:, m], m, a])
-    if F > 1:
-        v[:, estimated] = np.gradient(p[:, estimated], axis=0) * fps
-    else:
-        v[:, estimated] = 0.0
-    return p, v, estimated
-
-
-def whitened_sq_residuals(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
-    """|r|^2 = d^T cov^-1 d of every observation, d = pi_c(xyz) - uv_ideal (plain Gaussian whitening).
-
-    xyz_m: positions (F, M, 3) [m, world]. Returns (C, F, M); NaN where unseen or xyz is NaN.
-    """
-    d = rig.project(xyz_m, distort=False) - ideal.uv_px  # (C, F, M, 2)
-    ok = np.isfinite(d).all(axis=-1)
-    out = np.full(ok.shape, np.nan)
-    out[ok] = np.einsum("ni,ni->n", d[ok], np.linalg.solve(ideal.cov_px2[ok], d[ok][..., None])[..., 0])
-    return out
-
-
-def outlier_flags(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
-    """Observations whose |r|^2 at ``xyz_m`` (F, M, 3) exceeds 13.8155 (chi-square 2 DOF, 99.9 %): bool (C, F, M)."""
-    r2 = whitened_sq_residuals(rig, ideal, xyz_m)
-    return np.nan_to_num(r2, nan=0.0) > CHI2_2DOF_999
-
-
-def to_exclude(rejected: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """The observations of ``rejected`` (bool (C, F, M)) to leave out, given every ``seen`` one (C, F, M).
-
-    Rejected: |r|^2 > REJECT_SQ_RESIDUAL at a solution (the smoother's rejection schedule). On a
-    (frame, marker) seen by one camera: the observation when rejected. On one seen by several:
-    a rejected observation only when at least one of its views is not rejected. A mislabel is one
-    observation; when every view of a multi-view frame is rejected, the motion prior (too stiff),
-    not the data, is wrong, and none is left out (measured: a 4 mm/frame random walk on a 6 mm/frame
-    marker moved 18 of its frames by up to 150 mm without this rule, 60 mm with it). Requiring two
-    unrejected views instead kept 2-view mislabels in and doubled the observed RMSE (1.87 -> 3.79 mm).
-    """
-    n_ok = (seen & ~rejected).sum(axis=0)
-    return rejected & ((seen.sum(axis=0) == 1) | (n_ok >= 1))[None]
-
-
-def without_observations(ideal: IdealObservations, drop: np.ndarray) -> IdealObservations:
-    """``ideal`` with the observations where ``drop`` (bool (C, F, M)) is True made unseen (NaN pixels)."""
-    uv = ideal.uv_px.copy()
-    uv[drop] = np.nan
-    return IdealObservations(uv, ideal.cov_px2)
 
 
 # ----- whole graphs -----------------------------------------------------------------------------------

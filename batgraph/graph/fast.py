@@ -11,15 +11,31 @@ Layout: the state is ``x`` of shape (F, M, d) [m], frames first so that one fram
 contiguous (M, d) slice for the sweeps over frames. d = 3 (random walk: position) or 6 (constant
 velocity: position and u = v dt, the displacement per frame, as in factors.v_key, so both halves are in
 metres and every 6x6 block is well conditioned); results are reported in the spec's units (v in m/s).
+
+Speed (issue "Speed a user feels"; BENCHMARKS.md): the linear solves are sweeps over frames, each step
+one batched operation over every column being solved. Measured alternatives on 5 x 24 x 160 and
+160 x 216 / 1200 x 180 systems (6x6 blocks): one banded Cholesky over all markers (LAPACK dpbtrf,
+kd = 11) was no faster (its unblocked per-column BLAS calls cost as much as numpy's per-frame calls);
+odd-even cyclic reduction (log2 F sweeps, 2x the flops) was 1-2x slower; closed-form batched 6x6
+inverses did not beat LAPACK's at these batch sizes. What made the smoother faster is fewer and cheaper
+sweeps: the q search solves every decade of its grid as ONE batch (candidates x markers as columns,
+:func:`solve_levels`), computes no covariances while searching (log det from the forward sweep),
+merges the forward elimination and substitution into one sweep, and gives exact (Newton) steps their
+own damping, so a Huber kink no longer makes a marker alternate rejected exact / accepted IRLS steps
+for tens of iterations. BLAS is held to one thread while solving (:func:`one_blas_thread`).
 """
 
 from __future__ import annotations
 
+import functools
+import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from ..camera import Rig
 from ..geometry import pinhole
@@ -28,12 +44,14 @@ from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
-from . import factors, noise
+from . import cost as spec
+from . import noise
+from .cost import robust_loss  # noqa: F401  (re-exported: fast_filter and tests use it from here)
 
-MODELS = factors.MOTION_MODELS
-ROBUST = factors.ROBUST_LOSSES
-PRIOR_SIGMA_P_M = factors.PRIOR_POSITION_SIGMA_M  # weak gauge prior on p[m, 0] [m] (cost spec, factor 3)
-PRIOR_SIGMA_V_MPS = factors.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m, 0] [m/s]
+MODELS = spec.MOTION_MODELS
+ROBUST = spec.ROBUST_LOSSES
+PRIOR_SIGMA_P_M = spec.PRIOR_POSITION_SIGMA_M  # weak gauge prior on p[m, 0] [m] (cost spec, factor 3)
+PRIOR_SIGMA_V_MPS = spec.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m, 0] [m/s]
 # Convergence: the spec asks for a relative cost decrease < 1e-12 or a step < 1e-10 m. Near the
 # minimum a 1e-12 relative decrease still allows ~1e-8 m, to which the IRLS weights of robust factors
 # (and so the covariances) are sensitive at 1e-6 relative; stopping on the step (or on a decrease at
@@ -47,25 +65,10 @@ ROUNDING_EPS = 4.0
 # Observations are evaluated in blocks of whole frames of about this many rows, so that the
 # temporaries of one block (a few hundred kB each) stay in the CPU cache whatever the scene's size.
 CHUNK_ROWS = 1 << 15
-
-
-def robust_loss(d2: np.ndarray, robust: str, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's m-estimators on the whitened norm |r| = sqrt(d2): (rho, IRLS weight rho'(|r|)/|r|).
-
-    d2: squared whitened residual norms, any shape. ``huber``: rho = 0.5 d2 if |r| <= k else
-    k|r| - 0.5 k^2, w = min(1, k/|r|); ``cauchy``: rho = 0.5 k^2 log(1 + d2/k^2), w = k^2/(k^2 + d2);
-    ``none``: rho = 0.5 d2, w = 1. This is gtsam.noiseModel.mEstimator's loss() and weight().
-    """
-    if robust == "none":
-        return 0.5 * d2, np.ones_like(d2)
-    if robust == "huber":
-        r = np.sqrt(d2)
-        inside = r <= k
-        with np.errstate(divide="ignore"):
-            return np.where(inside, 0.5 * d2, k * r - 0.5 * k * k), np.where(inside, 1.0, k / r)
-    if robust == "cauchy":
-        return 0.5 * k * k * np.log1p(d2 / (k * k)), k * k / (k * k + d2)
-    raise ValueError(f"robust must be one of {ROBUST}, got {robust!r}")
+# solve_levels repeats the observation rows once per candidate noise level; candidates go in groups
+# of at most this many rows in all (~64 B a row: 32 MB), so memory stays bounded at any scene size; a
+# larger scene solves its candidates one by one (there the sweeps are work, not per-call overhead).
+MAX_BATCH_ROWS = 1 << 19
 
 
 @dataclass
@@ -110,6 +113,17 @@ class _Observations:
         rows = np.flatnonzero(keep[self.m])
         return _Observations(self.f[rows], col[self.m[rows]], self.cam[rows], self.P, self.uv[:, rows],
                              self.Linv[:, rows], self.behind_px, self.n_frames, int(keep.sum()))
+
+    def tile(self, K: int) -> _Observations:
+        """K copies of every marker as columns m + j M' (j < K) of K M' markers, rows still sorted by frame."""
+        if K == 1:
+            return self
+        n = len(self.f)
+        order = np.argsort(np.tile(self.f, K), kind="stable")  # frame-major, copies in order within a frame
+        rows = np.tile(np.arange(n), K)[order]
+        col = (self.m[None, :] + self.n_markers * np.arange(K)[:, None]).ravel()[order]
+        return _Observations(self.f[rows], col, self.cam[rows], self.P, self.uv[:, rows], self.Linv[:, rows],
+                             self.behind_px, self.n_frames, K * self.n_markers)
 
     def residuals(self, x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Whitened residuals r (2, n) of every row at x (F, M', >= 3) [m] and, if asked, whitened
@@ -300,7 +314,7 @@ class _Problem:
 
         Projection blocks from ``lin`` (at x): Hw - Hc (the robust loss's own curvature) where
         ``exact`` (bool, scalar or per marker (M',)), Hw (IRLS) elsewhere; plus the motion and prior
-        factors. The off-diagonal blocks are ``self.B`` (constant over frames).
+        cost. The off-diagonal blocks are ``self.B`` (constant over frames).
         """
         F, M = x.shape[:2]
         Hp = lin.Hw - np.asarray(exact, float)[..., None] * lin.Hc  # (F, M', 6)
@@ -320,31 +334,80 @@ class _Problem:
         return D, g
 
 
-def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Block elimination over frames: S_k^-1 (F, M, d, d) with S_0 = D_0, S_k = D_k - B S_{k-1}^-1 B^T."""
-    Sinv = np.empty_like(D)
-    Sinv[0] = np.linalg.inv(D[0])
-    BT = np.swapaxes(B, -1, -2)
-    for k in range(1, len(D)):
-        Sinv[k] = np.linalg.inv(D[k] - B @ Sinv[k - 1] @ BT)
-    return Sinv
+@contextmanager
+def one_blas_thread():
+    """BLAS/OpenMP limited to one thread (threadpoolctl) while the solver runs; re-entrant and cheap
+    inside an outer one. Its linear algebra is batches of 3x3 / 6x6 blocks, where extra threads only
+    add synchronisation (a 16-core machine must not be slower than a 2-core one)."""
+    if _BLAS_GUARD["depth"]:
+        _BLAS_GUARD["depth"] += 1
+        try:
+            yield
+        finally:
+            _BLAS_GUARD["depth"] -= 1
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        _BLAS_GUARD["depth"] = 1
+        try:
+            yield
+        finally:
+            _BLAS_GUARD["depth"] = 0
+
+
+_BLAS_GUARD = {"depth": 0}
+
+
+def _one_thread(fn):
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with one_blas_thread():
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+def _T(a: np.ndarray) -> np.ndarray:
+    return np.swapaxes(a, -1, -2)
 
 
 def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant over frames).
 
     D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d). Returns dx (F, M, d).
+    One sweep over frames eliminates and substitutes forwards (S_k = D_k - L_k B^T with L_k = B S_{k-1}^-1,
+    y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes; each step is vectorised over markers.
     """
-    Sinv = _forward(D, B)
-    y = rhs.copy()
+    F = len(D)
+    BT = _T(B)
+    Sinv = np.empty_like(D)
+    y = rhs[..., None].copy()  # (F, M, d, 1)
+    Sinv[0] = np.linalg.inv(D[0])
+    for k in range(1, F):
+        L = B @ Sinv[k - 1]
+        Sinv[k] = np.linalg.inv(D[k] - L @ BT)
+        y[k] -= L @ y[k - 1]
+    dx = np.empty_like(y)
+    dx[-1] = Sinv[-1] @ y[-1]
+    for k in range(F - 2, -1, -1):
+        dx[k] = Sinv[k] @ (y[k] - BT @ dx[k + 1])
+    return dx[..., 0]
+
+
+def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Block elimination over frames: S_k^-1 (F, M, d, d) with S_0 = D_0, S_k = D_k - B S_{k-1}^-1 B^T."""
+    Sinv = np.empty_like(D)
+    Sinv[0] = np.linalg.inv(D[0])
+    BT = _T(B)
     for k in range(1, len(D)):
-        # L_k = B S_{k-1}^-1 ;  y_k -= L_k y_{k-1}
-        y[k] -= (B @ (Sinv[k - 1] @ y[k - 1][..., None]))[..., 0]
-    dx = np.empty_like(rhs)
-    dx[-1] = (Sinv[-1] @ y[-1][..., None])[..., 0]
-    for k in range(len(D) - 2, -1, -1):
-        dx[k] = (Sinv[k] @ (y[k][..., None] - np.swapaxes(B, -1, -2) @ dx[k + 1][..., None]))[..., 0]
-    return dx
+        Sinv[k] = np.linalg.inv(D[k] - B @ Sinv[k - 1] @ BT)
+    return Sinv
+
+
+def logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """log det H (M,) of block-tridiagonal H (see :func:`marginals`): sum_k log det S_k, forward sweep only."""
+    _, logdet_inv = np.linalg.slogdet(_forward(D, B))  # S_k^-1 is SPD: the sign is +1
+    return -logdet_inv.sum(axis=0)
 
 
 def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -354,29 +417,32 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     or per marker (M, d, d).
     Returns Sigma (F, M, d, d) and logdet (M,). With S_k the forward Schur complements,
     Sigma_{F-1} = S_{F-1}^-1 and Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T, G_k = S_k^-1 B^T
-    (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k.
+    (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k. The gains of every
+    frame come from one batched product; the sweep itself is two products per frame.
     """
     Sinv = _forward(D, B)
     _, logdet_inv = np.linalg.slogdet(Sinv)  # Sinv is SPD: the sign is +1
+    G = Sinv @ _T(B)  # (F, M, d, d)
+    GT = _T(G)
     Sigma = np.empty_like(D)
     Sigma[-1] = Sinv[-1]
     for k in range(len(D) - 2, -1, -1):
-        G = Sinv[k] @ np.swapaxes(B, -1, -2)
-        Sigma[k] = Sinv[k] + G @ Sigma[k + 1] @ np.swapaxes(G, -1, -2)
-    Sigma = 0.5 * (Sigma + np.swapaxes(Sigma, -1, -2))
+        Sigma[k] = Sinv[k] + G[k] @ Sigma[k + 1] @ GT[k]
+    Sigma = 0.5 * (Sigma + _T(Sigma))
     return Sigma, -logdet_inv.sum(axis=0)
 
 
+@_one_thread
 def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: np.ndarray, model: str,
                noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
-               ) -> tuple[np.ndarray, np.ndarray, dict]:
+               covariances: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
     session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
     ideal: ideal pixels (C, F, M, 2) and their covariances (C, F, M, 2, 2) (batgraph.measurement).
     p_init: initial positions (F, M, 3) [m, world], finite on every frame of an estimated marker and
-        all NaN for a marker not estimated (see batgraph.graph.factors.initial_track); p_init[0] is the
+        all NaN for a marker not estimated (see batgraph.graph.cost.initial_track); p_init[0] is the
         mean of the weak position prior and p_init the starting point unless ``p_start`` is given.
     model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]) or "constant_velocity"
         (noise_level = q, acceleration PSD [m^2/s^3]); noise_level is one value for every marker or
@@ -384,6 +450,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     fps: frame rate [Hz]; robust, robust_k: loss on projection factors (see :func:`robust_loss`).
     v_init: starting velocities (F, M, 3) [m/s] for constant_velocity; default np.gradient(p_init) * fps.
     p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
+    covariances: False skips the marginal covariances (cov is None; log det is still computed, from
+        the forward sweep alone): what a search over the noise level needs.
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
@@ -400,88 +468,34 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     None, estimated (M,) bool.
     """
     rig = session_or_rig.rig if isinstance(session_or_rig, Session) else session_or_rig
-    if model not in MODELS:
-        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
-    if robust not in ROBUST:
-        raise ValueError(f"robust must be one of {ROBUST}, got {robust!r}")
     C, F, M = ideal.seen.shape
-    if p_init.shape != (F, M, 3):
-        raise ValueError(f"p_init must have shape {(F, M, 3)}, got {p_init.shape}")
+    _check(model, robust, p_init, noise_level, F, M)
     estimated = np.isfinite(p_init).all(axis=(0, 2))
-    if np.isfinite(p_init[:, ~estimated]).any():
-        raise ValueError("p_init must be finite on every frame of a marker or NaN on all of them")
-    if np.ndim(noise_level) not in (0, 1) or np.ndim(noise_level) == 1 and np.shape(noise_level) != (M,):
-        raise ValueError(f"noise_level must be a scalar or have shape {(M,)}, got {np.shape(noise_level)}")
     ms = np.flatnonzero(estimated)  # the state holds the estimated markers only
     level = np.asarray(noise_level, float)
     prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k)
+    obs = _observations(rig, ideal, estimated)
+    x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps)
+    x, cost, lin, iters, converged = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
+    D, _ = prob.system(x, mu0, lin, exact=False)
+    if covariances:
+        Sigma_e, logdet_e = marginals(D, prob.B)
+    else:
+        Sigma_e, logdet_e = None, logdet(D, prob.B)
     dt = 1.0 / fps
     d = prob.d
-    obs_all = _observations(rig, ideal, estimated)
-    x = np.zeros((F, len(ms), d))
-    x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
-    if d == 6:
-        if v_init is None:
-            v_init = np.gradient(p_init, axis=0) * fps if F > 1 else np.zeros_like(p_init)
-        x[..., 3:] = v_init[:, ms] * dt
-    mu0 = np.zeros((len(ms), d))
-    mu0[:, :3] = p_init[0, ms]  # velocity prior mean 0
-
-    cost, lin = prob.evaluate(x, mu0, obs_all, jacobian=True)
-    lam = np.zeros(len(ms))
-    exact = np.zeros(len(ms), bool)  # the next step uses the loss's own curvature (else IRLS's)
-    active = np.ones(len(ms), bool)
-    iters = np.zeros(len(ms), int)
-    converged = np.zeros(len(ms), bool)
-    diag = np.arange(d)
-    eps = np.finfo(float).eps
-    obs, cols, obs_cols, prob_a = obs_all, np.arange(len(ms)), len(ms), prob
-    for _ in range(max_iterations):
-        if not active.any():
-            break
-        # converged markers drop out: solve only the active ones (most converge in a few iterations)
-        act = np.flatnonzero(active)
-        if len(act) < obs_cols:  # shrink the observation set along with the active markers
-            obs, prob_a = obs.of_markers(active[cols]), prob_a.of_markers(active[cols])
-            cols, obs_cols = act, len(act)
-        xa = x[:, act]
-        D, g = prob_a.system(xa, mu0[act], lin.take(act), exact[act])
-        D[..., diag, diag] *= 1.0 + lam[act][None, :, None]
-        dx = _solve(D, prob_a.B, -g)
-        xn = xa + dx
-        cost_new, lin_new = prob_a.evaluate(xn, mu0[act], obs, jacobian=True)
-        ok = cost_new <= cost[act]
-        step = np.abs(dx).max(axis=(0, 2))
-        rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
-        gain = -0.5 * np.einsum("fmi,fmi->m", g, dx)  # the damped quadratic model's decrease
-        flat = ~ok & (gain <= ROUNDING_EPS * eps * cost[act])  # no decrease the cost could resolve
-        x[:, act[ok]] = xn[:, ok]
-        lin.put(act[ok], lin_new.take(ok))
-        stuck = lam[act] > 1e12
-        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck
-        converged[act] = done & ~stuck
-        iters[act] += 1
-        cost[act] = np.where(ok, cost_new, cost[act])
-        # accepted: less damping, next step exact; rejected exact step: retry with the IRLS curvature
-        # (it majorises the robust loss), same damping; rejected IRLS step: more damping
-        retry = ~ok & exact[act] & (prob.robust != "none")
-        lam[act] = np.where(ok, np.where(lam[act] > 1e-9, lam[act] / 10, 0.0),
-                            np.where(retry, lam[act], np.maximum(lam[act] * 10, 1e-6)))
-        exact[act] = ok
-        active[act] = ~done
-
-    D, _ = prob.system(x, mu0, lin, exact=False)
-    Sigma_e, logdet_e = marginals(D, prob.B)
     if d == 6:  # back to the spec's variables: v = x_v / dt, so H_v = H_x dt^2 per velocity axis
         logdet_e = logdet_e + 2 * 3 * F * np.log(dt)
     x_all = np.full((F, M, d), np.nan)
     x_all[:, ms] = x
-    Sigma = np.full((F, M, d, d), np.nan)
-    Sigma[:, ms] = Sigma_e
-    x = x_all
-    xyz = x[..., :3]
-    cov = Sigma[..., :3, :3]
-    velocity = x[..., 3:] / dt if d == 6 else None
+    xyz = x_all[..., :3]
+    if covariances:
+        Sigma = np.full((F, M, d, d), np.nan)
+        Sigma[:, ms] = Sigma_e
+        cov = Sigma[..., :3, :3]
+    else:
+        cov = None
+    velocity = x_all[..., 3:] / dt if d == 6 else None
 
     def per_marker(a, fill):
         out = np.full(M, fill, dtype=np.asarray(a).dtype)
@@ -498,6 +512,240 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     return xyz, cov, info
 
 
+def _check(model: str, robust: str, p_init: np.ndarray, noise_level, F: int, M: int) -> None:
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if robust not in ROBUST:
+        raise ValueError(f"robust must be one of {ROBUST}, got {robust!r}")
+    if p_init.shape != (F, M, 3):
+        raise ValueError(f"p_init must have shape {(F, M, 3)}, got {p_init.shape}")
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    if np.isfinite(p_init[:, ~estimated]).any():
+        raise ValueError("p_init must be finite on every frame of a marker or NaN on all of them")
+    if np.ndim(noise_level) not in (0, 1) or np.ndim(noise_level) == 1 and np.shape(noise_level) != (M,):
+        raise ValueError(f"noise_level must be a scalar or have shape {(M,)}, got {np.shape(noise_level)}")
+
+
+def _start(prob: _Problem, p_init: np.ndarray, v_init: np.ndarray | None, p_start: np.ndarray | None,
+           ms: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The starting state x (F, M', d) of markers ``ms`` and their prior means mu0 (M', d) (velocity 0)."""
+    F = p_init.shape[0]
+    x = np.zeros((F, len(ms), prob.d))
+    x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
+    if prob.d == 6:
+        if v_init is None:
+            v_init = np.gradient(p_init, axis=0) * fps if F > 1 else np.zeros_like(p_init)
+        x[..., 3:] = v_init[:, ms] * (1.0 / fps)
+    mu0 = np.zeros((len(ms), prob.d))
+    mu0[:, :3] = p_init[0, ms]
+    return x, mu0
+
+
+def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, mu0: np.ndarray,
+                         max_iterations: int):
+    """Levenberg-Marquardt per marker column from x (F, M', d) (see :func:`solve_fast`).
+
+    Returns (x, cost (M',), linearisation at x, iterations (M',), converged (M',) bool).
+    """
+    M = x.shape[1]
+    d = prob.d
+    cost, lin = prob.evaluate(x, mu0, obs_all, jacobian=True)
+    lam = np.zeros(M)  # damping of IRLS steps
+    lam_x = np.zeros(M)  # damping of exact steps (own curvature): remembers their rejections
+    exact = np.zeros(M, bool)  # the next step uses the loss's own curvature (else IRLS's)
+    robust = prob.robust != "none"  # without a robust loss both curvatures are one: one damping
+    active = np.ones(M, bool)
+    iters = np.zeros(M, int)
+    converged = np.zeros(M, bool)
+    diag = np.arange(d)
+    eps = np.finfo(float).eps
+    obs, cols, obs_cols, prob_a = obs_all, np.arange(M), M, prob
+    for _ in range(max_iterations):
+        if not active.any():
+            break
+        # converged markers drop out: solve only the active ones (most converge in a few iterations)
+        act = np.flatnonzero(active)
+        if len(act) < obs_cols:  # shrink the observation set along with the active markers
+            obs, prob_a = obs.of_markers(active[cols]), prob_a.of_markers(active[cols])
+            cols, obs_cols = act, len(act)
+        xa = x[:, act]
+        D, g = prob_a.system(xa, mu0[act], lin.take(act), exact[act])
+        damping = np.where(exact[act] & robust, lam_x[act], lam[act])
+        D[..., diag, diag] *= 1.0 + damping[None, :, None]
+        dx = _solve(D, prob_a.B, -g)
+        xn = xa + dx
+        cost_new, lin_new = prob_a.evaluate(xn, mu0[act], obs, jacobian=True)
+        ok = cost_new <= cost[act]
+        step = np.abs(dx).max(axis=(0, 2))
+        rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
+        gain = -0.5 * np.einsum("fmi,fmi->m", g, dx)  # the damped quadratic model's decrease
+        flat = ~ok & (gain <= ROUNDING_EPS * eps * cost[act])  # no decrease the cost could resolve
+        x[:, act[ok]] = xn[:, ok]
+        lin.put(act[ok], lin_new.take(ok))
+        stuck = lam[act] > 1e12  # IRLS steps (which majorise the loss) rejected even when tiny
+        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck
+        converged[act] = done & ~stuck
+        iters[act] += 1
+        cost[act] = np.where(ok, cost_new, cost[act])
+        # accepted: less damping (of that kind of step), next step exact; rejected exact step: more
+        # damping for exact steps, retry now with the IRLS curvature (it majorises the robust loss);
+        # rejected IRLS step: more damping. (One damping for both let an undamped exact step overshoot a
+        # Huber kink again after every accepted IRLS step: measured 60 such rejected/accepted pairs.)
+        was_exact = exact[act] & robust
+        less = np.where(damping > 1e-9, damping / 10, 0.0)
+        more = np.maximum(damping * 10, 1e-6)
+        lam_x[act] = np.where(was_exact, np.where(ok, less, more), lam_x[act])
+        lam[act] = np.where(was_exact, lam[act], np.where(ok, less, more))
+        if not robust:
+            lam_x[act] = lam[act]
+        exact[act] = ok
+        active[act] = ~done
+    return x, cost, lin, iters, converged
+
+
+@_one_thread
+def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: str, levels: np.ndarray,
+                 fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
+                 p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
+                 ) -> dict:
+    """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
+
+    levels: (K, M) noise levels (q [m^2/s^3] or sigma_m [m]), one row per candidate. The K copies of
+    every marker are independent columns of one Levenberg-Marquardt run (candidates x markers as the
+    batch axis, each column with its own damping and stopping), so a candidate's answer is exactly
+    the one solve_fast gives with that row (to the solver's tolerance); the observation rows are
+    repeated per candidate, in groups of candidates of at most ``max_rows`` rows in all.
+    v_start, p_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
+    Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
+    logdet_per_marker), position (K, F, M, 3), velocity (K, F, M, 3) or None, iterations (K, M),
+    converged (K, M); NaN / 0 for markers not estimated.
+    """
+    levels = np.asarray(levels, float)
+    C, F, M = ideal.seen.shape
+    if levels.ndim != 2 or levels.shape[1] != M:
+        raise ValueError(f"levels must have shape (K, {M}), got {levels.shape}")
+    _check(model, robust, p_init, levels[0], F, M)
+    K = len(levels)
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    ms = np.flatnonzero(estimated)
+    obs = _observations(rig, ideal, estimated)
+    dt = 1.0 / fps
+    out = {"cost": np.zeros((K, M)), "logdet": np.zeros((K, M)), "position": np.full((K, F, M, 3), np.nan),
+           "velocity": np.full((K, F, M, 3), np.nan) if model != "random_walk" else None,
+           "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool)}
+    group = max(1, int(max_rows // max(1, len(obs.f))))
+
+    def pick(a, k):
+        return a if a is None or a.ndim == 3 else a[k]
+
+    for k0 in range(0, K, group):
+        ks = np.arange(k0, min(K, k0 + group))
+        prob = _Problem(model, levels[ks][:, ms].ravel(), fps, robust, robust_k)
+        starts = [_start(prob, p_init, pick(v_start, k), pick(p_start, k), ms, fps) for k in ks]
+        x = np.concatenate([s[0] for s in starts], axis=1)
+        mu0 = np.concatenate([s[1] for s in starts])
+        x, cost, lin, iters, converged = _levenberg_marquardt(prob, obs.tile(len(ks)), x, mu0, max_iterations)
+        D, _ = prob.system(x, mu0, lin, exact=False)
+        ld = logdet(D, prob.B)
+        if prob.d == 6:
+            ld = ld + 2 * 3 * F * np.log(dt)
+        n = len(ms)
+        for j, k in enumerate(ks):
+            cols = slice(j * n, (j + 1) * n)
+            out["cost"][k, ms], out["logdet"][k, ms] = cost[cols], ld[cols]
+            out["iterations"][k, ms], out["converged"][k, ms] = iters[cols], converged[cols]
+            out["position"][k][:, ms] = x[:, cols, :3]
+            if prob.d == 6:
+                out["velocity"][k][:, ms] = x[:, cols, 3:] / dt
+    return out
+
+
+@_one_thread
+def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                                markers: np.ndarray, fps: float, robust: str, robust_k: float,
+                                p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
+                                q_start: float | None = None, progress: bool = False,
+                                ) -> tuple[np.ndarray, dict]:
+    """Each marker's maximum-Laplace-marginal-likelihood q [m^2/s^3] for a fixed rig (module docstring).
+
+    rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
+    (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
+    p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
+    p_start, v_start: where the decade grid's solves start (F, M, 3) [m], [m/s] (default p_init, v_init),
+    e.g. the cleaning solution. q_start: the q that start was solved at; unused since every decade
+    starts from it (kept for callers).
+    The decade grid over noise.LOG10_Q_RANGE (9 decades) is ONE batched solve (:func:`solve_levels`:
+    decades x markers as the batch axis, every column from the start, so no stiff solution is ever
+    carried to a neighbouring decade, which once dragged wing markers off their track). Then a
+    golden-section search per marker, vectorised (each step is one solve_fast with one q per marker,
+    warm-started from the previous step, without covariances), in [best decade - 1, best decade + 1]
+    until the bracket is noise.LOG10_Q_TOL wide; the answer is each marker's best q evaluated. Score
+    per marker: laplace_log_evidence of its own chain (cost and log det from :func:`solve_fast`, which
+    are exactly per marker). n_solves counts the batched grid as one.
+
+    Returns q (M,) [m^2/s^3] (NaN for markers not in ``markers``) and info: per_marker {index: q},
+    rule, n_solves.
+    """
+    markers = np.asarray(markers, int)
+    F, M = p_init.shape[:2]
+    dt = 1.0 / fps
+    sub = IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
+    p0 = p_init[:, markers]
+    start = ((p_init if p_start is None else p_start)[:, markers], (v_init if v_start is None else v_start)[:, markers])
+    n_solves = 0
+
+    def solve(q: np.ndarray, from_: tuple[np.ndarray, np.ndarray]):
+        nonlocal n_solves
+        n_solves += 1
+        _, _, info = solve_fast(rig, sub, p0, "constant_velocity", q, fps, robust, robust_k,
+                                v_init=from_[1], p_start=from_[0], covariances=False)
+        score = noise.laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], q, dt, F - 1)
+        return score, (info["position"], info["velocity"])
+
+    n_golden = math.ceil(math.log(noise.LOG10_Q_TOL / 2.0) / math.log(noise._GOLDEN)) + 2
+    lo, hi = noise.LOG10_Q_RANGE
+    grid = np.arange(math.ceil(lo), math.floor(hi) + 1, dtype=float)
+    bar = tqdm(total=1 + n_golden, desc="choosing accel PSD per marker", disable=not progress, leave=False)
+    # the decade grid: every decade x every marker in one batched solve, each from the start
+    levels = np.repeat(10.0 ** grid[:, None], len(markers), axis=1)
+    sol = solve_levels(rig, sub, p0, "constant_velocity", levels, fps, robust, robust_k,
+                       v_start=start[1], p_start=start[0])
+    n_solves += 1
+    bar.update()
+    scores = noise.laplace_log_evidence(sol["cost"], sol["logdet"], levels, dt, F - 1)  # (len(grid), markers)
+    cols = np.arange(len(markers))
+    best = np.argmax(scores, axis=0)
+    x_best, s_best = grid[best], scores[best, cols]
+    state = (np.ascontiguousarray(sol["position"][best, :, cols].transpose(1, 0, 2)),
+             np.ascontiguousarray(sol["velocity"][best, :, cols].transpose(1, 0, 2)))
+
+    def f(x: np.ndarray) -> np.ndarray:
+        nonlocal state, x_best, s_best
+        s, state = solve(10.0**x, state)
+        better = s > s_best
+        x_best, s_best = np.where(better, x, x_best), np.where(better, s, s_best)
+        bar.update()
+        return s
+
+    g = noise._GOLDEN
+    a, b = np.maximum(lo, x_best - 1.0), np.minimum(hi, x_best + 1.0)
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    while (b - a).max() > noise.LOG10_Q_TOL:  # per marker the same step as noise.maximise_log10; one solve each
+        left = fc >= fd  # the maximum is in [a, d]: next point c' = b' - g (b' - a)
+        a, b = np.where(left, a, c), np.where(left, d, b)
+        new = np.where(left, b - g * (b - a), a + g * (b - a))
+        c, d = np.where(left, new, d), np.where(left, c, new)
+        fn = f(new)
+        fc, fd = np.where(left, fn, fd), np.where(left, fc, fn)
+    bar.close()
+    q = np.full(M, np.nan)
+    q[markers] = 10.0**x_best
+    return q, {"rule": noise.PER_MARKER_RULE, "per_marker": {int(m): float(q[m]) for m in markers},
+               "n_solves": n_solves}
+
+
+@_one_thread
 def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
                           markers: np.ndarray, fps: float, robust: str, robust_k: float,
                           progress: bool = False, p_start: np.ndarray | None = None,
@@ -531,11 +779,12 @@ def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
 
 def _rejected(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
     """What the rejection schedule leaves out at ``xyz_m`` (F, M, 3) [m]: observations of ``ideal`` with
-    |r|^2 > factors.REJECT_SQ_RESIDUAL (plain Gaussian whitening) through factors.to_exclude, (C, F, M)."""
-    r2 = np.nan_to_num(factors.whitened_sq_residuals(rig, ideal, xyz_m), nan=0.0)
-    return factors.to_exclude(r2 > factors.REJECT_SQ_RESIDUAL, ideal.seen)
+    |r|^2 > spec.REJECT_SQ_RESIDUAL (plain Gaussian whitening) through spec.to_exclude, (C, F, M)."""
+    r2 = np.nan_to_num(spec.whitened_sq_residuals(rig, ideal, xyz_m), nan=0.0)
+    return spec.to_exclude(r2 > spec.REJECT_SQ_RESIDUAL, ideal.seen)
 
 
+@_one_thread
 def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealObservations,
                       options: Options) -> Estimate:
     """The ``smoother`` method on the fast path (fixed rig); same answer as the GTSAM batch smoother.
@@ -546,15 +795,16 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     each solve being :func:`solve_fast` with the same start.
     Falls back to run_smoother when any camera has a pose covariance.
     """
-    from .smoother import CLEANING_LOSS, REJECTION_ROUNDS, run_smoother
 
     if any(cam.pose_cov is not None for cam in session.rig):
+        from .smoother import run_smoother  # the GTSAM reference (camera variables); imports GTSAM
+
         return run_smoother(session, dense, ideal, options)
     t0 = time.perf_counter()
     rig, fps, robust, k = session.rig, session.fps, options.robust, options.robust_k
     model, sigma_m, q = noise.motion_choice(session, options)
     tri = dlt_points(rig, ideal)
-    p_init, v_init, estimated = factors.initial_track(tri, fps)
+    p_init, v_init, estimated = spec.initial_track(tri, fps)
     reject = options.outlier_rejection and robust != "none"
     figures: dict = {"solver": "fast", "motion_model": model, "robust": robust, "robust_k": k,
                      "outlier_rejection": reject}
@@ -570,11 +820,11 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     p_start, v_start = p_init, v_init  # where the next solve starts (a warm start after cleaning)
     if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
         q0 = q if q is not None or model == "random_walk" else noise.causal_accel_psd(session)
-        xyz0, _, info0 = solve_fast(rig, ideal, p_init, model, level(q0), fps, CLEANING_LOSS, k, v_init=v_init)
+        xyz0, _, info0 = solve_fast(rig, ideal, p_init, model, level(q0), fps, spec.CLEANING_LOSS, k, v_init=v_init)
         excluded = _rejected(rig, ideal, xyz0)
         p_start = xyz0
         v_start = v_init if info0["velocity"] is None else info0["velocity"]
-        figures["cleaning"] = {"loss": CLEANING_LOSS, "robust_k": k, "iterations": info0["iterations"],
+        figures["cleaning"] = {"loss": spec.CLEANING_LOSS, "robust_k": k, "iterations": info0["iterations"],
                                "n_flagged": int(excluded.sum())}
         if model == "constant_velocity":
             figures["cleaning"]["accel_psd_m2_s3"] = q0
@@ -582,23 +832,23 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
         figures["sigma_m"] = sigma_m
     elif q is None:  # step 3: q per marker on the observations left, first solve from the cleaning solution
         markers = np.flatnonzero(estimated)
-        q, selection = noise.choose_accel_psd_per_marker(
-            rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
+        q, selection = choose_accel_psd_per_marker(
+            rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
             p_start, v_start, q_start=figures.get("cleaning", {}).get("accel_psd_m2_s3"), progress=options.progress)
         figures.update(noise.q_figures(q, markers, dense.markers, selection))
     else:
         figures.update(noise.q_figures(q))
     rounds = []
-    n_rounds = REJECTION_ROUNDS if reject else 1
+    n_rounds = spec.REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
-        xyz, cov, info = solve_fast(rig, factors.without_observations(ideal, excluded), p_init, model, level(q),
+        xyz, cov, info = solve_fast(rig, spec.without_observations(ideal, excluded), p_init, model, level(q),
                                     fps, robust, k, v_init=v_start, p_start=p_start)
         rounds.append(info["iterations"])
         again = _rejected(rig, ideal, xyz)
         if r == n_rounds - 1 or (again == excluded).all():
             break
         excluded, p_start, v_start = again, xyz, v_start if info["velocity"] is None else info["velocity"]
-    outlier = factors.outlier_flags(rig, ideal, xyz)
+    outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
     if reject:

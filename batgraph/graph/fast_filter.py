@@ -32,9 +32,10 @@ from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
-from . import factors
-from .factors import MotionModel
-from .fast import _Observations, projection_rows, robust_loss
+from . import cost as spec
+from .cost import MotionModel, robust_loss
+from .fast import _Observations, _one_thread, projection_rows
+from .noise import filter_motion
 
 MAX_ITERATIONS = 100  # per frame; measured 2-8 on the simulated flight (Huber, the loss's own curvature)
 STEP_TOL_M = 1e-10  # stop when a marker's largest step component is below this [m] (cost spec)
@@ -49,11 +50,11 @@ def motion_matrices(model: MotionModel) -> tuple[np.ndarray, np.ndarray, np.ndar
     S = diag(I, dt I) (batgraph.motion.constant_velocity_Q in [p, v]), P0 = diag((10 m)^2 I, (10 m/s dt)^2 I).
     """
     if not model.has_velocity:
-        return np.eye(3), model.sigma_m**2 * np.eye(3), factors.PRIOR_POSITION_SIGMA_M**2 * np.eye(3)
+        return np.eye(3), model.sigma_m**2 * np.eye(3), spec.PRIOR_POSITION_SIGMA_M**2 * np.eye(3)
     dt = model.dt_s
     S = np.diag([1.0] * 3 + [dt] * 3)
     A = np.block([[np.eye(3), np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
-    P0 = np.diag([factors.PRIOR_POSITION_SIGMA_M**2] * 3 + [(factors.PRIOR_VELOCITY_SIGMA_MPS * dt) ** 2] * 3)
+    P0 = np.diag([spec.PRIOR_POSITION_SIGMA_M**2] * 3 + [(spec.PRIOR_VELOCITY_SIGMA_MPS * dt) ** 2] * 3)
     return A, S @ constant_velocity_Q(model.accel_psd_m2_s3, dt) @ S, P0
 
 
@@ -223,6 +224,7 @@ def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
     return join, tri
 
 
+@_one_thread
 def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,
                     on_frame: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> Estimate:
     """The ``filter`` method on the fast path (fixed rig); the iSAM2 filter's answer, frame by frame.
@@ -234,9 +236,9 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
     outlier (C, F, M) from those per-frame estimates (|r|^2 > 13.8155, plain Gaussian whitening).
     Falls back to run_filter (iSAM2) when any camera has a pose covariance.
     """
-    from .filter import filter_motion, run_filter
-
     if any(cam.pose_cov is not None for cam in session.rig):
+        from .filter import run_filter  # the GTSAM reference (camera variables); imports GTSAM
+
         return run_filter(session, dense, ideal, options, on_frame)
     t0, cpu0 = time.perf_counter(), time.process_time()
     C, F, M = ideal.seen.shape
@@ -271,7 +273,7 @@ def run_filter_fast(session: Session, dense: DenseObservations, ideal: IdealObse
             cov_out[k, act] = cov[act, :3, :3]
         if on_frame is not None:
             on_frame(k, xyz[k], cov_out[k])
-    outlier = factors.outlier_flags(session.rig, ideal, xyz)
+    outlier = spec.outlier_flags(session.rig, ideal, xyz)
     info.update({"solver": "fast", "motion_model": model.name, "robust": options.robust,
                  "robust_k": options.robust_k, "camera_variables": 0, "max_iterations_per_frame": iterations,
                  "cpu_s": time.process_time() - cpu0})

@@ -20,8 +20,9 @@ from ..measurement import IdealObservations
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
-from . import factors, noise
-from .factors import MotionFactors, MotionModel, ObservationFactors
+from . import factors
+from .factors import MotionFactors, ObservationFactors
+from .noise import filter_motion  # defined without GTSAM for the fast filter
 
 RELINEARIZE_THRESHOLD = 1e-5  # [m] (and [m/s], [rad]): relinearise a variable when its delta exceeds it
 EXTRA_UPDATES = 2  # further iSAM2 steps per frame (relinearisation) while the newest points still move
@@ -69,18 +70,6 @@ class IncrementalSolver:
     def covariances(self, keys: list[int]) -> np.ndarray:
         """Current marginal covariances of ``keys``, (n, d, d)."""
         return np.array([self.isam.marginalCovariance(k) for k in keys])
-
-
-def filter_motion(session: Session, options: Options) -> tuple[MotionModel, dict]:
-    """The filter's motion model and where its noise came from (given, or the causal default)."""
-    model_name, sigma_m, q = noise.motion_choice(session, options)
-    dt = 1.0 / session.fps
-    if model_name == "random_walk":
-        return MotionModel("random_walk", dt, sigma_m=sigma_m), {"sigma_m": sigma_m}
-    source = "given" if q is not None else "motion config (noise.causal_accel_psd)"
-    q = q if q is not None else noise.causal_accel_psd(session)
-    return (MotionModel("constant_velocity", dt, accel_psd_m2_s3=q),
-            {"accel_psd_m2_s3": q, "accel_psd_source": source})
 
 
 def run_filter(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,

@@ -22,7 +22,8 @@ extrapolation at the sequence ends too loose and the tips' too tight (95 % cover
 points at the ends 75-78 %). With camera variables the markers share the cameras; the smoother then
 scores each marker with the cameras held at their calibrated means (the evidence conditional on
 them), which kept the per-marker accuracy (a global q cost 8.6 % RMSE there). :func:`maximise_log10`
-takes a score computed by the caller, so any solver of the same cost can reuse the search.
+takes a score computed by the caller, so any solver of the same cost can reuse the search. The search
+itself is in :mod:`batgraph.graph.fast` (it needs the solver); this module imports no solver and no GTSAM.
 
 Rule for the filter, which must not see the future: the session/option value if given, else
 :func:`causal_accel_psd` from the motion config alone. This module does not build graphs.
@@ -36,12 +37,10 @@ from collections.abc import Callable
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..camera import Rig
-from ..measurement import IdealObservations
 from ..motion import random_walk_sigma_m
 from ..result import Options
 from ..session import Session
-from .factors import MOTION_MODELS
+from .cost import MOTION_MODELS, MotionModel
 
 LOG10_Q_RANGE = (-2.0, 6.0)  # plausible accel PSD 0.01 (a gliding body) .. 1e6 m^2/s^3
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
@@ -175,81 +174,21 @@ def causal_accel_psd(session: Session) -> float:
     return max(a * a / fps / 6.0, CAUSAL_Q_FLOOR)
 
 
-def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
-                                markers: np.ndarray, fps: float, robust: str, robust_k: float,
-                                p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
-                                q_start: float | None = None, progress: bool = False,
-                                ) -> tuple[np.ndarray, dict]:
-    """Each marker's maximum-Laplace-marginal-likelihood q [m^2/s^3] for a fixed rig (module docstring).
+def choose_accel_psd_per_marker(*args, **kwargs) -> tuple[np.ndarray, dict]:
+    """:func:`batgraph.graph.fast.choose_accel_psd_per_marker` (the search needs the solver, which imports
+    this module; kept here for existing callers, imported when called)."""
+    from .fast import choose_accel_psd_per_marker
 
-    rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
-    (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
-    p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
-    p_start, v_start: where the first solve starts (F, M, 3) [m], [m/s] (default p_init, v_init), e.g.
-    the cleaning solution; q_start: the q that start was solved at (default 10): the decade grid over
-    LOG10_Q_RANGE is swept outwards from the decade nearest it, each solve warm-started from its
-    neighbour's solution (a stiff q far from the start would drag wing markers off their track).
-    Then a golden-section search per marker, vectorised (each step is one solve_fast with one q per
-    marker), in [best decade - 1, best decade + 1] until the bracket is LOG10_Q_TOL wide; the answer is
-    each marker's best q evaluated. Score per marker: laplace_log_evidence of its own chain (cost and
-    log det from :func:`batgraph.graph.fast.solve_fast`, which are exactly per marker).
+    return choose_accel_psd_per_marker(*args, **kwargs)
 
-    Returns q (M,) [m^2/s^3] (NaN for markers not in ``markers``) and info: per_marker {index: q},
-    rule, n_solves.
-    """
-    from .fast import solve_fast  # fast imports this module
 
-    markers = np.asarray(markers, int)
-    F, M = p_init.shape[:2]
-    dt = 1.0 / fps
-    sub = IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
-    p0 = p_init[:, markers]
-    start = ((p_init if p_start is None else p_start)[:, markers], (v_init if v_start is None else v_start)[:, markers])
-    n_solves = 0
-
-    def solve(q: float | np.ndarray, from_: tuple[np.ndarray, np.ndarray]):
-        nonlocal n_solves
-        n_solves += 1
-        _, _, info = solve_fast(rig, sub, p0, "constant_velocity", q, fps, robust, robust_k,
-                                v_init=from_[1], p_start=from_[0])
-        score = laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], q, dt, F - 1)
-        return score, (info["position"], info["velocity"])
-
-    n_golden = math.ceil(math.log(LOG10_Q_TOL / 2.0) / math.log(_GOLDEN)) + 2
-    lo, hi = LOG10_Q_RANGE
-    grid = np.arange(math.ceil(lo), math.floor(hi) + 1, dtype=float)
-    bar = tqdm(total=len(grid) + n_golden, desc="choosing accel PSD per marker", disable=not progress, leave=False)
-    i0 = int(np.argmin(np.abs(grid - math.log10(10.0 if q_start is None else q_start))))
-    scores = np.empty((len(grid), len(markers)))
-    states: list = [None] * len(grid)
-    for i in [*range(i0, len(grid)), *range(i0 - 1, -1, -1)]:  # outwards from the start's decade
-        scores[i], states[i] = solve(10.0 ** grid[i], start if i == i0 else states[i + 1 if i < i0 else i - 1])
-        bar.update()
-    cols = np.arange(len(markers))
-    best = np.argmax(scores, axis=0)
-    x_best, s_best = grid[best], scores[best, cols]
-    state = tuple(np.stack([states[b][j][:, m] for m, b in enumerate(best)], axis=1) for j in range(2))
-
-    def f(x: np.ndarray) -> np.ndarray:
-        nonlocal state, x_best, s_best
-        s, state = solve(10.0**x, state)
-        better = s > s_best
-        x_best, s_best = np.where(better, x, x_best), np.where(better, s, s_best)
-        bar.update()
-        return s
-
-    a, b = np.maximum(lo, x_best - 1.0), np.minimum(hi, x_best + 1.0)
-    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
-    fc, fd = f(c), f(d)
-    while (b - a).max() > LOG10_Q_TOL:  # per marker the same step as maximise_log10; one solve each
-        left = fc >= fd  # the maximum is in [a, d]: next point c' = b' - g (b' - a)
-        a, b = np.where(left, a, c), np.where(left, d, b)
-        new = np.where(left, b - _GOLDEN * (b - a), a + _GOLDEN * (b - a))
-        c, d = np.where(left, new, d), np.where(left, c, new)
-        fn = f(new)
-        fc, fd = np.where(left, fn, fd), np.where(left, fc, fn)
-    bar.close()
-    q = np.full(M, np.nan)
-    q[markers] = 10.0**x_best
-    return q, {"rule": PER_MARKER_RULE, "per_marker": {int(m): float(q[m]) for m in markers},
-               "n_solves": n_solves}
+def filter_motion(session: Session, options: Options) -> tuple[MotionModel, dict]:
+    """The filter's motion model and where its noise came from (given, or the causal default)."""
+    model_name, sigma_m, q = motion_choice(session, options)
+    dt = 1.0 / session.fps
+    if model_name == "random_walk":
+        return MotionModel("random_walk", dt, sigma_m=sigma_m), {"sigma_m": sigma_m}
+    source = "given" if q is not None else "motion config (noise.causal_accel_psd)"
+    q = q if q is not None else causal_accel_psd(session)
+    return (MotionModel("constant_velocity", dt, accel_psd_m2_s3=q),
+            {"accel_psd_m2_s3": q, "accel_psd_source": source})

@@ -20,7 +20,7 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    observation; a frame with every view rejected means the motion prior, not the data, is wrong).
 3. q (when not given): the marginal-likelihood search of :mod:`batgraph.graph.noise` with the chosen
    loss on the observations not in D (outliers inflated it), warm-started from the cleaning solution:
-   one q PER MARKER (noise.choose_accel_psd_per_marker, scored exactly with the fast solver: with
+   one q PER MARKER (fast.choose_accel_psd_per_marker, scored exactly with the fast solver: with
    fixed cameras the markers are independent). With camera variables the score is the evidence
    conditional on the cameras at their calibrated means (the markers share the cameras, so the exact
    evidence would not split per marker); one global q instead cost 8.6 % in RMSE on observed points
@@ -46,11 +46,11 @@ from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import factors, noise
+from .cost import CLEANING_LOSS, REJECTION_ROUNDS  # noqa: F401  (the schedule's constants, module docstring)
 from .factors import MotionFactors, MotionModel, ObservationFactors
+from .fast import choose_accel_psd_per_marker
 
 MAX_ITERATIONS = 200
-CLEANING_LOSS = "cauchy"  # redescending: the loss of the rejection pre-solve (module docstring)
-REJECTION_ROUNDS = 3  # final solves at most, until the flagged set equals the excluded one
 
 
 # Why QR everywhere: GTSAM's Cholesky declares a clique indeterminate when the last two diagonal
@@ -203,7 +203,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         if start is not None:
             p_start = factors.positions(start, markers, F, M)
             v_start = _velocities(start, markers, F, M, dt)
-        q_m, selection = noise.choose_accel_psd_per_marker(
+        q_m, selection = choose_accel_psd_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
             options.robust, options.robust_k, p_start, v_start, q_start=info.get("cleaning", {}).get(
                 "accel_psd_m2_s3"), progress=options.progress)
