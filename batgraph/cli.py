@@ -11,14 +11,37 @@ import sys
 from pathlib import Path
 
 from .errors import InputError
+from .inputs import (
+    angle_deg,
+    check_output_dir,
+    check_output_file,
+    fraction,
+    frame_count,
+    image_side,
+    nonnegative_float,
+    nonnegative_int,
+    number,
+    os_error_message,
+    positive_float,
+    positive_int,
+    probability,
+    read_json_object,
+)
 from .methods import help_text as methods_help
 
 
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return v
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line (``batgraph CMD: error: ...``) and exit code 2, as InputError's;
+    option ranges are checked by the ``type=`` functions of batgraph.inputs."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _progress_bars(args) -> bool:
+    """Progress bars only for a person at a terminal: not with --quiet, nor into a log file or pipe
+    (a bar redrawn with carriage returns is noise there)."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
 # ----- reconstruct -----------------------------------------------------------------------------
@@ -34,11 +57,11 @@ def _add_reconstruct(sub):
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
     p.add_argument("--motion", choices=["constant_velocity", "random_walk"],
                    help="motion model (default: session.toml [motion] model, else constant_velocity)")
-    p.add_argument("--accel-psd", type=float, metavar="Q",
+    p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
                    help="robust loss on projection factors (default huber)")
-    p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
     p.add_argument("--solver", choices=["fast", "gtsam"], default="fast",
                    help="smoother/filter solver: batgraph's vectorised per-marker solvers (fast, default; same "
                         "problem, tested against GTSAM) or GTSAM's LM / iSAM2 directly (gtsam)")
@@ -47,7 +70,7 @@ def _add_reconstruct(sub):
                         "default with a display), only write recording.rrd (save, the default without one), or none")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="run the sessions on an existing Dask cluster (default: a local cluster for several)")
-    p.add_argument("--workers", type=_positive_int, help="local Dask workers (default: one per core)")
+    p.add_argument("--workers", type=positive_int, help="local Dask workers (default: one per core)")
     p.add_argument("--verbose", action="store_true", help="with several sessions: tracebacks of crashed ones")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
     p.add_argument("--validate", action="store_true",
@@ -61,17 +84,39 @@ def _fmt(x, scale=1.0, digits=2):
 
 
 def summary_lines(summary: dict) -> list[str]:
-    """The short end-of-run table: per method RMSE/coverage (with truth), median reprojection, runtime."""
-    lines = [f"{'method':<12}{'RMSE mm':>9}{'obs':>8}{'1-view':>8}{'0-view':>8}{'cov95':>7}"
-             f"{'reproj px':>11}{'time s':>8}"]
-    for name, m in summary["methods"].items():
-        t = m.get("truth", {})
-        rm, cv = t.get("rmse_m", {}), t.get("coverage95", {})
-        med = [c.get("median_px") for c in m.get("reprojection", {}).values() if c.get("median_px") is not None]
-        lines.append(f"{name:<12}{_fmt(rm.get('all'), 1000):>9}{_fmt(rm.get('observed'), 1000):>8}"
-                     f"{_fmt(rm.get('single_view'), 1000):>8}{_fmt(rm.get('unobserved'), 1000):>8}"
-                     f"{_fmt(cv.get('all'), 100, 0) + ('%' if cv.get('all') is not None else ''):>7}"
-                     f"{_fmt(sum(med) / len(med) if med else None):>11}{m['runtime_s']:>8.2f}")
+    """The end-of-run text: the verdict, then the methods compared like for like per group (the points every
+    listed method estimates, n shown), then runtimes. Reads summary.json's figures; computes none."""
+    from .summary import HEADLINE_GROUPS, Summary
+
+    s = Summary.from_json(summary)
+    lines = []
+    if s.verdict:
+        lines += [f"use: {s.verdict.use} ({s.verdict.why})", f"  {s.verdict.headline}"]
+    methods = list(s.methods)
+    c = s.comparison
+    if c is not None and c.groups:
+        unit = {"truth": "RMSE mm vs truth (95 % coverage)", "reference": "RMS mm vs the reference",
+                "reprojection": "median reprojection px"}[c.against]
+        lines.append(f"compared on the same points: {unit}; n = points every listed method estimates")
+        lines.append(f"{'':<27}{'n':>6}" + "".join(f"{m:>16}" for m in methods))
+        for g, label in HEADLINE_GROUPS.items():
+            gc = c.groups.get(g)
+            if gc is None:
+                continue
+            cells = []
+            for m in methods:
+                v = gc.values.get(m)
+                if v is None:
+                    cells.append("not estimated" if m in c.methods else "")
+                elif c.against == "truth":
+                    cov = v.get("coverage95")
+                    cells.append(f"{_fmt(v.get('rmse_m'), 1000)}" + (f" ({100 * cov:.0f}%)" if cov is not None else ""))
+                elif c.against == "reference":
+                    cells.append(_fmt(v.get("rms_m"), 1000))
+                else:
+                    cells.append(_fmt(v.get("median_px")))
+            lines.append(f"{label:<27}{gc.n:>6}" + "".join(f"{x:>16}" for x in cells))
+    lines.append(f"{'runtime s':<33}" + "".join(f"{_fmt(s.methods[m].get('runtime_s')):>16}" for m in methods))
     return lines
 
 
@@ -82,20 +127,26 @@ def _cmd_reconstruct(args) -> int:
 
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet, solver=args.solver)
+                      accel_psd_m2_s3=args.accel_psd, progress=_progress_bars(args), solver=args.solver)
     batch = is_batch(args.sessions) or args.scheduler is not None
+    if args.out is not None or (not batch and Path(args.sessions[0]).is_dir()):
+        check_output_dir(args.out if args.out is not None else Path(args.sessions[0]) / "out")
     viewer = args.viewer
     if viewer is None:
         from .viewer import display_available
         viewer = "spawn" if display_available() and not batch else "save"
     if batch:
         items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
-                                 n_workers=args.workers, progress=not args.quiet, viewer=viewer,
+                                 n_workers=args.workers, progress=_progress_bars(args), viewer=viewer,
                                  calibration=args.calibration, validate=args.validate)
         if args.quiet:
             for it in items:
                 if it.status != "ok":
                     print(f"batgraph: {it.status}: {it.message}", file=sys.stderr)
+            n_ok = sum(it.status == "ok" for it in items)  # where the results went, even with --quiet
+            where = Path(args.out) / "<session>" if args.out else "<session>/out"
+            print(f"wrote {n_ok} of {len(items)} results to {where}"
+                  + (f" (summary: {Path(args.out) / 'batch_summary.csv'})" if args.out else ""))
         else:
             print(format_batch_table(items, verbose=args.verbose))
         return exit_code(items)
@@ -103,7 +154,9 @@ def _cmd_reconstruct(args) -> int:
                          validate=args.validate, validate_workers=args.workers)
     for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong
         print(f"batgraph: warning: {w}", file=sys.stderr)
-    if not args.quiet:
+    if args.quiet:  # one line: where the results went
+        print(f"{result.session.name}: wrote {len(result.files)} files to {result.out_dir}")
+    else:
         print(f"{result.session.name}: wrote {', '.join(p.name for p in result.files)} to {result.out_dir}")
         print("\n".join(summary_lines(result.summary)))
         if "validation" in result.summary:
@@ -129,13 +182,14 @@ def _add_validate(sub):
                                      "(default smoother,filter,triangulate)")
     p.add_argument("--compare", action="store_true", help="add every other method")
     p.add_argument("--motion", choices=["constant_velocity", "random_walk"], help="motion model (as reconstruct)")
-    p.add_argument("--accel-psd", type=float, metavar="Q", help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
+    p.add_argument("--accel-psd", type=positive_float, metavar="Q",
+                   help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber", help="robust loss (default huber)")
-    p.add_argument("--robust-k", type=float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
     p.add_argument("--solver", choices=["fast", "gtsam"], default="fast", help="smoother/filter solver (default fast)")
     p.add_argument("--viewer", choices=["save", "none"], default="save",
                    help="write recording.rrd (save, default) or not (none)")
-    p.add_argument("--workers", type=_positive_int, help="processes for the folds (default: one per core)")
+    p.add_argument("--workers", type=positive_int, help="processes for the folds (default: one per core)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or tables")
     p.set_defaults(func=_cmd_validate)
 
@@ -158,6 +212,8 @@ def _cmd_validate(args) -> int:
     from .pipeline import DEFAULT_METHODS, parse_methods, reconstruct
     from .result import Options
 
+    if args.out is not None or Path(args.session).is_dir():
+        check_output_dir(args.out if args.out is not None else Path(args.session) / "out")
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
@@ -181,17 +237,17 @@ def _add_simulate(sub):
                                    "(and calibration error) as `flight` with the same --seed and --cameras.")
     p.add_argument("scene", choices=["flight", "ear", "wand"])
     p.add_argument("out", metavar="OUT_SESSION")
-    p.add_argument("--cameras", type=_positive_int, help="number of cameras (flight: default 5, up to 30)")
-    p.add_argument("--markers", type=_positive_int,
+    p.add_argument("--cameras", type=positive_int, help="number of cameras (flight: default 5, up to 30)")
+    p.add_argument("--markers", type=positive_int,
                    help="flight: total markers, 14 skeleton markers plus wing-membrane markers up to 180")
-    p.add_argument("--frames", type=_positive_int, help="number of frames (default 160 flight, 250 ear)")
-    p.add_argument("--fps", type=float, help="frame rate [Hz] (default 120 flight, 250 ear)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--noise-px", type=float, default=1.0, help="pixel noise std [px] (default 1)")
-    p.add_argument("--outlier-rate", type=float, default=0.0, help="fraction of mislabelled detections")
-    p.add_argument("--calib-rot-deg", type=float, default=0.0,
+    p.add_argument("--frames", type=frame_count, help="number of frames (default 160 flight, 250 ear)")
+    p.add_argument("--fps", type=positive_float, help="frame rate [Hz] (default 120 flight, 250 ear)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
+    p.add_argument("--noise-px", type=nonnegative_float, default=1.0, help="pixel noise std [px] (default 1)")
+    p.add_argument("--outlier-rate", type=fraction, default=0.0, help="fraction of mislabelled detections")
+    p.add_argument("--calib-rot-deg", type=angle_deg, default=0.0,
                    help="calibration error: rotation of each affected camera [deg]")
-    p.add_argument("--calib-trans-mm", type=float, default=0.0,
+    p.add_argument("--calib-trans-mm", type=nonnegative_float, default=0.0,
                    help="calibration error: translation of each affected camera [mm]")
     p.add_argument("--force", action="store_true", help="overwrite an existing session folder")
     p.set_defaults(func=_cmd_simulate)
@@ -203,7 +259,7 @@ def _cmd_simulate(args) -> int:
     from .session import write_session
     from .simulate import simulate_ear, simulate_flight, simulate_wand
 
-    out = Path(args.out)
+    out = check_output_dir(args.out, "session folder")
     if out.exists() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out}: folder exists and is not empty (use --force to overwrite)")
     if not 0 <= args.outlier_rate < 1:
@@ -243,7 +299,7 @@ def _add_import(sub):
                                    "world's handedness are read from the coefficients.")
     d.add_argument("--xypts", required=True, help="DLTdv *xypts.csv (one row per frame)")
     d.add_argument("--coefs", required=True, help="DLT coefficients *dltCoefs.csv (11 rows x cameras)")
-    d.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
+    d.add_argument("--fps", required=True, type=positive_float, help="camera frame rate [Hz]")
     d.add_argument("--out", required=True, help="session folder to write")
     d.add_argument("--pixel-origin", choices=["lower-left", "upper-left"],
                    help="pixel origin of the files (default: detected from the coefficients; every DLTdv version "
@@ -251,9 +307,9 @@ def _add_import(sub):
     d.add_argument("--units", choices=["m", "cm", "mm"], default="m",
                    help="world units of the coefficients and xyzpts (default m); the session is in metres")
     d.add_argument("--dltdv-version", type=int, help=argparse.SUPPRESS)  # old flag: the origin is detected now
-    d.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="image size [px]")
+    d.add_argument("--image-size", type=image_side, nargs=2, metavar=("W", "H"), help="image size [px]")
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
-    d.add_argument("--pixel-sigma", type=float,
+    d.add_argument("--pixel-sigma", type=positive_float,
                    help="click noise std [px] (default: measured per camera by reconstruct)")
     d.set_defaults(func=_cmd_import_dltdv)
 
@@ -261,7 +317,7 @@ def _add_import(sub):
     k.add_argument("files", nargs="+", help="one DeepLabCut output file per camera")
     k.add_argument("--calibration", required=True, help="aniposelib calibration.toml")
     k.add_argument("--camera-names", nargs="+", help="camera of each file (default: matched from file names)")
-    k.add_argument("--threshold", type=float, default=0.6, help="drop points below this likelihood (default 0.6)")
+    k.add_argument("--threshold", type=probability, default=0.6, help="drop points below this likelihood (default 0.6)")
     k.add_argument("--individual", help="multi-animal DeepLabCut: which individual")
     _common_import_args(k)
     k.set_defaults(func=_cmd_import_keypoints)
@@ -270,7 +326,8 @@ def _add_import(sub):
     a.add_argument("project", help="Anipose project (or session) folder")
     a.add_argument("--calibration", help="calibration.toml (default: found in the project)")
     a.add_argument("--trial", help="which trial (default: the only one)")
-    a.add_argument("--threshold", type=float, help="likelihood threshold (default: the project's score_threshold)")
+    a.add_argument("--threshold", type=probability,
+                   help="likelihood threshold (default: the project's score_threshold)")
     a.add_argument("--cam-regex", help="regex of the camera name in file names (default: the project's)")
     _common_import_args(a)
     a.set_defaults(func=_cmd_import_keypoints)
@@ -280,23 +337,25 @@ def _add_import(sub):
     o.add_argument("--calibration", required=True, help="Pose2Sim Calib_*.toml (aniposelib format)")
     o.add_argument("--keypoints", default="BODY_25B", help="keypoint model (default BODY_25B)")
     o.add_argument("--camera-names", nargs="+", help="camera of each folder (default: matched from folder names)")
-    o.add_argument("--threshold", type=float, default=0.3, help="drop keypoints below this confidence (default 0.3)")
-    o.add_argument("--person", type=int, default=0, help="which person in each JSON file (default 0)")
+    o.add_argument("--threshold", type=probability, default=0.3,
+                   help="drop keypoints below this confidence (default 0.3)")
+    o.add_argument("--person", type=nonnegative_int, default=0, help="which person in each JSON file (default 0)")
     o.add_argument("--reference-trc", help="Pose2Sim's own 3D (.trc), kept for comparison in reports")
-    o.add_argument("--pixel-sigma", type=float,
+    o.add_argument("--pixel-sigma", type=positive_float,
                    help="keypoint noise std [px] (default: measured per camera by reconstruct)")
     _common_import_args(o)
     o.set_defaults(func=_cmd_import_keypoints)
 
 
 def _common_import_args(p):
-    p.add_argument("--fps", required=True, type=float, help="camera frame rate [Hz]")
+    p.add_argument("--fps", required=True, type=positive_float, help="camera frame rate [Hz]")
     p.add_argument("--out", required=True, help="session folder to write")
     p.add_argument("--units", choices=["m", "cm", "mm"],
                    help="translation units of the calibration (default: its [metadata] units, else m)")
 
 
 def _cmd_import_keypoints(args) -> int:
+    check_output_dir(args.out, "session folder")
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
     if args.format == "deeplabcut":
@@ -325,6 +384,7 @@ def _cmd_import_keypoints(args) -> int:
 def _cmd_import_dltdv(args) -> int:
     from .formats.dltdv import import_dltdv
 
+    check_output_dir(args.out, "session folder")
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
     if args.dltdv_version is not None:
@@ -351,29 +411,35 @@ def _add_calibrate(sub):
     p.add_argument("--out", help="calibration file to write (default SESSION/out/calibration.toml)")
     p.add_argument("--gauge", choices=["camera0", "input"], default="camera0",
                    help="origin and axes from the reference camera (default) or fitted to the input rig")
-    p.add_argument("--ref-camera", type=int, default=0, help="index of the reference camera (default 0)")
+    p.add_argument("--ref-camera", type=nonnegative_int, default=0, help="index of the reference camera (default 0)")
     p.add_argument("--wand", nargs=3, metavar=("END_A", "END_B", "LENGTH_M"),
                    help="two markers a known distance apart [m] (default: session.toml [wand])")
     p.add_argument("--from-scratch", action="store_true",
                    help="ignore the input poses: essential matrix + PnP, then bundle adjustment")
     p.add_argument("--refine-intrinsics", action="store_true", help="also refine focal lengths, principal points")
     p.add_argument("--refine-distortion", action="store_true", help="also refine distortion")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--hold-out", type=fraction, default=0.2, metavar="FRACTION",
+                   help="fraction of frames (in blocks) held out to check the refinement on observations it did "
+                        "not see (default 0.2; 0 skips the check)")
+    p.add_argument("--force", action="store_true",
+                   help="write the refined rig even when the checks say the observations do not determine it")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or table (the verdict and the file "
+                                                         "written are still printed)")
     p.set_defaults(func=_cmd_calibrate)
 
     q = sub.add_parser("calibrate-intrinsics", help="intrinsics of one camera from checkerboard/ChArUco images",
                        description="OpenCV intrinsic calibration from board images or videos.")
     q.add_argument("sources", nargs="+", help="images or videos of the board")
     q.add_argument("--board", choices=["checkerboard", "charuco"], required=True)
-    q.add_argument("--cols", type=_positive_int, required=True,
+    q.add_argument("--cols", type=positive_int, required=True,
                    help="checkerboard: inner corners along x; ChArUco: squares along x")
-    q.add_argument("--rows", type=_positive_int, required=True, help="as --cols, along y")
-    q.add_argument("--square-m", type=float, required=True, help="square side [m]")
-    q.add_argument("--marker-m", type=float, default=0.0, help="ChArUco marker side [m]")
+    q.add_argument("--rows", type=positive_int, required=True, help="as --cols, along y")
+    q.add_argument("--square-m", type=positive_float, required=True, help="square side [m]")
+    q.add_argument("--marker-m", type=nonnegative_float, default=0.0, help="ChArUco marker side [m]")
     q.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco dictionary (default DICT_4X4_50)")
     q.add_argument("--name", default="cam1", help="camera name (default cam1)")
     q.add_argument("--dist-model", choices=["k1k2p1p2k3", "k1k2p1p2"], default="k1k2p1p2k3")
-    q.add_argument("--every-nth", type=_positive_int, default=1, help="use every n-th video frame")
+    q.add_argument("--every-nth", type=positive_int, default=1, help="use every n-th video frame")
     q.add_argument("--out", required=True, help="calibration.toml to write")
     q.set_defaults(func=_cmd_calibrate_intrinsics)
 
@@ -382,31 +448,84 @@ def _cmd_calibrate(args) -> int:
     from .calibrate import calibrate_session, write_calibration
     from .session import read_session
 
-    session = read_session(args.session)
+    if args.out is not None or Path(args.session).is_dir():
+        check_output_file(args.out if args.out is not None else Path(args.session) / "out" / "calibration.toml",
+                          "calibration file (--out)")
     wand = None
     if args.wand:
         try:
-            wand = (args.wand[0], args.wand[1], float(args.wand[2]))
-        except ValueError:
-            raise InputError(f"--wand: LENGTH_M must be a number, got {args.wand[2]!r}") from None
+            wand = (args.wand[0], args.wand[1], positive_float(args.wand[2]))
+        except argparse.ArgumentTypeError as e:
+            raise InputError(f"--wand: LENGTH_M {e}") from None
+        if wand[0] == wand[1]:
+            raise InputError(f"--wand: END_A and END_B are the same marker {wand[0]!r}")
+    session = read_session(args.session)
+    if wand is not None:
+        seen = set(session.observations["marker"])
+        for end in wand[:2]:
+            if end not in seen:
+                raise InputError(f"--wand: marker {end!r} has no observations in {args.session} "
+                                 f"(markers: {', '.join(session.markers)})")
+    if not 0 <= args.hold_out < 1:
+        raise InputError(f"--hold-out: must be in [0, 1), got {args.hold_out}")
     rig, report = calibrate_session(session, gauge=args.gauge, ref_camera=args.ref_camera, wand=wand,
                                     initial="scratch" if args.from_scratch else "auto",
                                     refine_intrinsics=args.refine_intrinsics,
-                                    refine_distortion=args.refine_distortion, progress=not args.quiet)
+                                    refine_distortion=args.refine_distortion, progress=_progress_bars(args),
+                                    hold_out=args.hold_out, keep_input_if_undetermined=not args.force)
     out = Path(args.out) if args.out else Path(args.session) / "out" / "calibration.toml"
-    write_calibration(out, rig)
+    verdict = report["assessment"]
     if not args.quiet:
-        truth = session.true_rig is not None
-        print(f"{'camera':<10}{'RMS before px':>14}{'RMS after px':>13}{'used':>8}{'rejected':>9}"
-              f"{'moved mm':>9}{'turned deg':>11}" + (f"{'error mm':>9}{'error deg':>10}" if truth else ""))
-        for name, c in report["cameras"].items():
-            line = (f"{name:<10}{c['rms_before_px']:>14.2f}{c['rms_after_px']:>13.2f}{c['n_used']:>8}"
-                    f"{c['n_rejected']:>9}{c['moved_mm']:>9.2f}{c['turned_deg']:>11.3f}")
-            if truth and c.get("error_mm") is not None:
-                line += f"{c['error_mm']:>9.2f}{c['error_deg']:>10.3f}"
-            print(line)
-    print(f"wrote {out}")
+        print("\n".join(calibration_lines(report, session.true_rig is not None)))
+    if not verdict["determined"]:
+        why = "; ".join(verdict["reasons"])
+        explicit = [f for f, on in (("--from-scratch", args.from_scratch), ("--refine-intrinsics",
+                    args.refine_intrinsics), ("--refine-distortion", args.refine_distortion)) if on]
+        if explicit and not args.force:  # the user asked for this refinement: failing is clearer than a copy
+            raise InputError(f"{args.session}: calibrate {' '.join(explicit)}: the observations do not determine the "
+                             f"refinement ({why}); nothing written (give a wand: --wand or session.toml [wand], "
+                             "or --force to write it anyway)")
+        if report["kept_input"]:
+            print(f"batgraph: warning: calibrate kept the input rig, the refinement is not determined: {why} "
+                  "(give a wand: --wand or session.toml [wand]; --force writes the refinement anyway)",
+                  file=sys.stderr)
+        else:
+            print(f"batgraph: warning: the refinement is not determined: {why}", file=sys.stderr)
+    write_calibration(out, rig)
+    kept = " (the input rig, unchanged)" if report["kept_input"] else ""
+    print(f"wrote {out}{kept}")
     return 0
+
+
+def calibration_lines(report: dict, truth: bool) -> list[str]:
+    """The terminal's calibrate table (the refined rig, per camera) and the checks behind the verdict."""
+    lines = [f"{'camera':<10}{'RMS before px':>14}{'RMS after px':>13}{'used':>8}{'rejected':>9}"
+             f"{'moved mm':>9}{'turned deg':>11}{'r95 mm':>8}{'r95 deg':>8}"
+             + (f"{'error mm':>9}{'error deg':>10}" if truth else "")]
+    a = report["assessment"]
+    for name, c in report["cameras"].items():
+        b = a["cameras"].get(name, {})
+        line = (f"{name:<10}{c['rms_before_px']:>14.2f}{c['rms_after_px']:>13.2f}{c['n_used']:>8}"
+                f"{c['n_rejected']:>9}{c['moved_mm']:>9.2f}{c['turned_deg']:>11.3f}"
+                f"{b.get('r95_position_mm', 0.0):>8.2f}{b.get('r95_rotation_deg', 0.0):>8.3f}")
+        if truth and c.get("error_mm") is not None:
+            line += f"{c['error_mm']:>9.2f}{c['error_deg']:>10.3f}"
+        lines.append(line)
+    scale = report["scale"]["source"]
+    lines.append(f"scale: {scale}" + ("" if a["metric_reference"] else " (not observed by the images)"))
+    if a.get("gauge_note"):
+        lines.append(f"gauge: {a['gauge_note']}")
+    h = a.get("held_out") or {}
+    if h:
+        lines.append(f"held-out check: refined on the other frames, {h['n_frames']} frames "
+                     f"({100 * h['fraction']:.0f} %) predicted with RMS {h['rms_refined_px']:.2f} px "
+                     f"(input rig: {h['rms_input_px']:.2f} px)")
+    lines.append(f"bounds: input off by at least {a['input_error_at_least_mm']:.2f} mm / "
+                 f"{a['input_error_at_least_deg']:.3f} deg; refinement within {a['refined_error_at_most_mm']:.2f} mm "
+                 f"/ {a['refined_error_at_most_deg']:.3f} deg (95 %, per camera)")
+    lines.append("verdict: " + ("the refinement is determined" if a["determined"] else
+                                "not determined: " + "; ".join(a["reasons"])))
+    return lines
 
 
 def _cmd_calibrate_intrinsics(args) -> int:
@@ -414,6 +533,7 @@ def _cmd_calibrate_intrinsics(args) -> int:
     from .camera import Rig
     from .intrinsics import Board, calibrate_intrinsics
 
+    check_output_file(args.out, "calibration file (--out)")
     board = Board(args.board, args.cols, args.rows, args.square_m, args.marker_m, args.dictionary)
     cam, report = calibrate_intrinsics(args.sources, board, name=args.name, dist_model=args.dist_model,
                                        every_nth=args.every_nth)
@@ -438,53 +558,83 @@ def _cmd_view(args) -> int:
 
 def _add_export(sub):
     p = sub.add_parser("export", help="write a result in another tool's format",
-                       description="Convert a reconstruct output folder for DLTdv/Argus, C3D readers or OpenSim.")
-    p.add_argument("format", choices=["dltdv", "c3d", "trc"])
+                       description="Convert a reconstruct output folder for DLTdv/Argus, C3D readers or OpenSim (TRC), "
+                                   "or to an analysis table (csv/parquet: positions, standard deviations, "
+                                   "correlations, n_views, status, span; one row per frame and marker) for "
+                                   "pandas or R. What each file holds: batgraph/formats/c3d_trc.py.")
+    p.add_argument("format", choices=["dltdv", "c3d", "trc", "csv", "parquet"])
     p.add_argument("out_dir", metavar="OUT_DIR", help="a reconstruct output folder")
-    p.add_argument("--method", help="which method (default: smoother if present, else the first)")
-    p.add_argument("--to", help="dltdv: file prefix (default OUT_DIR/<method>_); c3d/trc: file path")
-    p.add_argument("--fps", type=float, help="c3d/trc frame rate [Hz] (default: from summary.json)")
+    p.add_argument("--method", help="which method (default: smoother if present, else the first); "
+                                    "csv/parquet: 'all' writes every method")
+    p.add_argument("--to", help="dltdv: file prefix (default OUT_DIR/<method>_); "
+                                "others: file path (default OUT_DIR/<method>.<format>)")
+    p.add_argument("--fps", type=positive_float, help="c3d/trc frame rate [Hz] (default: from summary.json)")
     p.add_argument("--units", choices=["m", "cm", "mm"],
-                   help="dltdv: world units of xyzpts (default: those of the imported DLTdv project, else m)")
+                   help="dltdv: world units of xyzpts (default: those of the imported DLTdv project, else m); "
+                        "trc/csv/parquet: default m; c3d is always mm")
+    p.add_argument("--range", dest="range_", choices=["span", "observed", "all"],
+                   help="c3d/trc/csv/parquet: which estimates to write, the others written as missing: span "
+                        "(default) = from each marker's first to its last frame seen by >= 2 cameras; observed = "
+                        "only frames where it is seen by >= 2 cameras; all = every estimate (incl. the track ends)")
     p.set_defaults(func=_cmd_export)
 
 
 def _cmd_export(args) -> int:
-    import json
-
     from .pipeline import read_result_tables
 
     out = Path(args.out_dir)
     traj, reproj = read_result_tables(out)
     methods = list(dict.fromkeys(traj["method"]))
+    every = args.method == "all" and args.format in ("csv", "parquet")
     method = args.method or ("smoother" if "smoother" in methods else methods[0])
-    if method not in methods:
+    if method not in methods and not every:
         raise InputError(f"{out / 'trajectories.csv'}: no method {method!r} (has: {', '.join(methods)})")
+    if args.format == "dltdv" and args.range_:
+        raise InputError("export dltdv: --range applies to c3d, trc, csv and parquet only")
+    if args.format == "c3d" and args.units not in (None, "mm"):
+        raise InputError("export c3d: C3D files are always written in mm (POINT:UNITS); drop --units")
+    summary = out / "summary.json"
+    facts = read_json_object(summary) if summary.is_file() else {}
+    keep = args.range_ or "span"
     if args.format == "dltdv":
         from .formats.dltdv import export_dltdv
 
-        summary = out / "summary.json"
-        imported = json.loads(summary.read_text()).get("import", {}) if summary.is_file() else {}
+        imported = facts.get("import", {})
         units = args.units or (imported.get("units", "m") if isinstance(imported, dict) else "m")
+        if units not in ("m", "cm", "mm"):
+            raise InputError(f"{summary} import units: {units!r} is not one of m, cm, mm (give --units)")
+        check_output_file(f"{args.to or out / f'{method}_'}xyzpts.csv")
         paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method, units=units)
+    elif args.format in ("csv", "parquet"):
+        from .formats.c3d_trc import write_table
+
+        dest = Path(args.to or out / f"{'all_methods' if every else method}.{args.format}")
+        if dest.suffix != f".{args.format}":
+            raise InputError(f"{dest}: an {args.format} export needs a .{args.format} file name")
+        check_output_file(dest)
+        paths = [write_table(dest, traj, units=args.units or "m", keep=keep, method=None if every else method)]
     else:
         from .formats.c3d_trc import write_c3d, write_trc
 
         fps = args.fps
         if fps is None:
-            summary = out / "summary.json"
-            if not summary.is_file():
-                raise InputError(f"{summary}: file not found (give --fps)")
-            fps = json.loads(summary.read_text())["fps"]
-        dest = Path(args.to or out / f"{method}.{args.format}")
+            if "fps" not in facts:
+                raise InputError(f"{summary}: file not found or no fps in it (give --fps)")
+            fps = number(facts["fps"], f"{summary} fps", positive=True)
+        dest = check_output_file(args.to or out / f"{method}.{args.format}")
         one = traj[traj["method"] == method]
-        paths = [(write_c3d if args.format == "c3d" else write_trc)(dest, one, fps)]
+        if args.format == "c3d":
+            rig = facts.get("pixel_sigma_px")  # camera name -> px, in the rig's order
+            cameras = list(rig) if isinstance(rig, dict) and rig else None
+            paths = [write_c3d(dest, one, fps, keep=keep, reprojection=reproj, cameras=cameras)]
+        else:
+            paths = [write_trc(dest, one, fps, units=args.units or "m", keep=keep)]
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_reconstruct(sub)
@@ -501,15 +651,29 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     parser = build_parser()
     if prog:
         parser.prog = prog
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error, already printed on one line (2)
+        return e.code if isinstance(e.code, int) else 2
     try:
         return args.func(args)
     except InputError as e:
-        print(f"batgraph: error: {e}", file=sys.stderr)
+        print(f"batgraph: error: {_one_line(str(e))}", file=sys.stderr)
+        return 2
+    except OSError as e:  # while writing: a full disk, a read-only file system, permissions
+        print(f"batgraph: error: {_one_line(os_error_message(e))}", file=sys.stderr)
+        return 2
+    except MemoryError as e:
+        print(f"batgraph: error: out of memory{f' ({_one_line(str(e))})' if str(e) else ''}; "
+              "the input is too large for this machine (split it into shorter sessions)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("batgraph: interrupted", file=sys.stderr)
         return 130
+
+
+def _one_line(text: str) -> str:
+    return " / ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
 def run_script(command: str) -> None:

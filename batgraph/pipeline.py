@@ -186,6 +186,39 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     return result
 
 
+_TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")
+
+
+def _typed_result_table(path: Path, required: list[str]) -> pd.DataFrame:
+    """One result CSV through batgraph.inputs: text columns as str, frame as checked int64 (limits and gaps
+    as observations'), outlier as bool, every other column as float; InputError naming the line otherwise."""
+    from . import inputs
+
+    raw, is_csv = inputs.read_table(path, required, "rows")
+    df = pd.DataFrame(index=raw.index)
+    for c in raw.columns:
+        if c in _TEXT_COLUMNS:
+            df[c] = raw[c].astype(str).str.strip()
+        elif c == "frame":
+            df[c] = inputs.frame_column(raw, path, is_csv)
+            inputs.check_frame_gaps(df[c].to_numpy(), path, is_csv)
+        elif c == "outlier":
+            text = raw[c].astype(str).str.strip().str.lower()
+            flags = text.map({"true": True, "false": False, "1": True, "0": False})
+            if flags.isna().any():
+                i = int(np.argmax(flags.isna().to_numpy()))
+                raise InputError(f"{path} {inputs.row_name(i, is_csv)}: outlier {raw[c].iloc[i]!r} is not True/False")
+            df[c] = flags.astype(bool)
+        elif c in required:
+            df[c] = inputs.numeric_column(raw, c, path, is_csv, allow_missing=True)
+        else:  # a column this version does not know: numbers if they all are, else text
+            num = pd.to_numeric(raw[c], errors="coerce")
+            df[c] = num if num.notna().sum() == (raw[c].str.strip() != "").sum() else raw[c]
+    if "n_views" in df and df["n_views"].notna().all():
+        df["n_views"] = df["n_views"].astype(np.int64)
+    return df
+
+
 def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Read trajectories.csv and reprojection.csv of a reconstruct output folder (for ``export``).
 
@@ -198,13 +231,9 @@ def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]
     for name, cols in (("trajectories.csv", [c for c in TRAJ_COLUMNS if c != "span"]),
                        ("reprojection.csv", REPROJ_COLUMNS)):
         path = out_dir / name
-        if not path.is_file():
+        if not path.exists():
             raise InputError(f"{path}: file not found (is {out_dir} a reconstruct output folder?)")
-        df = pd.read_csv(path)
-        missing = [c for c in cols if c not in df.columns]
-        if missing:
-            raise InputError(f"{path}: missing column {missing[0]!r}")
-        tables.append(df)
+        tables.append(_typed_result_table(path, cols))
     if "span" not in tables[0].columns:
         tables[0] = add_span(tables[0])
     return tables[0], tables[1]

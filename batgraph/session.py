@@ -13,9 +13,6 @@ does not estimate anything.
 
 from __future__ import annotations
 
-import difflib
-import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +20,7 @@ import numpy as np
 import pandas as pd
 import tomli_w
 
-from . import atomic
+from . import atomic, inputs
 from .camera import Camera, Rig
 from .errors import InputError
 from .geometry.dlt import UNITS_M
@@ -140,10 +137,16 @@ class DenseObservations:
 
 
 def dense_observations(session: Session) -> DenseObservations:
-    """Scatter the long observations table into (C, F, M) arrays (see :class:`DenseObservations`)."""
+    """Scatter the long observations table into (C, F, M) arrays (see :class:`DenseObservations`).
+
+    Raises InputError, before allocating, when they would not fit in memory (batgraph.inputs.check_dense_memory).
+    """
     obs = session.observations
-    cams, frames, markers = session.rig.names, session.frames, session.markers
-    C, F, M = len(cams), len(frames), len(markers)
+    cams, markers = session.rig.names, session.markers
+    C, M = len(cams), len(markers)
+    F = int(obs["frame"].max()) - int(obs["frame"].min()) + 1 if len(obs) else 0
+    inputs.check_dense_memory(C, F, M, f"session {session.name!r}" if session.path is None else str(session.path))
+    frames = session.frames
     ci = obs["camera"].map({n: i for i, n in enumerate(cams)}).to_numpy()
     fi = obs["frame"].to_numpy() - frames[0]
     mi = obs["marker"].map({n: i for i, n in enumerate(markers)}).to_numpy()
@@ -155,39 +158,22 @@ def dense_observations(session: Session) -> DenseObservations:
 
 
 # ----------------------------------------------------------------------------------------------
-# reading
+# reading (every file through batgraph.inputs: encodings, permissions, CSV dialects, frame limits)
 # ----------------------------------------------------------------------------------------------
-def _read_toml(path: Path) -> dict:
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+def _pose_covariance(value, where: str) -> np.ndarray:
+    """A 6x6 pose covariance: finite, symmetric and positive definite (the estimators invert it)."""
+    cov = inputs.array(value, (6, 6), where)
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12 * max(float(np.abs(cov).max()), 1e-300)):
+        i, j = np.unravel_index(int(np.argmax(np.abs(cov - cov.T))), cov.shape)
+        raise InputError(f"{where}: not symmetric ([{i}][{j}] = {float(cov[i, j])!r} but [{j}][{i}] = "
+                         f"{float(cov[j, i])!r})")
     try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"{path}: not valid TOML ({e})") from None
-
-
-def _number(value, where: str, positive: bool = False, allow_zero: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InputError(f"{where}: expected a number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise InputError(f"{where}: must be finite, got {value!r}")
-    if positive and not (x > 0 or (allow_zero and x == 0)):
-        raise InputError(f"{where}: must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")
-    return x
-
-
-def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: expected numbers of shape {shape}, got {value!r}") from None
-    if arr.shape != shape:
-        raise InputError(f"{where}: expected shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise InputError(f"{where}: contains a non-finite value")
-    return arr
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        smallest = float(np.linalg.eigvalsh(cov).min())
+        raise InputError(f"{where}: not positive definite (smallest eigenvalue {smallest:.3g}); a covariance "
+                         f"needs every variance > 0") from None
+    return cov
 
 
 def read_calibration(path: Path, units: str | None = None) -> Rig:
@@ -196,16 +182,16 @@ def read_calibration(path: Path, units: str | None = None) -> Rig:
     Translations are in ``[metadata] units`` ("m" default, "cm", "mm"); ``units`` overrides it (an
     importer's --units). ``[metadata] world_mirror`` (three +-1) marks a left-handed user frame.
     """
-    data = _read_toml(path)
+    data = inputs.read_toml(path)
     meta = data.get("metadata", {})
     meta = meta if isinstance(meta, dict) else {}
     units = units if units is not None else meta.get("units", "m")
-    if units not in UNITS_M:
+    if not isinstance(units, str) or units not in UNITS_M:
         raise InputError(f"{path} [metadata] units: {units!r} is not one of {', '.join(UNITS_M)}")
     scale = UNITS_M[units]  # translations [units] -> [m]
     mirror = np.ones(3)
     if "world_mirror" in meta:
-        mirror = _matrix(meta["world_mirror"], (3,), f"{path} [metadata] world_mirror")
+        mirror = inputs.array(meta["world_mirror"], (3,), f"{path} [metadata] world_mirror")
         if not np.all(np.abs(mirror) == 1):
             raise InputError(f"{path} [metadata] world_mirror: expected three values of 1 or -1, got {mirror.tolist()}")
     cams = []
@@ -218,24 +204,26 @@ def read_calibration(path: Path, units: str | None = None) -> Rig:
                 raise InputError(f"{where}: missing key '{k}'")
         if tab.get("fisheye", False):
             raise InputError(f"{where}: fisheye calibrations are not supported (use the 5-parameter model)")
-        name = str(tab.get("name", key))
-        size = _matrix(tab["size"], (2,), f"{where} size")
-        if (size <= 0).any() or (size != np.round(size)).any():
+        name = tab.get("name", key)
+        if not isinstance(name, str | int) or isinstance(name, bool) or not str(name).strip():
+            raise InputError(f"{where} name: expected a camera name, got {name!r}")
+        name = str(name)
+        size = inputs.array(tab["size"], (2,), f"{where} size")
+        if (size <= 0).any() or (size != np.round(size)).any() or (size > 100_000).any():
             raise InputError(f"{where} size: expected two positive integers [width, height], got {tab['size']!r}")
-        K = _matrix(tab["matrix"], (3, 3), f"{where} matrix")
+        K = inputs.array(tab["matrix"], (3, 3), f"{where} matrix")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
             raise InputError(f"{where} matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        dist = np.asarray(tab.get("distortions", [0.0] * 5), dtype=object)
-        if dist.ndim != 1 or len(dist) > 5:
-            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], "
-                             f"got {tab.get('distortions')!r}")
-        dist = _matrix(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
-        rvec = _matrix(tab["rotation"], (3,), f"{where} rotation")
-        tvec = _matrix(tab["translation"], (3,), f"{where} translation") * scale
+        dist = tab.get("distortions", [0.0] * 5)
+        if not isinstance(dist, list) or len(dist) > 5:
+            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], got {dist!r}")
+        dist = inputs.array(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
+        rvec = inputs.array(tab["rotation"], (3,), f"{where} rotation")
+        tvec = inputs.array(tab["translation"], (3,), f"{where} translation") * scale
         cov = None
         if "pose_covariance" in tab:
             s_t = np.diag([1.0, 1.0, 1.0, scale, scale, scale])  # tangent [rot rad, trans units]
-            cov = s_t @ _matrix(tab["pose_covariance"], (6, 6), f"{where} pose_covariance") @ s_t
+            cov = s_t @ _pose_covariance(tab["pose_covariance"], f"{where} pose_covariance") @ s_t
         cams.append(Camera(name, (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov))
     if not cams:
         raise InputError(f"{path}: no camera tables (expected [cam_0], [cam_1], ...)")
@@ -246,108 +234,48 @@ def read_calibration(path: Path, units: str | None = None) -> Rig:
     return Rig(cams, world_mirror=mirror)
 
 
-def _line(i: int, is_csv: bool) -> str:
-    return f"line {i + 2}" if is_csv else f"row {i}"
-
-
-def _read_table(path: Path, required: list[str], what: str) -> tuple[pd.DataFrame, bool]:
-    is_csv = path.suffix.lower() != ".parquet"
-    try:
-        if is_csv:
-            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-        else:
-            df = pd.read_parquet(path)
-    except pd.errors.EmptyDataError:
-        raise InputError(f"{path}: empty file (no header, no {what})") from None
-    except Exception as e:  # a corrupt file: say which and why, one line
-        raise InputError(f"{path}: cannot be read ({type(e).__name__}: {str(e).splitlines()[0]})") from None
-    df.columns = [str(c).strip() for c in df.columns]
-    for col in required:
-        if col not in df.columns:
-            close = difflib.get_close_matches(col, df.columns, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise InputError(f"{path}: missing column '{col}'{hint}; found {', '.join(df.columns)}")
-    if len(df) == 0:
-        raise InputError(f"{path}: no {what} (the file has a header only)")
-    return df, is_csv
-
-
-def _numeric(df: pd.DataFrame, col: str, path: Path, is_csv: bool, allow_missing: bool) -> np.ndarray:
-    raw = df[col]
-    text = raw.astype(str).str.strip()
-    missing = raw.isna() | text.isin(["", "nan", "NaN", "NA", "None"])
-    values = pd.to_numeric(raw.where(~missing), errors="coerce").to_numpy(dtype=float)
-    bad = ~missing.to_numpy() & np.isnan(values)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InputError(f"{path} {_line(i, is_csv)}: {col} {raw.iloc[i]!r} is not a number")
-    if np.isinf(values).any():
-        i = int(np.argmax(np.isinf(values)))
-        raise InputError(f"{path} {_line(i, is_csv)}: {col} is infinite ({raw.iloc[i]!r})")
-    if not allow_missing and missing.any():
-        i = int(np.argmax(missing.to_numpy()))
-        raise InputError(f"{path} {_line(i, is_csv)}: {col} is empty")
-    return values
-
-
-def _frames(df: pd.DataFrame, path: Path, is_csv: bool) -> np.ndarray:
-    f = _numeric(df, "frame", path, is_csv, allow_missing=False)
-    bad = (f < 0) | (f != np.round(f))
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InputError(f"{path} {_line(i, is_csv)}: frame {df['frame'].iloc[i]!r} is not an integer >= 0")
-    return f.astype(np.int64)
-
-
-def _labels(df: pd.DataFrame, col: str, path: Path, is_csv: bool) -> pd.Series:
-    s = df[col].astype(str).str.strip()
-    empty = df[col].isna() | (s == "") | (s == "nan")
-    if empty.any():
-        i = int(np.argmax(empty.to_numpy()))
-        raise InputError(f"{path} {_line(i, is_csv)}: {col} is empty")
-    return s
-
-
 def read_observations(path: Path, rig: Rig,
                       calibration_name: str = "calibration.toml") -> tuple[pd.DataFrame, list[str]]:
     """Read and validate observations.csv/.parquet against ``rig`` (read from ``calibration_name``, named in
-    errors). Returns (table, warnings)."""
-    df, is_csv = _read_table(path, OBS_COLUMNS, "observations")
-    frame = _frames(df, path, is_csv)
-    camera = _labels(df, "camera", path, is_csv)
-    marker = _labels(df, "marker", path, is_csv)
-    u = _numeric(df, "u", path, is_csv, allow_missing=True)
-    v = _numeric(df, "v", path, is_csv, allow_missing=True)
+    errors). Returns (table, warnings). Frames obey batgraph.inputs' limits (MAX_FRAME, MAX_FRAME_GAP)."""
+    df, is_csv = inputs.read_table(path, OBS_COLUMNS, "observations")
+    frame = inputs.frame_column(df, path, is_csv)
+    camera = inputs.label_column(df, "camera", path, is_csv)
+    marker = inputs.label_column(df, "marker", path, is_csv)
+    u = inputs.numeric_column(df, "u", path, is_csv, allow_missing=True)
+    v = inputs.numeric_column(df, "v", path, is_csv, allow_missing=True)
     if "weight" in df.columns:
-        w = _numeric(df, "weight", path, is_csv, allow_missing=True)
+        w = inputs.numeric_column(df, "weight", path, is_csv, allow_missing=True)
         w = np.where(np.isnan(w), 1.0, w)
         bad = ~((w > 0) & (w <= 1))
         if bad.any():
             i = int(np.argmax(bad))
-            raise InputError(f"{path} {_line(i, is_csv)}: weight {df['weight'].iloc[i]!r} is not in (0, 1]")
+            raise InputError(f"{path} {inputs.row_name(i, is_csv)}: weight {inputs.cell(df['weight'].iloc[i])} "
+                             f"is not in (0, 1]")
     else:
         w = np.ones(len(df))
     unknown = ~camera.isin(rig.names)
     if unknown.any():
         i = int(np.argmax(unknown.to_numpy()))
         raise InputError(
-            f"{path} {_line(i, is_csv)}: camera {camera.iloc[i]!r} is not in {calibration_name} "
+            f"{path} {inputs.row_name(i, is_csv)}: camera {camera.iloc[i]!r} is not in {calibration_name} "
             f"(cameras: {', '.join(rig.names)})"
         )
     half = np.isnan(u) != np.isnan(v)
     if half.any():
         i = int(np.argmax(half))
-        raise InputError(f"{path} {_line(i, is_csv)}: only one of u, v is given")
+        raise InputError(f"{path} {inputs.row_name(i, is_csv)}: only one of u, v is given")
     out = pd.DataFrame({"frame": frame, "camera": camera.to_numpy(), "marker": marker.to_numpy(),
                         "u": u, "v": v, "weight": w})
     out["line"] = np.arange(len(out))
     out = out[~np.isnan(u)]
     if len(out) == 0:
         raise InputError(f"{path}: no observations (every u, v is empty)")
+    inputs.check_frame_gaps(out["frame"].to_numpy(), path, is_csv, rows=out["line"].to_numpy())
     dup = out.duplicated(["frame", "camera", "marker"], keep=False)
     if dup.any():
         rows = out[dup].head(2)
-        a, b = (_line(int(i), is_csv) for i in rows["line"])
+        a, b = (inputs.row_name(int(i), is_csv) for i in rows["line"])
         r = rows.iloc[0]
         raise InputError(f"{path} {a} and {b}: duplicate observation of frame {r.frame}, "
                          f"camera {r.camera!r}, marker {r.marker!r}")
@@ -364,37 +292,51 @@ def read_observations(path: Path, rig: Rig,
 
 def read_points(path: Path) -> pd.DataFrame:
     """Read a frame, marker, x, y, z table (truth.csv, reference_xyz.csv); empty xyz rows dropped."""
-    df, is_csv = _read_table(path, TRUTH_COLUMNS, "points")
-    out = pd.DataFrame({"frame": _frames(df, path, is_csv), "marker": _labels(df, "marker", path, is_csv)})
+    df, is_csv = inputs.read_table(path, TRUTH_COLUMNS, "points")
+    out = pd.DataFrame({"frame": inputs.frame_column(df, path, is_csv),
+                        "marker": inputs.label_column(df, "marker", path, is_csv)})
     for c in "xyz":
-        out[c] = _numeric(df, c, path, is_csv, allow_missing=True)
+        out[c] = inputs.numeric_column(df, c, path, is_csv, allow_missing=True)
     return out.dropna().reset_index(drop=True)
 
 
+def read_mislabels(path: Path) -> pd.DataFrame:
+    """Read truth_mislabels.csv (frame, camera, marker of deliberately mislabelled rows); header-only is fine."""
+    df, is_csv = inputs.read_table(path, ["frame", "camera", "marker"], "mislabelled rows", allow_empty=True)
+    return pd.DataFrame({"frame": inputs.frame_column(df, path, is_csv),
+                         "camera": inputs.label_column(df, "camera", path, is_csv).to_numpy(dtype=object),
+                         "marker": inputs.label_column(df, "marker", path, is_csv).to_numpy(dtype=object)})
+
+
 def _session_config(path: Path) -> dict:
-    data = _read_toml(path)
+    data = inputs.read_toml(path)
     sess = data.get("session")
     if not isinstance(sess, dict):
         raise InputError(f"{path}: missing table [session]")
     if "fps" not in sess:
         raise InputError(f"{path} [session]: missing key 'fps'")
-    _number(sess["fps"], f"{path} [session] fps", positive=True)
+    inputs.number(sess["fps"], f"{path} [session] fps", positive=True)
     for key in ("motion", "noise", "markers"):
         if not isinstance(data.get(key, {}), dict):
             raise InputError(f"{path}: '{key}' must be a table [{key}], got {data[key]!r}")
-    names = data.get("markers", {}).get("names", [])
-    if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
-        raise InputError(f"{path} [markers] names: expected a list of marker names, got {names!r}")
+    markers = data.get("markers", {})
+    inputs.unique_names(markers.get("names", []), f"{path} [markers] names", "marker name")
+    skeleton = markers.get("skeleton", [])
+    if not isinstance(skeleton, list):
+        raise InputError(f"{path} [markers] skeleton: expected a list of [marker, marker] pairs, got {skeleton!r}")
+    for i, edge in enumerate(skeleton):
+        if not (isinstance(edge, list) and len(edge) == 2 and all(isinstance(e, str) for e in edge)):
+            raise InputError(f"{path} [markers] skeleton[{i}]: expected a pair of marker names, got {edge!r}")
     motion = data.get("motion", {})
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:
         raise InputError(f"{path} [motion] model: {model!r} is not one of {', '.join(MOTION_MODELS)}")
     for k in ("flight_speed_mps", "span_m", "flap_hz", "flap_angle_deg", "sigma_m", "accel_psd_m2_s3"):
         if k in motion:
-            _number(motion[k], f"{path} [motion] {k}", positive=True, allow_zero=k == "flight_speed_mps")
+            inputs.number(motion[k], f"{path} [motion] {k}", positive=True, allow_zero=k == "flight_speed_mps")
     noise = data.get("noise", {})
     if "pixel_sigma_px" in noise:
-        _number(noise["pixel_sigma_px"], f"{path} [noise] pixel_sigma_px", positive=True)
+        inputs.number(noise["pixel_sigma_px"], f"{path} [noise] pixel_sigma_px", positive=True)
     return data
 
 
@@ -406,7 +348,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise InputError(f"{folder}: session folder not found")
+        raise InputError(f"{folder}: session folder not found" if not folder.exists()
+                         else f"{folder}: not a folder (a session is a folder holding session.toml, ...)")
     cfg = _session_config(folder / "session.toml")
     cal_path = Path(calibration) if calibration is not None else folder / "calibration.toml"
     rig = read_calibration(cal_path)
@@ -421,19 +364,23 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     mcfg = MotionConfig(**{k: v for k, v in motion.items() if k in known})
     markers = cfg.get("markers", {})
     names = [str(n) for n in markers.get("names", [])]
-    skeleton = []
-    for i, edge in enumerate(markers.get("skeleton", [])):
-        if not (isinstance(edge, list) and len(edge) == 2):
-            raise InputError(f"{folder / 'session.toml'} [markers] skeleton[{i}]: expected a pair of marker names")
-        skeleton.append((str(edge[0]), str(edge[1])))
+    skeleton = [(str(a), str(b)) for a, b in markers.get("skeleton", [])]
+    known_markers = set(names) | set(observations["marker"])
+    for i, edge in enumerate(skeleton):
+        for e in edge:
+            if e not in known_markers:
+                raise InputError(f"{folder / 'session.toml'} [markers] skeleton[{i}]: marker {e!r} is neither in "
+                                 f"[markers] names nor observed in {obs_path.name}")
+    frames = observations["frame"]
+    n_markers = len(set(names) | set(observations["marker"]))
+    inputs.check_dense_memory(len(rig), int(frames.max() - frames.min()) + 1, n_markers, str(obs_path))
     truth = read_points(folder / "truth.csv") if (folder / "truth.csv").exists() else None
     ref = read_points(folder / "reference_xyz.csv") if (folder / "reference_xyz.csv").exists() else None
     true_rig = (read_calibration(folder / "calibration_true.toml")
                 if (folder / "calibration_true.toml").exists() else None)
     mislabels = None
     if (folder / "truth_mislabels.csv").exists():  # header-only is fine: a clean simulation
-        mislabels = pd.read_csv(folder / "truth_mislabels.csv", dtype={"camera": str, "marker": str})
-        mislabels = mislabels.assign(frame=mislabels["frame"].astype(np.int64))
+        mislabels = read_mislabels(folder / "truth_mislabels.csv")
     extra = {k: v for k, v in cfg.items() if k not in ("session", "motion", "noise", "markers")}
     return Session(
         name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,

@@ -14,10 +14,10 @@ defaults ``-cam([A-Z])$`` and 0.8. The folder names ``pose-2d`` and ``calibratio
 from __future__ import annotations
 
 import re
-import tomllib
 from pathlib import Path
 
 from ..errors import InputError
+from ..inputs import number, read_toml
 from ..session import Session
 from .deeplabcut import import_deeplabcut
 
@@ -30,11 +30,17 @@ def _find_config(folder: Path, levels: int = 4) -> dict:
     for d in [folder, *list(folder.parents)[:levels]]:
         path = d / "config.toml"
         if path.is_file():
-            try:
-                with open(path, "rb") as f:
-                    return tomllib.load(f)
-            except tomllib.TOMLDecodeError as e:
-                raise InputError(f"{path}: not valid TOML ({e})") from None
+            cfg = read_toml(path)
+            for table in ("pipeline", "triangulation"):
+                if not isinstance(cfg.get(table, {}), dict):
+                    raise InputError(f"{path}: '{table}' must be a table [{table}]")
+            if "score_threshold" in cfg.get("triangulation", {}):
+                x = number(cfg["triangulation"]["score_threshold"], f"{path} [triangulation] score_threshold")
+                if not 0 <= x <= 1:
+                    raise InputError(f"{path} [triangulation] score_threshold: must be in [0, 1], got {x!r}")
+            if not isinstance(cfg.get("triangulation", {}).get("cam_regex", ""), str):
+                raise InputError(f"{path} [triangulation] cam_regex: expected a string")
+            return cfg
     return {}
 
 

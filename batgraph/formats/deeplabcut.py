@@ -17,12 +17,14 @@ below ``threshold`` are dropped. Reading .h5 needs the ``tables`` package; CSV n
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from ..errors import InputError
+from ..inputs import MAX_FRAME, check_file, check_frame_gaps, check_readable, read_text
 from ..session import Session
 from .keypoints2d import check_fps, load_rig, make_session, match_cameras, observations_from_arrays
 
@@ -32,8 +34,8 @@ LEVELS_MULTI = ["scorer", "individuals", "bodyparts", "coords"]
 
 def _read_csv(path: Path) -> tuple[pd.DataFrame, int]:
     """The table and its number of header rows; header layout checked row by row."""
-    with open(path, newline="", encoding="utf-8", errors="replace") as f:
-        head = [row for _, row in zip(range(4), csv.reader(f), strict=False)]
+    text = read_text(path)
+    head = [row for _, row in zip(range(4), csv.reader(io.StringIO(text, newline="")), strict=False)]
     firsts = [r[0].strip().lower() if r else "" for r in head]
     levels = LEVELS_MULTI if len(firsts) > 1 and firsts[1] == "individuals" else LEVELS_SINGLE
     for i, want in enumerate(levels):
@@ -42,9 +44,10 @@ def _read_csv(path: Path) -> tuple[pd.DataFrame, int]:
             raise InputError(f"{path} line {i + 1}: expected DeepLabCut header row '{want}', found {got!r} "
                              f"(rows must be {' / '.join(levels)})")
     try:
-        df = pd.read_csv(path, header=list(range(len(levels))), index_col=0, dtype=str, keep_default_na=False)
-    except (ValueError, pd.errors.ParserError) as e:
-        raise InputError(f"{path}: cannot be read as DeepLabCut CSV ({str(e).splitlines()[0]})") from None
+        df = pd.read_csv(io.StringIO(text), header=list(range(len(levels))), index_col=0, dtype=str,
+                         keep_default_na=False)
+    except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError) as e:
+        raise InputError(f"{path}: cannot be read as DeepLabCut CSV ({str(e).strip().splitlines()[-1]})") from None
     return df, len(levels)
 
 
@@ -54,6 +57,7 @@ def _read_h5(path: Path) -> pd.DataFrame:
     except ImportError:
         raise InputError(f"{path}: reading .h5 needs the 'tables' package (pip install tables), "
                          f"or export CSV from DeepLabCut") from None
+    check_readable(path)
     try:
         with pd.HDFStore(path, mode="r") as store:
             keys = store.keys()
@@ -80,9 +84,7 @@ def read_deeplabcut(path: str | Path, individual: str | None = None,
     likelihood (F, M). ``individual`` picks one animal of a multi-animal file (required when it has
     several).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = check_file(path)
     if path.suffix.lower() in (".h5", ".hdf5"):
         df, n_header = _read_h5(path), 0
     elif path.suffix.lower() == ".csv":
@@ -129,13 +131,18 @@ def read_deeplabcut(path: str | Path, individual: str | None = None,
         raise InputError(f"{where(int(r))}: {bodyparts[c // 3]} {('x', 'y', 'likelihood')[c % 3]} "
                          f"{raw.iat[r, c]!r} is not a number")
     frame = pd.to_numeric(pd.Series(df.index, dtype=object).astype(str).str.strip(), errors="coerce").to_numpy()
-    bad = ~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame))
+    bad = ~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame)) | (frame > MAX_FRAME)
     if bad.any():
         r = int(np.argmax(bad))
-        raise InputError(f"{where(r)}: index {df.index[r]!r} is not a frame number (an integer >= 0)")
+        raise InputError(f"{where(r)}: index {df.index[r]!r} is not a frame number (an integer from 0 to "
+                         f"{MAX_FRAME:,})")
     if len(set(frame)) != len(frame):
         r = int(np.argmax(pd.Series(frame).duplicated().to_numpy()))
         raise InputError(f"{where(r)}: frame {int(frame[r])} appears twice")
+    if n_header:
+        check_frame_gaps(frame.astype(np.int64), path, True, rows=np.arange(len(frame)) + n_header - 1)
+    else:
+        check_frame_gaps(frame.astype(np.int64), path, False)
     vals = num.to_numpy(float).reshape(len(df), len(bodyparts), 3)
     return frame.astype(np.int64), bodyparts, vals[..., :2], vals[..., 2]
 
@@ -156,8 +163,7 @@ def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: flo
     calib, rig = load_rig(calibration, units)
     paths = [Path(f) for f in files]
     for p in paths:
-        if not p.is_file():
-            raise InputError(f"{p}: file not found")
+        check_file(p)
     cams = match_cameras(paths, rig, camera_names, calib)
     tables, markers = [], []
     for p, cam in zip(paths, cams, strict=True):

@@ -32,6 +32,7 @@ from .. import atomic
 from ..camera import Camera, Rig
 from ..errors import InputError
 from ..geometry import dlt
+from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
@@ -69,18 +70,7 @@ def coefs_from_opencv(coefs: np.ndarray, origin: str, height_px: float | None = 
 # reading
 # ----------------------------------------------------------------------------------------------
 def _read_text_table(path: Path, header: bool, what: str) -> pd.DataFrame:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
-    try:
-        df = pd.read_csv(path, header=0 if header else None, dtype=str, keep_default_na=False,
-                         skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise InputError(f"{path}: empty file (expected {what})") from None
-    except Exception as e:  # a corrupt or ragged file: say which and why, one line
-        raise InputError(f"{path}: cannot be read ({type(e).__name__}: {str(e).splitlines()[0]})") from None
-    df.columns = [str(c).strip() for c in df.columns]
-    return df
+    return read_csv(path, header=header, what=what)
 
 
 def _numbers(df: pd.DataFrame, path: Path, first_line: int, col_label) -> np.ndarray:

@@ -16,7 +16,6 @@ its ``Frame#`` n is JSON frame n - 1 (checked on Pose2Sim's demo: tests/test_imp
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
+from ..inputs import MAX_FRAME, check_frame_gaps, read_json, read_text
 from ..session import Session
 from .c3d_trc import read_trc
 from .keypoints2d import check_fps, load_rig, make_session, match_cameras, observations_from_arrays
@@ -66,6 +66,8 @@ def _frame_number(path: Path) -> int:
     digits = re.findall(r"\d+", path.name[: -len(".json")])
     if not digits:
         raise InputError(f"{path}: no frame number in the file name")
+    if int(digits[-1]) > MAX_FRAME:
+        raise InputError(f"{path}: frame number {digits[-1]} in the file name is larger than {MAX_FRAME:,}")
     return int(digits[-1])
 
 
@@ -84,30 +86,34 @@ def read_openpose_folder(folder: str | Path, names: list[str], person: int = 0,
     if not files:
         raise InputError(f"{folder}: no .json files")
     frames = np.array([_frame_number(p) for p in files], np.int64)
+    check_frame_gaps(frames, folder, False, where=lambda i: str(files[i]))
     if len(set(frames)) != len(frames):
         dup = frames[np.argmax(np.unique(frames, return_counts=True)[1] > 1)]
         raise InputError(f"{folder}: frame {dup} appears in two file names")
     K = len(names)
     flat = np.full((len(files), 3 * K), np.nan)
     for i, p in enumerate(files):
-        try:
-            doc = json.loads(p.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"{p}: not valid JSON ({e})") from None
+        doc = read_json(p)
         people = doc.get("people") if isinstance(doc, dict) else None
         if not isinstance(people, list):
             raise InputError(f"{p}: missing key 'people' (not OpenPose JSON)")
+        if person < len(people) and not isinstance(people[person], dict):
+            raise InputError(f"{p}: people[{person}] is not an object {{...}} (not OpenPose JSON)")
         if person >= len(people) or "pose_keypoints_2d" not in people[person]:
             continue  # nobody (or not this person) on this frame
         kp = people[person]["pose_keypoints_2d"]
+        if not isinstance(kp, list):
+            raise InputError(f"{p}: people[{person}].pose_keypoints_2d is not a list of numbers")
         if len(kp) == 0:
             continue
         if len(kp) != 3 * K:
             raise InputError(f"{p}: people[{person}].pose_keypoints_2d has {len(kp)} numbers, expected "
                              f"3 x {K} for {K} keypoints (wrong keypoints model?)")
         try:
+            if any(isinstance(x, bool) for x in kp):
+                raise TypeError
             flat[i] = np.asarray(kp, dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"{p}: people[{person}].pose_keypoints_2d holds a non-number") from None
     order = np.argsort(frames, kind="stable")
     vals = flat[order].reshape(len(files), K, 3)
@@ -157,6 +163,7 @@ def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str |
     label = name or (Path(out).name if out is not None else dirs[0].parent.name)
     reference = None
     if reference_trc is not None:
+        read_text(reference_trc)  # encoding, permission and existence through the reader layer; read_trc parses
         trc = read_trc(reference_trc)
         xyz = trc.xyz_m[..., [2, 0, 1]]  # undo Pose2Sim's zup2yup
         F, M = xyz.shape[:2]
