@@ -71,6 +71,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         if tmp_path.exists():
             os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, final)
+    except OSError as e:  # name the file the user asked for, not our temporary (or nothing)
+        if e.filename in (None, tmp, str(tmp_path)) and e.errno is not None:
+            raise OSError(e.errno, e.strerror, str(final)) from e
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

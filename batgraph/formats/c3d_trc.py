@@ -243,6 +243,8 @@ def write_c3d(path: str | Path, trajectories: pd.DataFrame, fps: float, markers:
     keep: range, see :func:`keep_range`; reprojection: the reprojection table, for the camera masks;
     cameras: the rig's camera order (bit k of the mask = cameras[k]); see :func:`c3d_camera_masks`.
     """
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"{path}: frame rate must be a positive number of Hz, got {fps}")
     d = dense_trajectories(keep_range(trajectories, keep), markers, method)
     valid = np.isfinite(d.xyz_m).all(axis=-1)  # (F, M)
     F, M = valid.shape
@@ -294,6 +296,8 @@ def write_trc(path: str | Path, trajectories: pd.DataFrame, fps: float, markers:
     """
     if units not in _UNIT_TO_M:
         raise ValueError(f"units must be one of {', '.join(_UNIT_TO_M)}; got {units!r}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"{path}: frame rate must be a positive number of Hz, got {fps}")
     d = dense_trajectories(keep_range(trajectories, keep), markers, method)
     F, M = d.xyz_m.shape[:2]
     scale = 1.0 / _UNIT_TO_M[units]
