@@ -87,9 +87,8 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
 
 
 def export_method(result: Result) -> str:
-    """The method whose trajectories go to C3D/TRC: the smoother when it ran, else the first method."""
-    methods = list(result.estimates)
-    return "smoother" if "smoother" in methods else methods[0]
+    """The method whose trajectories go to C3D/TRC: the verdict's (the smoother when it ran)."""
+    return summary_mod.recommended(list(result.estimates))[0]
 
 
 #: The files of one result folder (CONTRACT.md section 3, and validation.csv): a folder holds one result,
