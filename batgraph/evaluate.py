@@ -50,12 +50,10 @@ def inside_span(n_views: np.ndarray) -> np.ndarray:
 def add_span(traj: pd.DataFrame) -> pd.DataFrame:
     """A trajectories table with its ``span`` column (re)computed from n_views, per method and marker."""
     out = traj.copy()
-    out["span"] = "outside"
-    for _, g in out.groupby(["method", "marker"], sort=False):
-        two = g.loc[g["n_views"] >= 2, "frame"]
-        if len(two):
-            idx = g.index[(g["frame"] >= two.min()) & (g["frame"] <= two.max())]
-            out.loc[idx, "span"] = "inside"
+    two = out["frame"].where(out["n_views"] >= 2)
+    g = two.groupby([out["method"], out["marker"]], sort=False)
+    first, last = g.transform("min"), g.transform("max")  # NaN for a marker never seen twice
+    out["span"] = np.where((out["frame"] >= first) & (out["frame"] <= last), "inside", "outside")
     return out
 
 

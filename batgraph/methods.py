@@ -101,5 +101,6 @@ def rgb(name: str) -> tuple[int, int, int]:
 
 def help_text() -> str:
     """The ``--methods`` help: every method with its one-line summary."""
-    return "comma-separated, any of: " + "; ".join(f"{m.name} ({m.summary})" for m in METHODS.values()) + \
+    return "comma-separated, any of: " + "; ".join(
+        f"{m.name} ({m.summary}{'; past frames only' if m.past_only else ''})" for m in METHODS.values()) + \
         f" (default {','.join(DEFAULT_METHODS)})"

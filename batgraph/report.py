@@ -32,10 +32,8 @@ from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
 
 # The markers named in the paper's Fig. 6, in its order.
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
-STATUSES = ("all", "observed", "single_view", "unobserved")
 CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square, 2 DOF (reprojection ellipses)
 
-COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
 MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs small and fast
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
 DPI = 100
@@ -587,7 +585,7 @@ def _validation_section(summary: dict) -> str | None:
 
     t = pd.DataFrame(v.get("table") or [], columns=COLUMNS)
     present = set(zip(t["status"], t["subset"], strict=True))
-    groups = [(st, sub) for sub in SUBSETS for st in STATUSES[1:] if (st, sub) in present]
+    groups = [(st, sub) for sub in SUBSETS for st in evaluate.STATUSES if (st, sub) in present]
     idx = t.set_index(["held_out", "method", "status", "subset"])
     rows = []
     for cam in dict.fromkeys(t["held_out"]):

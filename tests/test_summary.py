@@ -158,3 +158,12 @@ def test_span_column_in_trajectories_and_counts_in_summary(flight):
     assert (one.loc[one["status"] == "observed", "span"] == "inside").all()
     assert result.summary["spans"] == one["span"].value_counts().reindex(["inside", "outside"], fill_value=0).to_dict()
     assert pd.api.types.is_string_dtype(one["span"]) or one["span"].dtype == object
+
+
+def test_add_span_from_a_table_equals_the_span_written_by_reconstruct(flight):
+    """export reads old trajectories.csv files without a span column: the recomputed one must be the same."""
+    _, result = flight
+    traj = result.trajectories
+    again = evaluate.add_span(traj.drop(columns="span").sample(frac=1.0, random_state=0)).sort_index()
+    assert (again["span"] == traj["span"]).all()
+    assert (traj["span"] == "outside").any() and (traj["span"] == "inside").any()

@@ -664,7 +664,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
 def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
                                 markers: np.ndarray, fps: float, robust: str, robust_k: float,
                                 p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
-                                q_start: float | None = None, progress: bool = False,
+                                progress: bool = False,
                                 ) -> tuple[np.ndarray, dict]:
     """Each marker's maximum-Laplace-marginal-likelihood q [m^2/s^3] for a fixed rig (module docstring).
 
@@ -672,8 +672,7 @@ def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.n
     (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
     p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
     p_start, v_start: where the decade grid's solves start (F, M, 3) [m], [m/s] (default p_init, v_init),
-    e.g. the cleaning solution. q_start: the q that start was solved at; unused since every decade
-    starts from it (kept for callers).
+    e.g. the cleaning solution.
     The decade grid over noise.LOG10_Q_RANGE (9 decades) is ONE batched solve (:func:`solve_levels`:
     decades x markers as the batch axis, every column from the start, so no stiff solution is ever
     carried to a neighbouring decade, which once dragged wing markers off their track). Then a
@@ -834,7 +833,7 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
         markers = np.flatnonzero(estimated)
         q, selection = choose_accel_psd_per_marker(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
-            p_start, v_start, q_start=figures.get("cleaning", {}).get("accel_psd_m2_s3"), progress=options.progress)
+            p_start, v_start, progress=options.progress)
         figures.update(noise.q_figures(q, markers, dense.markers, selection))
     else:
         figures.update(noise.q_figures(q))

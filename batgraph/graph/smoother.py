@@ -205,8 +205,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             v_start = _velocities(start, markers, F, M, dt)
         q_m, selection = choose_accel_psd_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
-            options.robust, options.robust_k, p_start, v_start, q_start=info.get("cleaning", {}).get(
-                "accel_psd_m2_s3"), progress=options.progress)
+            options.robust, options.robust_k, p_start, v_start, progress=options.progress)
         info.update(noise.q_figures(q_m, markers, dense.markers, selection))
     else:
         info.update(noise.q_figures(q))
