@@ -15,6 +15,8 @@ paper's published figures, and -- when the session has them -- errors against tr
 from __future__ import annotations
 
 import base64
+import contextlib
+import gc
 import html
 import io
 import math
@@ -59,8 +61,30 @@ def _selected_markers(markers: list[str], n_max: int = 7) -> list[str]:
 
 
 def _png(fig: Figure) -> str:
+    """The figure as a PNG ``data:`` URI, cropped to its drawn content plus a 0.1 inch margin.
+
+    One Agg draw, then the pixels that are not the white background bound the crop: what
+    ``savefig(bbox_inches="tight")`` gives, without its extra layout-only draw and tight-box pass (together
+    ~40 % of a report's time). The figures below keep every artist (legends included) inside their canvas;
+    should one still reach the canvas's edge (e.g. very long marker names), the figure is saved the slow way,
+    with ``bbox_inches="tight"``, so that nothing is cut off.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3]  # opaque white figure: alpha is 255 everywhere
+    ink = (rgb != 255).any(axis=2)
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    if len(rows) and (rows[0] == 0 or cols[0] == 0 or rows[-1] == ink.shape[0] - 1 or cols[-1] == ink.shape[1] - 1):
+        fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    else:
+        if len(rows):
+            pad = round(0.1 * DPI)
+            rgb = rgb[max(rows[0] - pad, 0):rows[-1] + pad + 1, max(cols[0] - pad, 0):cols[-1] + pad + 1]
+        Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format="png")
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
@@ -107,6 +131,18 @@ def _status_runs(frames: np.ndarray, mask: np.ndarray) -> list[tuple[int, int]]:
     return [(int(frames[a]), int(frames[b])) for a, b in zip(starts, ends, strict=True)]
 
 
+def _finite_runs(tracks: np.ndarray) -> list[np.ndarray]:
+    """The pieces of each track in ``tracks`` (K, F, D) between non-finite points, as a list of (n, D) arrays
+    with n >= 2: the segments ``plot`` would draw for each track, for one ``LineCollection`` of them all."""
+    runs = []
+    for track in tracks:
+        ok = np.isfinite(track).all(axis=1)
+        for a, b in _status_runs(np.arange(len(track)), ok):
+            if b > a:
+                runs.append(track[a:b + 1])
+    return runs
+
+
 def _trajectory_cube(trajectories: pd.DataFrame, method: str, frames: np.ndarray,
                      markers: list[str]) -> np.ndarray:
     """xyz of one method as a dense array (F, M, 3) [m], NaN where absent."""
@@ -133,7 +169,26 @@ def _panel_grid(n: int, max_cols: int, panel_in: tuple[float, float]) -> tuple[F
     """A figure for ``n`` panels in rows of at most ``max_cols``, each ``panel_in`` (w, h) inches: (fig, nrow, ncol)."""
     ncol = min(n, max_cols)
     nrow = int(math.ceil(n / ncol))
-    return Figure(figsize=(panel_in[0] * ncol, panel_in[1] * nrow)), nrow, ncol
+    return Figure(figsize=(panel_in[0] * ncol, panel_in[1] * nrow), dpi=DPI), nrow, ncol
+
+
+def _legend_size_in(fig: Figure, legend) -> tuple[float, float]:
+    """(width, height) [in] of ``legend`` as it will be drawn: its texts measured, nothing drawn."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    box = legend.get_window_extent(FigureCanvasAgg(fig).get_renderer())
+    return box.width / fig.dpi, box.height / fig.dpi
+
+
+def _widen_for(fig: Figure, width_in: float, margin_in: float = 0.2) -> None:
+    """Widen ``fig`` (its panels keep their fractions) so that something ``width_in`` wide, centred, fits."""
+    if width_in + margin_in > fig.get_figwidth():
+        fig.set_figwidth(width_in + margin_in)
+
+
+def _room_right(fig: Figure, legend, gap_in: float = 0.35) -> None:
+    """Move the panels' right edge left so that ``legend``, placed just right of them, ends inside ``fig``."""
+    fig.subplots_adjust(right=1.0 - (_legend_size_in(fig, legend)[0] + gap_in) / fig.get_figwidth())
 
 
 def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, truth_cube):
@@ -154,19 +209,23 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
     sk = [(mi[a], mi[b]) for a, b in skeleton if a in mi and b in mi]
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     snap = np.linspace(0, len(frames) - 1, min(5, len(frames))).astype(int)
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    truth_runs = _finite_runs(truth_cube[::st].transpose(1, 0, 2)) if truth_cube is not None else []
     for k, m in enumerate(methods):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
+        ax.computed_zorder = False  # truth behind the estimates, the skeleton on top: in the order added
         c = cubes[m]
-        if truth_cube is not None:
-            for j in range(len(markers)):
-                ax.plot(*truth_cube[::st, j].T, color="k", lw=0.6, alpha=0.35)
-        for j in range(len(markers)):
-            ax.plot(*c[::st, j].T, color=cmap[j], lw=1.0)
-        for f in snap:
-            for a, b in sk:
-                seg = c[f, [a, b]]
-                if np.isfinite(seg).all():
-                    ax.plot(*seg.T, color="#3060c0", lw=1.2, alpha=0.7)
+        if truth_runs:
+            ax.add_collection3d(Line3DCollection(truth_runs, colors="k", linewidths=0.6, alpha=0.35))
+        tracks = c[::st].transpose(1, 0, 2)  # (M, F, 3)
+        runs = [(r, cmap[j]) for j in range(len(markers)) for r in _finite_runs(tracks[j:j + 1])]
+        if runs:
+            ax.add_collection3d(Line3DCollection([r for r, _ in runs], colors=[col for _, col in runs],
+                                                 linewidths=1.0))
+        bones = [c[f, [a, b]] for f in snap for a, b in sk if np.isfinite(c[f, [a, b]]).all()]
+        if bones:
+            ax.add_collection3d(Line3DCollection(bones, colors="#3060c0", linewidths=1.2, alpha=0.7))
         n_est = int(np.isfinite(c[..., 0]).sum())
         ax.set_title(f"{m}  ({n_est}/{c.shape[0] * c.shape[1]} estimates)", fontsize=10, color=style[m][0])
         ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
@@ -185,7 +244,8 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
         handles.append(Line2D([], [], color="k", lw=0.6, alpha=0.5, label="truth"))
     if sk:
         handles.append(Line2D([], [], color="#3060c0", lw=1.2, label="skeleton (5 frames)"))
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=8, frameon=False)
+    legend = fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=8, frameon=False)
+    _widen_for(fig, _legend_size_in(fig, legend)[0])
     fig.subplots_adjust(bottom=0.12 if len(handles) > 8 else 0.08, wspace=0.05)
     return fig
 
@@ -253,6 +313,8 @@ def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, sel
     cams = [c for c in cameras if (obs["camera"] == c).any()]
     if not cams:
         return None
+    from matplotlib.collections import LineCollection
+
     fig, nrow, ncol = _panel_grid(len(cams), 3, (4.6, 3.6))
     cmap = _marker_colours(len(selected))
     st = _stride(len(frames), MAX_TRACK_FRAMES)
@@ -260,20 +322,24 @@ def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, sel
         ax = fig.add_subplot(nrow, ncol, k + 1)
         o = obs[obs["camera"] == cam]
         w_img, h_img = session.rig[cam].size_wh
+        points, colours = [], []
         for j, mk in enumerate(selected):
             om = o[o["marker"] == mk]
             if len(om) == 0:
                 continue
             uv = om[["u", "v"]].to_numpy(float)[::max(1, st)]
-            ax.scatter(uv[:, 0], uv[:, 1], s=7, facecolor="none", edgecolor=cmap[j], lw=0.7, zorder=3)
+            points.append(uv)
+            colours += [cmap[j]] * len(uv)
             # label at the track's median: the tracks' starts often coincide, their middles less so
             ax.annotate(mk, np.median(uv, axis=0), fontsize=7, fontweight="bold", color=cmap[j], xytext=(4, 0),
                         textcoords="offset points")
+        uv = np.concatenate(points)
+        ax.scatter(uv[:, 0], uv[:, 1], s=7, facecolor="none", edgecolor=colours, lw=0.7, zorder=3)
         for m in methods:
             uvm = reproj_tracks[m][cam]  # (F, M_sel, 2)
             colour, ls = style[m]
-            for j in range(len(selected)):
-                ax.plot(uvm[::st, j, 0], uvm[::st, j, 1], color=colour, ls=ls, lw=0.9, alpha=0.85)
+            ax.add_collection(LineCollection(_finite_runs(uvm[::st].transpose(1, 0, 2)), colors=colour,
+                                             linestyles=ls, linewidths=0.9, alpha=0.85), autolim=False)
         uv_all = o[["u", "v"]].to_numpy(float)
         lo, hi = uv_all.min(axis=0), uv_all.max(axis=0)
         pad = 0.1 * max(float((hi - lo).max()), 20.0)
@@ -293,15 +359,14 @@ def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, sel
 def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status_fm, truth_cube, ref_cube):
     """Selected markers (rows) x, y, z (columns) over time; 95 % bands; occlusion shaded."""
     t = frames / fps
-    fig = Figure(figsize=(13.0, 1.55 * len(selected) + 0.9))
+    panels_in = 1.55 * len(selected) + 0.9
+    fig = Figure(figsize=(13.0, panels_in), dpi=DPI)
     axes = fig.subplots(len(selected), 3, sharex=True, squeeze=False)
     st = _stride(len(frames), MAX_TRACK_FRAMES)
-    cols = {m: trajectories[trajectories["method"] == m].drop_duplicates(["frame", "marker"])
-            .set_index(["frame", "marker"]) for m in methods}
-    idx_cache = {}
+    has_cov = all(c in trajectories for c in evaluate.TRAJ_COLUMNS[7:13])
+    cubes = {m: evaluate.dense_from_table(trajectories, frames, selected, method=m)[:2] for m in methods}
     half = 0.5 / fps
     for i, mk in enumerate(selected):
-        idx = idx_cache.setdefault(mk, pd.MultiIndex.from_arrays([frames, [mk] * len(frames)]))
         for a, axis in enumerate("xyz"):
             ax = axes[i, a]
             if status_fm is not None:
@@ -310,21 +375,18 @@ def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status
                     for f0, f1 in _status_runs(frames, s == name):
                         ax.axvspan(f0 / fps - half, f1 / fps + half, color=colour, lw=0, zorder=0)
             for m in methods:
-                d = cols[m].reindex(idx)
-                y = d[axis].to_numpy(float)
+                xyz, cov = cubes[m]
+                y = xyz[:, i, a]
                 colour, ls = style[m]
-                cov = f"cov_{axis}{axis}"
-                if cov in d:
-                    sd = np.sqrt(np.clip(d[cov].to_numpy(float), 0, None))
+                if has_cov:
+                    sd = np.sqrt(np.clip(cov[:, i, a, a], 0, None))
                     ax.fill_between(t[::st], (y - 1.96 * sd)[::st], (y + 1.96 * sd)[::st], color=colour,
                                     alpha=0.15, lw=0)
                 ax.plot(t[::st], y[::st], color=colour, ls=ls, lw=1.0)
             if truth_cube is not None:
-                j = selected.index(mk)
-                ax.plot(t[::st], truth_cube[::st, j, a], color="k", lw=0.8, ls=(0, (1, 1)))
+                ax.plot(t[::st], truth_cube[::st, i, a], color="k", lw=0.8, ls=(0, (1, 1)))
             if ref_cube is not None:
-                j = selected.index(mk)
-                ax.plot(t[::st], ref_cube[::st, j, a], color="#9467bd", lw=0.8, marker=".", ms=2, ls="")
+                ax.plot(t[::st], ref_cube[::st, i, a], color="#9467bd", lw=0.8, marker=".", ms=2, ls="")
             if i == 0:
                 ax.set_title(f"{axis} [m]", fontsize=10)
             if a == 0:
@@ -341,11 +403,13 @@ def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status
         extra_h += _legend_handles([], {}, [dict(color="#9467bd", marker=".", ls="", label="reference")])
     extra_h += [Patch(color="#f6d7a7", label="single view"), Patch(color="#f4a6a6", label="unobserved"),
                 Patch(color="0.6", alpha=0.3, label="95 % band (±1.96 σ)")]
-    # above the panels: its height is fixed, so the gap does not grow with the number of markers
-    fig.legend(handles=extra_h, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(extra_h), fontsize=8,
-               frameon=False)
-    fig.subplots_adjust(top=1.0 - 0.3 / (1.55 * len(selected) + 0.9), bottom=0.5 / (1.55 * len(selected) + 0.9),
-                        hspace=0.15, wspace=0.18)
+    # above the panels, in a band of its own height: the gap does not grow with the number of markers
+    legend = fig.legend(handles=extra_h, loc="upper center", bbox_to_anchor=(0.5, 1.0), ncol=len(extra_h),
+                        fontsize=8, frameon=False)
+    height = panels_in + _legend_size_in(fig, legend)[1]
+    fig.set_figheight(height)
+    fig.subplots_adjust(top=1.0 - (height - panels_in + 0.4) / height, bottom=0.5 / height, hspace=0.15,
+                        wspace=0.18)
     return fig
 
 
@@ -369,7 +433,7 @@ def _fig_group_bars(values: dict[str, dict[str, float | None]], methods, style, 
 
 def _fig_truth(summary, errors, methods, style, fps):
     """RMSE and 95 % coverage per headline group (from summary.json), and the error over time."""
-    fig = Figure(figsize=(14.0, 3.6))
+    fig = Figure(figsize=(14.0, 3.6), dpi=DPI)
     a1, a2, a3 = fig.subplots(1, 3, gridspec_kw=dict(width_ratios=[1.2, 1.2, 1.4]))
     rmse = {m: _get(summary, "methods", m, "truth", "rmse_m") or {} for m in methods}
     cov = {m: _get(summary, "methods", m, "truth", "coverage95") or {} for m in methods}
@@ -403,15 +467,20 @@ def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: li
         code = np.where(t["span"].to_numpy() == "outside", _MAP_CODES["outside"], code)
     grid = (pd.Series(code, index=pd.MultiIndex.from_frame(t[["marker", "frame"]]))
             .unstack("frame").reindex(index=markers, columns=frames).to_numpy(float))
-    fig = Figure(figsize=(12.0, 0.9 + 0.17 * len(markers)))
+    height = 0.9 + 0.17 * len(markers)
+    fig = Figure(figsize=(12.0, height), dpi=DPI)
+    fig.subplots_adjust(bottom=0.45 / height, top=1.0 - 0.15 / height)  # the time axis's labels inside, few markers too
     ax = fig.add_subplot(1, 1, 1)
+    joined = len(frames) and frames[-1] - frames[0] + 1 != len(frames)  # several takes: their frames side by side
+    x0, x1 = (0, len(frames)) if joined else (frames[0] / fps, (frames[-1] + 1) / fps)
     ax.imshow(np.ma.masked_invalid(grid), aspect="auto", interpolation="nearest", vmin=-0.5, vmax=3.5,
-              cmap=ListedColormap(_MAP_COLOURS), extent=(frames[0] / fps, (frames[-1] + 1) / fps, len(markers), 0))
+              cmap=ListedColormap(_MAP_COLOURS), extent=(x0, x1, len(markers), 0))
     ax.set_yticks(np.arange(len(markers)) + 0.5, markers, fontsize=6 if len(markers) > 30 else 7)
-    ax.set_xlabel("time [s]", fontsize=8)
+    ax.set_xlabel("frames of the takes, side by side" if joined else "time [s]", fontsize=8)
     ax.tick_params(labelsize=7)
-    ax.legend(handles=[Patch(color=c, label=lab) for c, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
-              loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+    legend = ax.legend(handles=[Patch(color=c, label=lab) for c, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
+                       loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+    _room_right(fig, legend)
     return fig
 
 
@@ -431,12 +500,15 @@ def _fig_error_time(errors, methods, style, fps, ax, ylabel):
 
 
 def _fig_reference(errors, methods, style, fps):
-    fig = Figure(figsize=(9.0, 3.0))
+    fig = Figure(figsize=(9.0, 3.0), dpi=DPI)
     ax = fig.add_subplot(1, 1, 1)
     _fig_error_time(errors, methods, style, fps, ax, "median distance over markers [mm]")
     ax.axhline(1.0, color="k", ls="--", lw=0.8, label="paper (ear): EKF/UKF within 1 mm of triangulation")
     ax.set_title("distance to the reference reconstruction over time", fontsize=10)
-    ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    legend = ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.set_figwidth(fig.get_figwidth() + _legend_size_in(fig, legend)[0])  # the panel keeps its width
+    fig.subplots_adjust(bottom=0.18)  # room for the time axis's label
+    _room_right(fig, legend)
     return fig
 
 
@@ -620,6 +692,23 @@ def _validation_section(summary: dict) -> str | None:
     )
 
 
+@contextlib.contextmanager
+def _gc_paused():
+    """Python's cyclic garbage collector off inside (as it was outside afterwards).
+
+    Matplotlib builds many short-lived reference cycles (artists, transforms), which trigger collections
+    that also walk every long-lived object of the run (tables, session): ~10 % of a report's time. The
+    figures' cycles are collected after the report, by the collector's next ordinary run.
+    """
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
 def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
                   summary: dict | None) -> str:
     """The report as one HTML string (see the module docstring for its sections).
@@ -629,6 +718,12 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     summary: the summary.json dict, whose figures are shown as they are; None (or one without ``methods``)
         computes it from the tables with batgraph.summary.summarize, as reconstruct does.
     """
+    with _gc_paused():
+        return _render_report(session, trajectories, reprojection, summary)
+
+
+def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: dict | None) -> str:
+    """:func:`render_report`'s work (the collector paused around it)."""
     trajectories = trajectories.copy()
     trajectories["method"] = trajectories["method"].astype(str)
     if "span" not in trajectories and "n_views" in trajectories:
@@ -648,10 +743,9 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     cameras = session.rig.names
     markers = list(session.markers)
     markers += [m for m in pd.unique(trajectories["marker"].astype(str)) if m not in markers]
-    if len(trajectories):
-        frames = np.arange(int(trajectories["frame"].min()), int(trajectories["frame"].max()) + 1)
-    else:
-        frames = session.frames
+    # the result's frame axis: every frame of every take, none between (batgraph.session.frame_axis)
+    frames = np.unique(trajectories["frame"].to_numpy(np.int64)) if len(trajectories) else session.frames
+    n_takes = int(evaluate.take_of(frames).max()) + 1 if len(frames) else 0
     selected = _selected_markers(markers)
     experiment = summary.get("paper_experiment")
     rng = np.random.default_rng(0)  # only for thinning scatter plots; fixed so reports are reproducible
@@ -703,7 +797,8 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                         + [f"{_fmt(est.get(g), 0)} / {_fmt(pts.get(g), 0)}" for g in HEADLINE_GROUPS])
     overview = (
         f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
-        f"frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {fps:g} fps, {len(frames) / fps:.2f} s). "
+        f"frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {fps:g} fps, {len(frames) / fps:.2f} s"
+        + (f", in {n_takes} takes solved on their own" if n_takes > 1 else "") + "). "
         f"Methods: {', '.join(html.escape(m) for m in methods)}. "
         + (f"This session is the paper's <b>{experiment}</b> experiment (declared by the session), so the "
            "paper's published figures are shown beside batgraph's." if experiment else

@@ -8,6 +8,7 @@ can be checked against what went in.
 from __future__ import annotations
 
 import base64
+import io
 import re
 from html.parser import HTMLParser
 
@@ -248,6 +249,49 @@ def test_full_report_has_every_section_and_is_self_contained(tmp_path):
     t = summary["methods"]["smoother"]["truth"]
     assert truth_rows["smoother"][2] == f"{t['rmse_m']['observed/inside'] * 1000:.2f}"
     assert truth_rows["triangulate"][4] == "0"  # n of one-camera gaps: triangulation estimates none
+
+
+def test_figures_fit_their_canvas_and_are_drawn_once(monkeypatch):
+    """Every figure keeps its artists (legends included) inside its canvas, so report._png draws it once and
+    crops it, and never needs its fallback (savefig with bbox_inches="tight", for a figure that would be cut)."""
+    from matplotlib.figure import Figure
+
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
+    session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: saved.append(self))
+    p = parse(render_report(session, traj, rep, None))
+    assert len(p.imgs) == 7 and saved == []
+
+
+def test_png_crops_to_the_content_and_keeps_what_reaches_past_the_canvas():
+    """A figure inside its canvas is cropped to its content plus a 0.1 inch margin; a text placed past the
+    canvas's right edge is kept (the tight fallback), not cut off."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    from batgraph.report import DPI, _png
+
+    def size(fig):
+        src = _png(fig)
+        return Image.open(io.BytesIO(base64.b64decode(src.split(",", 1)[1]))).size
+
+    fig = Figure(figsize=(4.0, 3.0), dpi=DPI)
+    fig.text(0.5, 0.5, "x", fontsize=20)
+    w, h = size(fig)
+    assert w < 0.5 * 4 * DPI and h < 0.5 * 3 * DPI  # just the letter and its margin
+    fig.text(0.9, 0.5, "a text that runs well past the right edge", fontsize=20)
+    w, h = size(fig)
+    assert w > 4 * DPI
+
+
+def test_finite_runs_are_the_pieces_plot_draws():
+    """NaN splits a track; single points between NaNs draw nothing (as with ``plot``) and are left out."""
+    from batgraph.report import _finite_runs
+
+    track = np.array([[0, 0], [1, 1], [np.nan, 2], [3, 3], [np.nan, 4], [5, 5], [6, 6], [7, 7]], float)
+    runs = _finite_runs(np.stack([track, track[::-1]]))
+    assert [r[:, 0].tolist() for r in runs] == [[0, 1], [5, 6, 7], [7, 6, 5], [1, 0]]
 
 
 def test_paper_figures_only_for_a_declared_paper_scene(tmp_path):

@@ -228,6 +228,17 @@ def test_ellipsoid_half_axes_match_covariance(written, scene):
             np.testing.assert_allclose(center[f], tf[["x", "y", "z"]].to_numpy(), atol=1e-6)
 
 
+def test_quaternions_are_scipys_rotations():
+    """viewer.quaternions_xyzw (numpy, no scipy.spatial at run time) gives the rotations scipy gives, for random
+    rotations and the awkward ones: identity, half turns about each axis and about a diagonal (w = 0)."""
+    rots = Rotation.random(500, random_state=np.random.default_rng(0)).as_matrix()
+    half_turns = Rotation.from_rotvec(np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0] / np.sqrt(2)]))
+    rots = np.concatenate([rots, np.eye(3)[None], half_turns.as_matrix()])
+    quat = viewer.quaternions_xyzw(rots)
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), rots, atol=1e-12)
+
+
 def test_ellipsoid_axes_of_a_known_covariance():
     """A covariance built from a rotation and standard deviations (1, 2, 3) cm gives them back exactly."""
     R = Rotation.from_rotvec([0.3, -0.5, 0.9]).as_matrix()
