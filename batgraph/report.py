@@ -20,6 +20,7 @@ import gc
 import html
 import io
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -425,7 +426,7 @@ def _fig_group_bars(values: dict[str, dict[str, float | None]], methods, style, 
                color=style[m][0], label=m)
     if hline is not None:
         ax.axhline(hline, color="k", ls="--", lw=0.8)
-    ax.set_xticks(x, [HEADLINE_GROUPS[g].replace(" (", "\n(") for g in groups], fontsize=7)
+    ax.set_xticks(x, [textwrap.fill(HEADLINE_GROUPS[g], 14) for g in groups], fontsize=7)  # no overlap
     ax.set_ylabel(ylabel, fontsize=8)
     ax.set_title(title, fontsize=10)
     ax.tick_params(labelsize=7)
@@ -491,9 +492,10 @@ def _fig_error_time(errors, methods, style, fps, ax, ylabel):
             ax.plot(e.index.to_numpy() / fps, e.to_numpy() * 1000, color=style[m][0], ls=style[m][1], lw=1.0,
                     label=m)
     ax.set_yscale("log")
-    plain = FuncFormatter(lambda v, _: f"{v:g}")  # "6" rather than "6 x 10^0"
-    ax.yaxis.set_major_formatter(plain)
-    ax.yaxis.set_minor_formatter(plain)
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # "6" rather than "6 x 10^0"
+    # minor ticks: only 2 and 5 x 10^k labelled (every one overlaps its neighbours over a decade or two)
+    ax.yaxis.set_minor_formatter(FuncFormatter(
+        lambda v, _: f"{v:g}" if v > 0 and f"{v:.0e}"[0] in "25" else ""))
     ax.set_xlabel("time [s]", fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.tick_params(labelsize=7)
