@@ -259,9 +259,7 @@ def _cmd_simulate(args) -> int:
     from .session import write_session
     from .simulate import simulate_ear, simulate_flight, simulate_wand
 
-    out = check_output_dir(args.out, "session folder")
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise InputError(f"{out}: folder exists and is not empty (use --force to overwrite)")
+    out = _check_new_session_folder(args.out, args.force)
     if not 0 <= args.outlier_rate < 1:
         raise InputError(f"--outlier-rate: must be in [0, 1), got {args.outlier_rate}")
     if args.noise_px < 0:
@@ -290,6 +288,19 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _check_new_session_folder(path, force: bool) -> Path:
+    """The folder ``simulate`` / ``import`` may write a session into: writable, and empty unless --force."""
+    out = check_output_dir(path, "session folder")
+    try:
+        full = out.is_dir() and any(out.iterdir())
+    except OSError as e:
+        raise InputError(f"{out}: cannot be read ({e.strerror or type(e).__name__})") from None
+    if full and not force:
+        what = "holds a session" if (out / "session.toml").exists() else "is not empty"
+        raise InputError(f"{out}: folder exists and {what} (use --force to overwrite)")
+    return out
+
+
 # ----- import ----------------------------------------------------------------------------------
 def _add_import(sub):
     p = sub.add_parser("import", help="convert another tool's files into a session folder")
@@ -311,6 +322,7 @@ def _add_import(sub):
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
     d.add_argument("--pixel-sigma", type=positive_float,
                    help="click noise std [px] (default: measured per camera by reconstruct)")
+    d.add_argument("--force", action="store_true", help="overwrite an existing session folder")
     d.set_defaults(func=_cmd_import_dltdv)
 
     k = fmt.add_parser("deeplabcut", help="DeepLabCut 2D outputs (one .h5/.csv per camera) + calibration.toml")
@@ -352,10 +364,11 @@ def _common_import_args(p):
     p.add_argument("--out", required=True, help="session folder to write")
     p.add_argument("--units", choices=["m", "cm", "mm"],
                    help="translation units of the calibration (default: its [metadata] units, else m)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing session folder")
 
 
 def _cmd_import_keypoints(args) -> int:
-    check_output_dir(args.out, "session folder")
+    _check_new_session_folder(args.out, args.force)
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
     if args.format == "deeplabcut":
@@ -384,7 +397,7 @@ def _cmd_import_keypoints(args) -> int:
 def _cmd_import_dltdv(args) -> int:
     from .formats.dltdv import import_dltdv
 
-    check_output_dir(args.out, "session folder")
+    _check_new_session_folder(args.out, args.force)
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
     if args.dltdv_version is not None:
@@ -576,6 +589,9 @@ def _add_export(sub):
                    help="c3d/trc/csv/parquet: which estimates to write, the others written as missing: span "
                         "(default) = from each marker's first to its last frame seen by >= 2 cameras; observed = "
                         "only frames where it is seen by >= 2 cameras; all = every estimate (incl. the track ends)")
+    p.add_argument("--take", type=positive_int,
+                   help="c3d/trc: which take of a result with several (1 = the first; default the longest): "
+                        "a C3D or TRC file is one contiguous run of frames")
     p.set_defaults(func=_cmd_export)
 
 
@@ -589,6 +605,9 @@ def _cmd_export(args) -> int:
     method = args.method or ("smoother" if "smoother" in methods else methods[0])
     if method not in methods and not every:
         raise InputError(f"{out / 'trajectories.csv'}: no method {method!r} (has: {', '.join(methods)})")
+    if args.take is not None and args.format not in ("c3d", "trc"):
+        raise InputError(f"export {args.format}: --take applies to c3d and trc only (the tables hold every take)")
+    take = None if args.take is None else args.take - 1
     if args.format == "dltdv" and args.range_:
         raise InputError("export dltdv: --range applies to c3d, trc, csv and parquet only")
     if args.format == "c3d" and args.units not in (None, "mm"):
@@ -626,9 +645,9 @@ def _cmd_export(args) -> int:
         if args.format == "c3d":
             rig = facts.get("pixel_sigma_px")  # camera name -> px, in the rig's order
             cameras = list(rig) if isinstance(rig, dict) and rig else None
-            paths = [write_c3d(dest, one, fps, keep=keep, reprojection=reproj, cameras=cameras)]
+            paths = [write_c3d(dest, one, fps, keep=keep, reprojection=reproj, cameras=cameras, take=take)]
         else:
-            paths = [write_trc(dest, one, fps, units=args.units or "m", keep=keep)]
+            paths = [write_trc(dest, one, fps, units=args.units or "m", keep=keep, take=take)]
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 

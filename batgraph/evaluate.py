@@ -33,25 +33,38 @@ def status_of(n_views: np.ndarray) -> np.ndarray:
     return np.where(n_views >= 2, "observed", np.where(n_views == 1, "single_view", "unobserved"))
 
 
-def span_of(n_views: np.ndarray) -> np.ndarray:
+def span_of(n_views: np.ndarray, takes: list[slice] | None = None) -> np.ndarray:
     """Span strings, shape (F, M), for view counts of shape (F, M) (frames in order): ``inside`` from a
-    marker's first to its last frame with >= 2 views, ``outside`` elsewhere (all of a marker never seen twice)."""
-    return np.where(inside_span(n_views), "inside", "outside")
+    marker's first to its last frame with >= 2 views within each take (slices along F; None = one take),
+    ``outside`` elsewhere (all of a marker never seen twice in that take)."""
+    return np.where(inside_span(n_views, takes), "inside", "outside")
 
 
-def inside_span(n_views: np.ndarray) -> np.ndarray:
-    """Boolean (F, M): frame within [first, last] frame where the marker has >= 2 views."""
-    two = np.asarray(n_views) >= 2
+def inside_span(n_views: np.ndarray, takes: list[slice] | None = None) -> np.ndarray:
+    """Boolean (F, M): frame within [first, last] frame of its take where the marker has >= 2 views."""
+    n_views = np.asarray(n_views)
+    if takes is not None and len(takes) > 1:
+        return np.concatenate([inside_span(n_views[sl]) for sl in takes])
+    two = n_views >= 2
     seen_before = np.cumsum(two, axis=0) > 0
     seen_after = np.cumsum(two[::-1], axis=0)[::-1] > 0
     return seen_before & seen_after
 
 
+def take_of(frames: np.ndarray) -> np.ndarray:
+    """Take number of each frame of a result table, (N,) int: a new take starts after a frame missing from
+    the table (a result table holds every frame of its takes and none between; batgraph.session.frame_axis)."""
+    frames = np.asarray(frames, np.int64)
+    present = np.unique(frames)
+    starts = present[np.r_[True, np.diff(present) > 1]]
+    return np.searchsorted(starts, frames, side="right") - 1
+
+
 def add_span(traj: pd.DataFrame) -> pd.DataFrame:
-    """A trajectories table with its ``span`` column (re)computed from n_views, per method and marker."""
+    """A trajectories table with its ``span`` column (re)computed from n_views, per method, marker and take."""
     out = traj.copy()
     two = out["frame"].where(out["n_views"] >= 2)
-    g = two.groupby([out["method"], out["marker"]], sort=False)
+    g = two.groupby([out["method"], out["marker"], take_of(out["frame"].to_numpy())], sort=False)
     first, last = g.transform("min"), g.transform("max")  # NaN for a marker never seen twice
     out["span"] = np.where((out["frame"] >= first) & (out["frame"] <= last), "inside", "outside")
     return out
@@ -77,7 +90,7 @@ def trajectories_table(session: Session, dense: DenseObservations, est: Estimate
         df[name] = cov[:, i, j]
     df["n_views"] = n_views.reshape(-1)
     df["status"] = status_of(n_views.reshape(-1))
-    df["span"] = span_of(n_views).reshape(-1)
+    df["span"] = span_of(n_views, dense.take_slices).reshape(-1)
     return df
 
 

@@ -18,13 +18,13 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import atomic, checks, evaluate
+from . import atomic, checks, evaluate, inputs
 from . import methods as methods_registry
 from . import summary as summary_mod
 from .errors import InputError
-from .measurement import ideal_observations
+from .measurement import IdealObservations, ideal_observations
 from .result import Estimate, Options
-from .session import Session, dense_observations, read_session
+from .session import DenseObservations, Session, dense_observations, read_session
 
 DEFAULT_METHODS = methods_registry.DEFAULT_METHODS
 ALL_METHODS = methods_registry.ALL_METHODS
@@ -64,14 +64,15 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     """
     dense = dense_observations(session)
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
-    session = dataclasses.replace(pre.session, warnings=list(session.warnings) + pre.warnings)
+    warnings = list(session.warnings) + pre.warnings + _take_warnings(session, dense)
+    session = dataclasses.replace(pre.session, warnings=warnings)
     ideal = ideal_observations(session.rig, dense, pre.sigma_px)
     estimates, trajs, reprojs = {}, [], []
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
         run = methods_registry.run_function(name, options.solver)
         t0 = time.perf_counter()
-        extra = {"on_frame": live.update} if (live is not None and name == "filter") else {}
-        est = run(session, dense, ideal, options, **extra)
+        est = run_by_take(run, session, dense, ideal, options,
+                          live.update if (live is not None and name == "filter") else None)
         est.runtime_s = est.runtime_s or time.perf_counter() - t0
         estimates[name] = est
         trajs.append(evaluate.trajectories_table(session, dense, est))
@@ -84,6 +85,50 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
         pixel_noise=pre.noise, checks=pre.figures)
     session.warnings[:] = summary["warnings"]  # the noise-model warnings join the self-checks'
     return Result(session, Path(), traj_all, reproj_all, summary, estimates, dense=dense)
+
+
+def _take_warnings(session: Session, dense: DenseObservations) -> list[str]:
+    """One line when the session splits into takes (batgraph.session.frame_axis): which, and why."""
+    takes = dense.take_slices
+    if len(takes) == 1:
+        return []
+    spans = [f"{dense.frames[sl][0]}-{dense.frames[sl][-1]}" for sl in takes]
+    listed = ", ".join(spans[:4]) + (f" and {len(spans) - 4} more" if len(spans) > 4 else "")
+    longest = max(takes, key=lambda sl: sl.stop - sl.start)
+    return [f"{len(takes)} takes (frames {listed}): nothing is observed for more than {session.take_gap_frames} "
+            f"frames ([session] take_gap_s = {session.take_gap_s:g} s) between them, so each is solved on its own; "
+            f"trajectories.c3d/.trc hold the longest (frames {dense.frames[longest][0]}-{dense.frames[longest][-1]}; "
+            f"'batgraph export c3d OUT --take N' writes another)"]
+
+
+def run_by_take(run, session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,
+                on_frame=None) -> Estimate:
+    """One method's Estimate over every take of ``dense``, each take solved on its own, joined along F.
+
+    run: the method's run function (batgraph.methods). on_frame(frame number, xyz (M, 3), cov (M, 3, 3)):
+    the filter's per-frame callback (the live viewer), given the original frame number. Takes are runs
+    of frames separated by long runs without observations (batgraph.session.frame_axis): no motion model
+    bridges such a gap, and a stray frame costs only its own take. With several takes, ``info`` is the
+    longest take's, plus ``takes``: each take's first and last frame and iterations where reported.
+    """
+    parts = []
+    for sl in dense.take_slices:
+        sub = dense if len(dense.take_slices) == 1 else dense.take(sl)
+        sub_ideal = ideal if sub is dense else IdealObservations(ideal.uv_px[:, sl], ideal.cov_px2[:, sl])
+        extra = {} if on_frame is None else {
+            "on_frame": lambda k, xyz, cov, frames=sub.frames: on_frame(int(frames[k]), xyz, cov)}
+        parts.append(run(session, sub, sub_ideal, options, **extra))
+    if len(parts) == 1:
+        return parts[0]
+    longest = int(np.argmax([len(dense.frames[sl]) for sl in dense.take_slices]))
+    info = dict(parts[longest].info)
+    info["takes"] = [{"first_frame": int(dense.frames[sl][0]), "last_frame": int(dense.frames[sl][-1]),
+                      **({"iterations": p.info["iterations"]} if "iterations" in p.info else {})}
+                     for sl, p in zip(dense.take_slices, parts, strict=True)]
+    info["info_of_take"] = longest
+    return Estimate(parts[0].method, np.concatenate([p.xyz_m for p in parts]),
+                    np.concatenate([p.cov_m2 for p in parts]), np.concatenate([p.outlier for p in parts], axis=1),
+                    sum(p.runtime_s for p in parts), info)
 
 
 def export_method(result: Result) -> str:
@@ -162,8 +207,9 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     report its table), and validation.csv is written; validate_workers: its processes (None: one per core).
     """
     options = options or Options()
-    session = read_session(session_dir, calibration)
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
+    inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
+    session = read_session(session_dir, calibration)
     methods = list(methods or DEFAULT_METHODS)
     if viewer == "spawn":
         from .viewer import LiveViewer

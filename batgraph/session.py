@@ -30,6 +30,10 @@ TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
 MOTION_MODELS = ("random_walk", "constant_velocity")
 
 
+DEFAULT_TAKE_GAP_S = 1.0
+"""[session] take_gap_s: a run of more frames than this many seconds in which no camera sees any marker
+separates two takes (see :func:`frame_axis`)."""
+
 PAPER_PHYSICS = {"flight_speed_mps": 3.0, "span_m": 0.5, "flap_hz": 4.0, "flap_angle_deg": 90.0}
 """The paper's bat flight (v_f, l_w, f_f, alpha_f); the simulator and tests use it, nothing assumes it."""
 
@@ -74,6 +78,7 @@ class Session:
         per camera from the data (batgraph.pixel_noise), which reconstruct does when session.toml has no
         ``[noise] pixel_sigma_px``.
     warnings: non-fatal remarks found while loading (e.g. points outside the image).
+    take_gap_s: [session] take_gap_s [s]: longer runs of frames with no observation split takes (:func:`frame_axis`).
     """
 
     name: str
@@ -91,6 +96,7 @@ class Session:
     extra_toml: dict = field(default_factory=dict)
     path: Path | None = None
     warnings: list[str] = field(default_factory=list)
+    take_gap_s: float = DEFAULT_TAKE_GAP_S
 
     @property
     def markers(self) -> list[str]:
@@ -104,10 +110,46 @@ class Session:
         return self.rig.world_mirror
 
     @property
+    def take_gap_frames(self) -> int:
+        """The longest run of frames without any observation inside one take (take_gap_s * fps, >= 1)."""
+        return gap_frames(self.take_gap_s, self.fps)
+
+    @property
     def frames(self) -> np.ndarray:
-        """Every frame index from the first to the last observation, shape (F,)."""
-        f = self.observations["frame"]
-        return np.arange(int(f.min()), int(f.max()) + 1)
+        """The frame axis the estimators work on, original frame numbers, shape (F,) (:func:`frame_axis`)."""
+        return frame_axis(self.observations["frame"].to_numpy(), self.take_gap_frames)[0]
+
+    @property
+    def takes(self) -> list[slice]:
+        """The takes as slices of :attr:`frames` (:func:`frame_axis`)."""
+        return frame_axis(self.observations["frame"].to_numpy(), self.take_gap_frames)[1]
+
+
+def gap_frames(take_gap_s: float, fps: float) -> int:
+    """[session] take_gap_s [s] at ``fps`` [Hz] as a number of frames, at least 1."""
+    return max(1, round(take_gap_s * fps))
+
+
+def frame_axis(observed: np.ndarray, gap_frames: int) -> tuple[np.ndarray, list[slice]]:
+    """The compacted frame axis: every frame of each take, with the original frame numbers kept.
+
+    A take runs from an observed frame to the last observed frame before a run of more than
+    ``gap_frames`` frames in which nothing is observed; the frames of such a run belong to no take, so a
+    stray frame number far from the others costs one take of one frame, not memory for the frames in
+    between. The estimators solve each take on its own (no motion model bridges a gap in which the
+    animal may have left the volume): batgraph.pipeline.
+
+    observed: frame numbers of the observations, any order, shape (N,) int. Returns (frames (F,) int64,
+    sorted, contiguous within each take; takes: slices of ``frames``, in order); F = 0 when N = 0.
+    """
+    uniq = np.unique(np.asarray(observed, np.int64))
+    if len(uniq) == 0:
+        return np.zeros(0, np.int64), []
+    cut = np.flatnonzero(np.diff(uniq) - 1 > gap_frames)
+    first, last = np.r_[uniq[0], uniq[cut + 1]], np.r_[uniq[cut], uniq[-1]]
+    edges = np.r_[0, np.cumsum(last - first + 1)]
+    frames = np.concatenate([np.arange(a, b + 1) for a, b in zip(first, last, strict=True)])
+    return frames, [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 @dataclass
@@ -116,7 +158,8 @@ class DenseObservations:
 
     uv_px: raw pixels, shape (C, F, M, 2), NaN where unseen.
     weight: shape (C, F, M), 0 where unseen.
-    frames: frame indices, shape (F,); cameras, markers: names along C and M.
+    frames: frame numbers along F, shape (F,) (the session's compacted axis: :func:`frame_axis`);
+    cameras, markers: names along C and M. takes: slices of F solved on their own; empty = one take.
     """
 
     cameras: list[str]
@@ -124,6 +167,16 @@ class DenseObservations:
     markers: list[str]
     uv_px: np.ndarray
     weight: np.ndarray
+    takes: list[slice] = field(default_factory=list)
+
+    @property
+    def take_slices(self) -> list[slice]:
+        """The takes as slices along F (one covering every frame when none were set)."""
+        return list(self.takes) or [slice(0, len(self.frames))]
+
+    def take(self, sl: slice) -> DenseObservations:
+        """The frames ``sl`` (one take) as a DenseObservations of their own (views, not copies)."""
+        return DenseObservations(self.cameras, self.frames[sl], self.markers, self.uv_px[:, sl], self.weight[:, sl])
 
     @property
     def seen(self) -> np.ndarray:
@@ -144,17 +197,17 @@ def dense_observations(session: Session) -> DenseObservations:
     obs = session.observations
     cams, markers = session.rig.names, session.markers
     C, M = len(cams), len(markers)
-    F = int(obs["frame"].max()) - int(obs["frame"].min()) + 1 if len(obs) else 0
+    frames, takes = frame_axis(obs["frame"].to_numpy(), session.take_gap_frames)
+    F = len(frames)
     inputs.check_dense_memory(C, F, M, f"session {session.name!r}" if session.path is None else str(session.path))
-    frames = session.frames
     ci = obs["camera"].map({n: i for i, n in enumerate(cams)}).to_numpy()
-    fi = obs["frame"].to_numpy() - frames[0]
+    fi = np.searchsorted(frames, obs["frame"].to_numpy())
     mi = obs["marker"].map({n: i for i, n in enumerate(markers)}).to_numpy()
     uv = np.full((C, F, M, 2), np.nan)
     w = np.zeros((C, F, M))
     uv[ci, fi, mi] = obs[["u", "v"]].to_numpy(float)
     w[ci, fi, mi] = obs["weight"].to_numpy(float)
-    return DenseObservations(cams, frames, markers, uv, w)
+    return DenseObservations(cams, frames, markers, uv, w, takes if len(takes) > 1 else [])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -316,6 +369,8 @@ def _session_config(path: Path) -> dict:
     if "fps" not in sess:
         raise InputError(f"{path} [session]: missing key 'fps'")
     inputs.number(sess["fps"], f"{path} [session] fps", positive=True)
+    if "take_gap_s" in sess:
+        inputs.number(sess["take_gap_s"], f"{path} [session] take_gap_s", positive=True)
     for key in ("motion", "noise", "markers"):
         if not isinstance(data.get(key, {}), dict):
             raise InputError(f"{path}: '{key}' must be a table [{key}], got {data[key]!r}")
@@ -371,9 +426,10 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
             if e not in known_markers:
                 raise InputError(f"{folder / 'session.toml'} [markers] skeleton[{i}]: marker {e!r} is neither in "
                                  f"[markers] names nor observed in {obs_path.name}")
-    frames = observations["frame"]
+    take_gap_s = float(sess.get("take_gap_s", DEFAULT_TAKE_GAP_S))
+    frames, _ = frame_axis(observations["frame"].to_numpy(), gap_frames(take_gap_s, float(sess["fps"])))
     n_markers = len(set(names) | set(observations["marker"]))
-    inputs.check_dense_memory(len(rig), int(frames.max() - frames.min()) + 1, n_markers, str(obs_path))
+    inputs.check_dense_memory(len(rig), len(frames), n_markers, str(obs_path))
     truth = read_points(folder / "truth.csv") if (folder / "truth.csv").exists() else None
     ref = read_points(folder / "reference_xyz.csv") if (folder / "reference_xyz.csv").exists() else None
     true_rig = (read_calibration(folder / "calibration_true.toml")
@@ -388,7 +444,7 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
         pixel_sigma_px=float(noise["pixel_sigma_px"]) if "pixel_sigma_px" in noise else None,
         marker_names=names, skeleton=skeleton,
         truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder,
-        warnings=warnings,
+        warnings=warnings, take_gap_s=take_gap_s,
     )
 
 
@@ -424,6 +480,8 @@ def session_toml(session: Session) -> str:
         if getattr(m, k) is not None:
             motion[k] = getattr(m, k)
     doc = {"session": {"name": session.name, "fps": session.fps}, "motion": motion}
+    if session.take_gap_s != DEFAULT_TAKE_GAP_S:
+        doc["session"]["take_gap_s"] = session.take_gap_s
     if isinstance(session.pixel_sigma_px, int | float):
         doc["noise"] = {"pixel_sigma_px": session.pixel_sigma_px}
     if session.marker_names or session.skeleton:

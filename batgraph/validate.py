@@ -133,9 +133,10 @@ def run_fold(session: Session, camera: str, methods: list[str], options: Options
         return camera, None, _one_line(e)
     d = result.dense
     F, M = len(d.frames), len(d.markers)
-    fi = obs_c["frame"].to_numpy() - d.frames[0]
+    frame = obs_c["frame"].to_numpy()
+    fi = np.minimum(np.searchsorted(d.frames, frame), F - 1)  # the fold's (compacted) frame axis; F > 0 here
     mi = obs_c["marker"].map({m: j for j, m in enumerate(d.markers)}).to_numpy(float)
-    ok = (fi >= 0) & (fi < F) & np.isfinite(mi)  # a frame or marker only this camera saw is not in the fold
+    ok = (d.frames[fi] == frame) & np.isfinite(mi)  # a frame or marker only this camera saw is not in the fold
     fi, mi = np.where(ok, fi, 0).astype(int), np.where(ok, mi, 0).astype(int)
     n_views = np.where(ok, d.n_views[fi, mi] if F and M else 0, 0)
     uv = obs_c[["u", "v"]].to_numpy(float)

@@ -41,7 +41,8 @@ def _dltdv(name: str, loader, out: Path, units: str) -> Path:
                                          pixel_origin="lower-left", units=units, xyz=rig.xyz)
     session = out / name
     argv = ["import", "dltdv", "--xypts", paths["xypts"], "--coefs", paths["dltCoefs"], "--xyzpts", paths["xyzpts"],
-            "--fps", rig.fps, "--units", units, "--image-size", rig.image_hw[1], rig.image_hw[0], "--out", session]
+            "--fps", rig.fps, "--units", units, "--image-size", rig.image_hw[1], rig.image_hw[0], "--out", session,
+            "--force"]
     assert main([str(a) for a in argv]) == 0
     return session
 
@@ -52,7 +53,7 @@ def _pose2sim(out: Path) -> Path:
     trc = sorted((trial / "pose-3d").glob("*_0-100.trc"))[0]
     calib = REAL / "pose2sim_demo_4cam_human" / "S00_Calibration" / "Calib_qualisys.toml"
     argv = ["import", "pose2sim", *dirs, "--calibration", calib, "--fps", 60, "--reference-trc", trc,
-            "--out", out / "pose2sim"]
+            "--out", out / "pose2sim", "--force"]
     assert main([str(a) for a in argv]) == 0
     return out / "pose2sim"
 

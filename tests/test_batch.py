@@ -122,7 +122,9 @@ def test_single_session_runs_here_and_a_crash_is_reported(make_session_folder, t
     out_root.mkdir()
     (out_root / "only").write_text("in the way")
     (item,) = reconstruct_many([session], out_root, ["triangulate"], progress=False, viewer="none")
-    assert item.status == "input error" and "exists and is not a folder" in item.message
+    # refused before any work (pipeline.reconstruct checks the output place first)
+    assert item.status == "input error" and "exists and is a file" in item.message, item.message
+    assert str(out_root / "only") in item.message and item.summary is None
     (out_root / "only").unlink()
 
     def crash(*a, **kw):

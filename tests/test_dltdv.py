@@ -423,3 +423,24 @@ def test_export_writes_the_projects_own_units(tmp_path):
     both = np.isfinite(ref).all(-1)
     assert np.isfinite(ref[both]).all() and np.abs(ref[both]).max() > 100  # the reference is in mm
     assert np.abs(got[both] - ref[both]).max() < 1e-4
+
+
+def test_import_does_not_overwrite_a_session_without_force(tmp_path, capsys):
+    """An import into a folder that holds a session exits 2 with one line naming it and leaves every file
+    as it was; --force replaces it."""
+    from batgraph.cli import main
+
+    _, _, _, paths = _trial(tmp_path, "lower-left")
+    argv = ["import", "dltdv", "--xypts", str(paths["xypts"]), "--coefs", str(paths["dltCoefs"]), "--fps", "120",
+            "--image-size", *map(str, SIZE), "--out", str(tmp_path / "s")]
+    assert main(argv) == 0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "s").iterdir()}
+    (tmp_path / "s" / "session.toml").write_text((tmp_path / "s" / "session.toml").read_text() + "# edited\n")
+    before["session.toml"] = (tmp_path / "s" / "session.toml").read_bytes()
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and str(tmp_path / "s") in err[0] and "--force" in err[0], err
+    assert {p.name: p.read_bytes() for p in (tmp_path / "s").iterdir()} == before
+    assert main([*argv, "--force"]) == 0
+    assert "# edited" not in (tmp_path / "s" / "session.toml").read_text()

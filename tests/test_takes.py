@@ -70,7 +70,8 @@ def test_each_take_is_solved_on_its_own(stray_sessions):
     assert late.groupby("method")["x"].count().min() == 9  # every method, 3 frames x 3 markers
     truth = plain.truth.set_index(["frame", "marker"])
     late_s = late[late["method"] == "smoother"].assign(frame=lambda d: d["frame"] - STRAY)
-    err = late_s[["x", "y", "z"]].to_numpy() - truth.loc[list(zip(late_s["frame"], late_s["marker"], strict=True))].to_numpy()
+    cells = list(zip(late_s["frame"], late_s["marker"], strict=True))
+    err = late_s[["x", "y", "z"]].to_numpy() - truth.loc[cells].to_numpy()
     assert np.abs(err).max() < 0.01  # [m]: the stray take's positions are real estimates
     assert (late["span"] == "inside").all()  # seen by 4 cameras throughout its own take
     take = b.estimates["smoother"].info["takes"][1]
@@ -89,3 +90,33 @@ def test_take_gap_is_read_from_session_toml_and_checked(tmp_path):
     (folder / "session.toml").write_text(toml.replace("[session]\n", "[session]\ntake_gap_s = -1\n", 1))
     with pytest.raises(InputError, match=r"session.toml \[session\] take_gap_s"):
         read_session(folder)
+
+
+def test_reconstruct_and_export_with_two_takes(tmp_path, capsys):
+    """The whole command on a session with a stray take: one warning line naming the takes; the tables hold
+    both takes' frames and none between; C3D / TRC hold one take (the longest, or --take N)."""
+    import ezc3d
+
+    from batgraph.cli import main
+    from batgraph.formats.c3d_trc import read_trc
+
+    folder = write_tiny_session(tmp_path / "s", n_cams=3, n_frames=12, n_markers=2)
+    obs = pd.read_csv(folder / "observations.csv")
+    stray = obs[obs["frame"].isin([3, 4])].assign(frame=lambda d: d["frame"] + STRAY)
+    pd.concat([obs, stray]).to_csv(folder / "observations.csv", index=False)
+    out = tmp_path / "o"
+    assert main(["reconstruct", str(folder), "--out", str(out), "--viewer", "none", "--methods",
+                 "smoother,triangulate"]) == 0
+    err = capsys.readouterr().err
+    assert f"2 takes (frames 0-11, {STRAY + 3}-{STRAY + 4})" in err, err
+    traj = pd.read_csv(out / "trajectories.csv")
+    assert sorted(traj["frame"].unique()) == [*range(12), STRAY + 3, STRAY + 4]
+    c = ezc3d.c3d(str(out / "trajectories.c3d"))
+    assert c["header"]["points"]["first_frame"] == 0 and c["data"]["points"].shape[2] == 12  # the longest take
+    assert main(["export", "trc", str(out), "--take", "2", "--to", str(tmp_path / "t2.trc")]) == 0
+    trc = read_trc(tmp_path / "t2.trc")
+    assert trc.frame.tolist() == [STRAY + 4, STRAY + 5]  # Frame# = session frame + 1
+    capsys.readouterr()
+    assert main(["export", "c3d", str(out), "--take", "3"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "take 3" in lines[0] and "2 takes" in lines[0], lines

@@ -4,7 +4,9 @@ Input is the ``trajectories`` table of CONTRACT.md section 3 (metres, world fram
 method has no estimate). The world frame is written as it is: no axis swap (OpenSim's Y-up is the
 user's business, as it is for Pose2Sim's files, see :func:`read_trc`). Frame ``k`` of a session is at
 time ``k / fps``; C3D and TRC count frames from 1, so session frame ``k`` is file frame ``k + 1``.
-This module does not estimate, filter or fill anything: a missing point stays missing.
+This module does not estimate, filter or fill anything: a missing point stays missing. A result with
+several takes (batgraph.session.frame_axis) writes one take per C3D / TRC file, the longest by default
+(:func:`one_take`): both formats are one contiguous run of frames.
 
 Range (``keep``, the CLI's ``--range``), applied by :func:`keep_range` to every writer here:
 
@@ -129,14 +131,35 @@ class DenseTrajectories:
     cov_m2: np.ndarray
 
 
+def one_take(trajectories: pd.DataFrame, take: int | None = None) -> tuple[pd.DataFrame, int, int]:
+    """The rows of one take of a result table: (rows, take index, number of takes).
+
+    A result table holds every frame of its takes and none between (batgraph.session.frame_axis); C3D and
+    TRC files are one contiguous run of frames, so they hold one take. take: 0-based index; None = the
+    longest (the first of equally long ones). InputError when ``take`` is out of range.
+    """
+    from ..evaluate import take_of
+
+    frames = trajectories["frame"].to_numpy(np.int64)
+    tk = take_of(frames) if len(frames) else np.zeros(0, int)
+    n = int(tk.max()) + 1 if len(tk) else 1
+    if take is None:
+        lengths = [len(np.unique(frames[tk == i])) for i in range(n)]
+        take = int(np.argmax(lengths)) if n > 1 else 0
+    if not 0 <= take < n:
+        raise InputError(f"take {take + 1}: the result has {n} take{'s' if n > 1 else ''} (1..{n})")
+    return (trajectories if n == 1 else trajectories[tk == take]), take, n
+
+
 def dense_trajectories(trajectories: pd.DataFrame, markers: list[str] | None = None,
-                       method: str | None = None) -> DenseTrajectories:
+                       method: str | None = None, take: int | None = None) -> DenseTrajectories:
     """Scatter one method's rows of a trajectories table into (F, M) arrays.
 
     trajectories: CONTRACT.md section 3 columns (``method`` optional; ``cov_*`` optional).
     markers: output order; None = order of first appearance. Markers not in the table stay NaN.
     method: which method to keep; None requires the table to hold a single method.
-    The frame axis runs contiguously from the first to the last frame of the table.
+    take: which take of a table with several (:func:`one_take`; None = the longest).
+    The frame axis runs contiguously from the first to the last frame of that take.
     """
     t = trajectories
     if "method" in t.columns and method is None and t["method"].nunique() > 1:
@@ -145,6 +168,7 @@ def dense_trajectories(trajectories: pd.DataFrame, markers: list[str] | None = N
         t = t[t["method"] == method]
     if len(t) == 0:
         raise ValueError(f"no trajectories{f' for method {method!r}' if method else ''}")
+    t = one_take(t, take)[0]
     xyz, cov, frames, names = dense_from_table(t, markers=markers)
     return DenseTrajectories(frames, names, xyz, cov)
 
@@ -235,17 +259,18 @@ def _patch_c3d(path: Path, word4: np.ndarray, scale: float) -> None:
 
 def write_c3d(path: str | Path, trajectories: pd.DataFrame, fps: float, markers: list[str] | None = None,
               method: str | None = None, keep: str = "span", reprojection: pd.DataFrame | None = None,
-              cameras: list[str] | None = None) -> Path:
+              cameras: list[str] | None = None, take: int | None = None) -> Path:
     """Write one method's trajectories to a C3D file (mm, see the module docstring). Atomic.
 
     path: output ``.c3d``; trajectories: CONTRACT.md section 3 table [m]; fps: frame rate [Hz];
     markers: label order (None = order in the table); method: see :func:`dense_trajectories`;
     keep: range, see :func:`keep_range`; reprojection: the reprojection table, for the camera masks;
     cameras: the rig's camera order (bit k of the mask = cameras[k]); see :func:`c3d_camera_masks`.
+    take: which take of a result with several (:func:`one_take`; None = the longest).
     """
     if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"{path}: frame rate must be a positive number of Hz, got {fps}")
-    d = dense_trajectories(keep_range(trajectories, keep), markers, method)
+    d = dense_trajectories(keep_range(trajectories, keep), markers, method, take)
     valid = np.isfinite(d.xyz_m).all(axis=-1)  # (F, M)
     F, M = valid.shape
     xyz_mm = np.where(valid[..., None], d.xyz_m * 1e3, 0.0)
@@ -288,17 +313,18 @@ def _fmt(values: np.ndarray, fmt: str) -> np.ndarray:
 
 
 def write_trc(path: str | Path, trajectories: pd.DataFrame, fps: float, markers: list[str] | None = None,
-              method: str | None = None, units: str = "m", keep: str = "span") -> Path:
+              method: str | None = None, units: str = "m", keep: str = "span", take: int | None = None) -> Path:
     """Write one method's trajectories to an OpenSim TRC file (see the module docstring). Atomic.
 
     units: "m" (default, the table's own unit), "cm" or "mm". Frame# = session frame + 1, Time = frame / fps.
     keep: range, see :func:`keep_range`. Every data row has 2 + 3 x NumMarkers cells; missing = NaN.
+    take: which take of a result with several (:func:`one_take`; None = the longest).
     """
     if units not in _UNIT_TO_M:
         raise ValueError(f"units must be one of {', '.join(_UNIT_TO_M)}; got {units!r}")
     if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"{path}: frame rate must be a positive number of Hz, got {fps}")
-    d = dense_trajectories(keep_range(trajectories, keep), markers, method)
+    d = dense_trajectories(keep_range(trajectories, keep), markers, method, take)
     F, M = d.xyz_m.shape[:2]
     scale = 1.0 / _UNIT_TO_M[units]
     first = int(d.frames[0]) + 1
