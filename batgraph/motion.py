@@ -1,5 +1,6 @@
-"""Motion models: the paper's random walk (eq. 3-5) and a constant-velocity (white-noise acceleration)
-prior, as noise matrices in physical units. Choosing a noise level from data lives with the estimators.
+"""Motion models: the paper's random walk (eq. 3-5), a constant-velocity (white-noise acceleration) and a
+constant-acceleration (white-noise jerk) prior, as noise matrices in physical units. Choosing a noise
+level from data lives with the estimators.
 """
 
 from __future__ import annotations
@@ -43,6 +44,24 @@ def constant_velocity_Q(accel_psd_m2_s3: float, dt_s: float) -> np.ndarray:
 def constant_velocity_F(dt_s: float) -> np.ndarray:
     """Transition matrix of the constant-velocity model, shape (6, 6)."""
     return np.block([[np.eye(3), dt_s * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+
+
+def constant_acceleration_Q(jerk_psd_m2_s5: float, dt_s: float) -> np.ndarray:
+    """Process covariance of one step of the constant-acceleration model, shape (9, 9).
+
+    State [p (3) m, v (3) m/s, a (3) m/s^2]; continuous white-noise jerk of PSD j [m^2/s^5]:
+    ``Q = j [[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]] (x) I3``;
+    transition :func:`constant_acceleration_F`. Per axis det = j^3 dt^9 / 8640.
+    """
+    j, dt = jerk_psd_m2_s5, dt_s
+    blocks = [[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2], [dt**3 / 6, dt**2 / 2, dt]]
+    return j * np.kron(np.array(blocks), np.eye(3))
+
+
+def constant_acceleration_F(dt_s: float) -> np.ndarray:
+    """Transition matrix of the constant-acceleration model, shape (9, 9): p' = p + v dt + a dt^2 / 2, v' = v + a dt."""
+    dt = dt_s
+    return np.kron(np.array([[1.0, dt, dt * dt / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]]), np.eye(3))
 
 
 TRACK_LAGS = (1, 2, 4, 8, 16)  # frames: second differences at the shortest lag that clears the noise

@@ -27,7 +27,7 @@ from .geometry.dlt import UNITS_M
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
-MOTION_MODELS = ("random_walk", "constant_velocity")
+MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto")
 
 
 DEFAULT_TAKE_GAP_S = 1.0
@@ -52,7 +52,7 @@ class MotionConfig:
         the triangulated track; not read from session.toml).
     """
 
-    model: str = "constant_velocity"
+    model: str = "constant_velocity"  # or random_walk, constant_acceleration, auto (batgraph.graph.noise)
     flight_speed_mps: float | None = None
     span_m: float | None = None
     flap_hz: float | None = None

@@ -1,6 +1,7 @@
 """The fast smoother (batgraph.graph.fast) reaches the same optimum, covariances and log-determinant as
 an independent solver of the same cost: a dense Gauss-Newton on the full stacked problem written here
-(finite-difference Jacobians, spec units p [m] and v [m/s], dense inverse), and the GTSAM smoother.
+(finite-difference Jacobians, spec units p [m], v [m/s] and a [m/s^2], dense inverse), and the GTSAM
+smoother; for the random walk, constant velocity and constant acceleration.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from batgraph.camera import Rig
 from batgraph.graph import factors, fast
 from batgraph.graph.smoother import posterior_logdet, run_smoother
 from batgraph.measurement import ideal_observations
-from batgraph.motion import constant_velocity_Q
+from batgraph.motion import constant_acceleration_F, constant_acceleration_Q, constant_velocity_Q
 from batgraph.result import Options
 from batgraph.session import PAPER_PHYSICS, MotionConfig, Session, dense_observations
 from batgraph.triangulate import triangulate_ideal
@@ -24,6 +25,8 @@ from batgraph.triangulate import triangulate_ideal
 FPS = 100.0
 SIGMA_M = 0.004  # random-walk std per frame [m]; the scene moves ~0.6 m/s * 0.01 s
 ACCEL_PSD = 20.0  # constant-velocity q [m^2/s^3]
+JERK_PSD = 1e4  # constant-acceleration j [m^2/s^5]
+MODELS = ["random_walk", "constant_velocity", "constant_acceleration"]
 
 
 def make_session(n_frames: int = 24, seed: int = 3) -> Session:
@@ -55,14 +58,14 @@ def make_session(n_frames: int = 24, seed: int = 3) -> Session:
 def dense_reference(session: Session, ideal, p_init: np.ndarray, model: str, robust: str, k: float = 2.0):
     """Gauss-Newton with backtracking on the whole stacked problem of the spec, dense linear algebra.
 
-    Variables per estimated marker and frame: p [m] (and v [m/s]); Jacobians of the projections by
+    Variables per estimated marker and frame: p [m] (and v [m/s], a [m/s^2]); Jacobians of the projections by
     central differences (h = 1e-6 m), robust losses by IRLS weights. Returns xyz (F, M, 3),
     cov (F, M, 3, 3), logdet of the full Hessian, cost.
     """
     C, F, M = ideal.seen.shape
     est = np.isfinite(p_init).all(axis=(0, 2))
     ms = np.nonzero(est)[0]
-    d = 3 if model == "random_walk" else 6
+    d = {"random_walk": 3, "constant_velocity": 6, "constant_acceleration": 9}[model]
     n = len(ms) * F * d
     dt = 1 / session.fps
 
@@ -74,16 +77,23 @@ def dense_reference(session: Session, ideal, p_init: np.ndarray, model: str, rob
     if model == "random_walk":
         Wm, Fm = np.eye(3) / SIGMA_M, np.eye(3)
         W0 = np.eye(3) / 10.0
-    else:
+    elif model == "constant_velocity":
         Wm = np.linalg.inv(np.linalg.cholesky(constant_velocity_Q(ACCEL_PSD, dt)))
         Fm = np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
         W0 = np.eye(6) / 10.0
+    else:
+        Wm = np.linalg.inv(np.linalg.cholesky(constant_acceleration_Q(JERK_PSD, dt)))
+        Fm = constant_acceleration_F(dt)
+        W0 = np.diag([0.1] * 6 + [1e-3] * 3)  # 10 m, 10 m/s, 1000 m/s^2
     z = np.zeros(n)
     for j, m in enumerate(ms):
+        v = np.gradient(p_init[:, m], axis=0) * session.fps
         for f in range(F):
             z[var(j, f):var(j, f) + 3] = p_init[f, m]
-            if d == 6:
-                z[var(j, f) + 3:var(j, f) + 6] = np.gradient(p_init[:, m], axis=0)[f] * session.fps
+            if d >= 6:
+                z[var(j, f) + 3:var(j, f) + 6] = v[f]
+            if d == 9:
+                z[var(j, f) + 6:var(j, f) + 9] = np.gradient(v, axis=0)[f] * session.fps
     mu0 = {j: np.r_[p_init[0, m], np.zeros(d - 3)] for j, m in enumerate(ms)}
 
     def proj(c, p):
@@ -166,7 +176,8 @@ def gtsam_graph(session: Session, ideal, model: str, robust: str):
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
     obs = factors.ObservationFactors(session.rig, ideal, robust, 2.0)
-    mm = factors.MotionModel(model, 1 / session.fps, sigma_m=SIGMA_M, accel_psd_m2_s3=ACCEL_PSD)
+    mm = factors.MotionModel(model, 1 / session.fps, sigma_m=SIGMA_M, accel_psd_m2_s3=ACCEL_PSD,
+                             jerk_psd_m2_s5=JERK_PSD)
     graph = factors.observation_graph(obs, markers, F)
     graph.push_back(factors.motion_graph(factors.MotionFactors(mm), p_init, markers))
     return graph, factors.initial_values(obs, mm, p_init, v_init, markers), markers
@@ -180,8 +191,9 @@ def gtsam_marginals(graph, values, markers, F: int, M: int, model: str):
     for k in range(F):
         for m in markers:
             cov[k, m] = marg.marginalCovariance(factors.p_key(int(m), k))
-    n_velocity = len(markers) * F if model == "constant_velocity" else 0
-    return cov, posterior_logdet(graph, values, 1 / FPS, n_velocity)
+    n_velocity = len(markers) * F if model != "random_walk" else 0
+    n_acceleration = len(markers) * F if model == "constant_acceleration" else 0
+    return cov, posterior_logdet(graph, values, 1 / FPS, n_velocity, n_acceleration)
 
 
 def gtsam_reference(session: Session, ideal, model: str, robust: str):
@@ -199,14 +211,17 @@ def gtsam_reference(session: Session, ideal, model: str, robust: str):
     return factors.positions(sol, markers, F, M), cov, logdet, graph.error(sol), graph, markers
 
 
-def as_values(xyz: np.ndarray, velocity: np.ndarray | None, markers) -> gtsam.Values:
-    """The fast path's solution as GTSAM Values (p and, for constant velocity, v keys)."""
+def as_values(xyz: np.ndarray, velocity: np.ndarray | None, markers,
+              acceleration: np.ndarray | None = None) -> gtsam.Values:
+    """The fast path's solution as GTSAM Values (p and, as the model has them, v and a keys)."""
     values = gtsam.Values()
     for m in markers:
         for k in range(xyz.shape[0]):
             values.insert(factors.p_key(int(m), k), xyz[k, m])
             if velocity is not None:  # the graph's velocity variable is u = v dt [m per frame]
                 values.insert(factors.v_key(int(m), k), velocity[k, m] / FPS)
+            if acceleration is not None:  # ... and its acceleration variable w = a dt^2 [m per frame^2]
+                values.insert(factors.a_key(int(m), k), acceleration[k, m] / FPS**2)
     return values
 
 
@@ -220,7 +235,7 @@ def scene():
 
 
 def _level(model):
-    return SIGMA_M if model == "random_walk" else ACCEL_PSD
+    return {"random_walk": SIGMA_M, "constant_velocity": ACCEL_PSD, "constant_acceleration": JERK_PSD}[model]
 
 
 def _rel_cov_error(cov, cov_ref):
@@ -229,10 +244,11 @@ def _rel_cov_error(cov, cov_ref):
     return np.nanmax(np.abs(cov - cov_ref) / scale)
 
 
-@pytest.mark.parametrize("model", ["random_walk", "constant_velocity"])
+@pytest.mark.parametrize("model", MODELS)
 def test_fast_equals_dense_gauss_newton(scene, model):
     """Least squares (robust none): positions to 1e-6 m, covariances to 1e-6 relative, logdet to 1e-6,
-    against the dense solver in the spec's units (p m, v m/s: checks the fast path's internal v*dt scaling).
+    against the dense solver in the spec's units (p m, v m/s, a m/s^2: checks the fast path's internal
+    v dt, a dt^2 scaling).
 
     Both stop on steps < 1e-10 m (the dense one < 1e-12 m); measured <= 7e-10 m, 2e-10 relative,
     4e-10 (the reference's finite-difference Jacobians, ~3e-10 relative, dominate).
@@ -249,7 +265,7 @@ def test_fast_equals_dense_gauss_newton(scene, model):
     assert info["converged"][:3].all()
 
 
-@pytest.mark.parametrize("model", ["random_walk", "constant_velocity"])
+@pytest.mark.parametrize("model", MODELS)
 @pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
 def test_fast_equals_gtsam(scene, model, robust):
     """Against GTSAM on the smoother's own graph (batgraph.graph.factors).
@@ -267,7 +283,7 @@ def test_fast_equals_gtsam(scene, model, robust):
     xyz, cov, info = fast.solve_fast(session, ideal, p_init, model, _level(model), FPS, robust, 2.0)
     xyz_ref, cov_ref, logdet_ref, err_ref, graph, markers = gtsam_reference(session, ideal, model, robust)
     np.testing.assert_allclose(xyz, xyz_ref, rtol=0, atol=1e-6)
-    mine = as_values(xyz, info["velocity"], markers)
+    mine = as_values(xyz, info["velocity"], markers, info["acceleration"])
     assert graph.error(mine) <= err_ref * (1 + 1e-12)
     assert abs(graph.error(mine) - info["cost"]) < 1e-12 * info["cost"]
     cov_at_fast, logdet_at_fast = gtsam_marginals(graph, mine, markers, F, M, model)
@@ -279,11 +295,13 @@ def test_fast_equals_gtsam(scene, model, robust):
 
 @pytest.mark.parametrize(("model", "robust", "bound_cov"), [("random_walk", "none", 1e-6),
                                                           ("random_walk", "huber", 1e-4),
-                                                          ("constant_velocity", "huber", 1e-4)])
+                                                          ("constant_velocity", "huber", 1e-4),
+                                                          ("constant_acceleration", "huber", 1e-4),
+                                                          ("auto", "huber", 1e-4)])
 def test_run_smoother_fast_matches_run_smoother(scene, model, robust, bound_cov):
-    """The ``smoother`` method both ways, as ``reconstruct`` calls it: same initialisation, same q chosen
-    from the data (constant velocity with no q in the session: the same marginal-likelihood search
-    must pick the identical q), positions to 1e-6 m, the same outlier flags.
+    """The ``smoother`` method both ways, as ``reconstruct`` calls it: same initialisation, same q (or
+    jerk PSD j, or per-marker model with "auto") chosen from the data (no q in the session: the same
+    marginal-likelihood search must pick the identical ones), positions to 1e-6 m, the same outlier flags.
 
     Covariances: 1e-6 relative for least squares (measured 2e-10); for Huber 1e-4 (measured 1.3e-5),
     because the GTSAM smoother stops at a relative error decrease of 1e-12, ~1.5e-7 m from the
@@ -298,9 +316,16 @@ def test_run_smoother_fast_matches_run_smoother(scene, model, robust, bound_cov)
     np.testing.assert_allclose(a.xyz_m, b.xyz_m, rtol=0, atol=1e-6)
     assert _rel_cov_error(a.cov_m2, b.cov_m2) < bound_cov
     np.testing.assert_array_equal(a.outlier, b.outlier)
-    if model == "constant_velocity":
+    if model != "random_walk":
         assert a.info["accel_psd_source"] == b.info["accel_psd_source"] == "data"
-        assert a.info["accel_psd_m2_s3"] == b.info["accel_psd_m2_s3"]
+        assert a.info["motion_model_per_marker"] == b.info["motion_model_per_marker"]
+        assert a.info.get("accel_psd_m2_s3") == b.info.get("accel_psd_m2_s3")
+        assert a.info.get("jerk_psd_m2_s5") == b.info.get("jerk_psd_m2_s5")
+    if model == "auto":  # every estimated marker has a model, each the better of its two evidences
+        assert set(a.info["motion_model_per_marker"]) == {"m0", "m1", "m2"}
+        for name, chosen in a.info["motion_model_per_marker"].items():
+            ev = a.info["log_evidence_per_marker"][name]
+            assert ev[chosen] == max(ev.values())
 
 
 def test_rig_with_pose_covariance_goes_to_gtsam(scene):
@@ -375,7 +400,7 @@ def single_view_mislabels() -> tuple[Session, list[tuple[str, int, str]]]:
     return dataclasses.replace(session, observations=obs), [p[:3] for p in planted]
 
 
-@pytest.mark.parametrize("model", ["random_walk", "constant_velocity"])
+@pytest.mark.parametrize("model", ["random_walk", "constant_velocity", "auto"])
 def test_rejection_schedule_matches_run_smoother(model):
     """Default options (Huber + outlier rejection; constant velocity with q chosen from the data) on
     two single-view mislabels: both paths exclude the same set D (converged rounds, so D is the
@@ -403,8 +428,10 @@ def test_rejection_schedule_matches_run_smoother(model):
     np.testing.assert_array_equal(a.outlier, b.outlier)
     np.testing.assert_allclose(a.xyz_m, b.xyz_m, rtol=0, atol=1e-6)
     assert _rel_cov_error(a.cov_m2, b.cov_m2) < 1e-4
-    if model == "constant_velocity":
+    if model != "random_walk":
         assert a.info["accel_psd_m2_s3"] == b.info["accel_psd_m2_s3"]
+        assert a.info["motion_model_per_marker"] == b.info["motion_model_per_marker"]
+        assert a.info.get("jerk_psd_m2_s5") == b.info.get("jerk_psd_m2_s5")
     off = fast.run_smoother_fast(session, dense, ideal, Options(motion_model=model, outlier_rejection=False,
                                                                    progress=False))
     assert np.nanmax(np.abs(off.xyz_m - b.xyz_m)) > 1e-3
@@ -418,25 +445,29 @@ def test_rejects_bad_input(scene):
         fast.solve_fast(session, ideal, p_init[:-1], "random_walk", SIGMA_M, FPS)
 
 
-def test_solve_levels_equals_solve_fast_per_candidate(scene):
-    """The q search's batch (candidates x markers as one Levenberg-Marquardt run, no covariances) gives each
-    candidate what solve_fast gives alone with that row of noise levels: positions to 1e-8 m, cost and
-    log det to 1e-8 relative (the columns are independent; only rounding differs, measured <= 1e-12)."""
+@pytest.mark.parametrize("model", ["constant_velocity", "constant_acceleration"])
+def test_solve_levels_equals_solve_fast_per_candidate(scene, model):
+    """The noise search's batch (candidates x markers as one Levenberg-Marquardt run, no covariances) gives
+    each candidate what solve_fast gives alone with that row of noise levels: positions to 1e-8 m, cost
+    and log det to 1e-8 relative (the columns are independent; only rounding differs, measured <= 1e-12)."""
     session, dense, ideal, p_init = scene
     M = p_init.shape[1]
-    levels = np.array([[ACCEL_PSD] * M, [2.0] * M, np.geomspace(0.5, 500.0, M)])
-    batch = fast.solve_levels(session.rig, ideal, p_init, "constant_velocity", levels, FPS, "huber", 2.0)
-    small = fast.solve_levels(session.rig, ideal, p_init, "constant_velocity", levels, FPS, "huber", 2.0, max_rows=1)
+    s = _level(model) / ACCEL_PSD
+    levels = s * np.array([[ACCEL_PSD] * M, [2.0] * M, np.geomspace(0.5, 500.0, M)])
+    batch = fast.solve_levels(session.rig, ideal, p_init, model, levels, FPS, "huber", 2.0)
+    small = fast.solve_levels(session.rig, ideal, p_init, model, levels, FPS, "huber", 2.0, max_rows=1)
     for k, row in enumerate(levels):
-        xyz, cov, info = fast.solve_fast(session, ideal, p_init, "constant_velocity", row, FPS, "huber", 2.0,
+        xyz, cov, info = fast.solve_fast(session, ideal, p_init, model, row, FPS, "huber", 2.0,
                                          covariances=False)
         assert cov is None
         for got in (batch, small):  # one group of 3 candidates, and one candidate per group
             np.testing.assert_allclose(got["position"][k], xyz, rtol=0, atol=1e-8)
-            np.testing.assert_allclose(got["velocity"][k], info["velocity"], rtol=0, atol=1e-6)
+            for key in ("velocity", "acceleration"):
+                if info[key] is not None:
+                    np.testing.assert_allclose(got[key][k], info[key], rtol=0, atol=1e-6 * FPS ** (key != "velocity"))
             np.testing.assert_allclose(got["cost"][k], info["cost_per_marker"], rtol=1e-8)
             np.testing.assert_allclose(got["logdet"][k], info["logdet_per_marker"], rtol=1e-8)
-        _, _, with_cov = fast.solve_fast(session, ideal, p_init, "constant_velocity", row, FPS, "huber", 2.0)
+        _, _, with_cov = fast.solve_fast(session, ideal, p_init, model, row, FPS, "huber", 2.0)
         np.testing.assert_allclose(info["logdet_per_marker"], with_cov["logdet_per_marker"], rtol=1e-10)
 
 

@@ -12,11 +12,11 @@ from conftest import cv_scene, observations_table, tiny_rig, tiny_scene
 
 from batgraph.camera import Camera, Rig
 from batgraph.graph import factors, noise
-from batgraph.graph.factors import MotionFactors, MotionModel, p_key, v_key
+from batgraph.graph.factors import MotionFactors, MotionModel, p_key
 from batgraph.graph.filter import IncrementalSolver, run_filter
 from batgraph.graph.smoother import marginal_covariances, posterior_logdet, run_smoother, solve_batch
 from batgraph.measurement import ideal_observations
-from batgraph.motion import constant_velocity_F, constant_velocity_Q
+from batgraph.motion import constant_acceleration_F, constant_acceleration_Q, constant_velocity_F, constant_velocity_Q
 from batgraph.result import Options
 from batgraph.session import PAPER_PHYSICS, MotionConfig, Session, dense_observations
 from batgraph.triangulate import triangulate_ideal
@@ -82,23 +82,27 @@ def test_noise_free_scene_is_recovered(model):
     assert frames_seen == list(range(dense.seen.shape[1]))
 
 
-def test_cv_factor_error_is_the_quadratic_form():
-    """LinearContainerFactor (linearised at 0) error == 0.5 e^T Q^-1 e at random values, and its
-    linearisation elsewhere reproduces it (exact: linear in vector spaces). Measured rel. diff 1e-15."""
+@pytest.mark.parametrize("name", ["constant_velocity", "constant_acceleration"])
+def test_motion_factor_error_is_the_quadratic_form(name):
+    """LinearContainerFactor (linearised at 0) error == 0.5 e^T Q^-1 e at random values, e = x_k+1 - F x_k
+    in [p, v (, a)] (batgraph.motion's F and Q), and its linearisation elsewhere reproduces it (exact:
+    linear in vector spaces). Measured rel. diff 1e-15 (constant velocity), 1e-12 (acceleration)."""
     rng = np.random.default_rng(1)
+    F_, Q_ = ((constant_velocity_F, constant_velocity_Q) if name == "constant_velocity"
+              else (constant_acceleration_F, constant_acceleration_Q))
     for q, dt in [(1.0, 1 / 1000), (100.0, 1 / 120), (1e6, 1 / 30)]:
-        motion = MotionFactors(MotionModel("constant_velocity", dt, accel_psd_m2_s3=q))
-        f = motion.between(2, 7)
-        p0, v0, p1, v1 = rng.normal(size=(4, 3))
+        model = factors.motion_model(name, dt, q)
+        f = MotionFactors(model).between(2, 7)
+        x0, x1 = rng.normal(size=(2, model.order + 1, 3))  # [p, v (, a)] [m, m/s, m/s^2]
         values = gtsam.Values()
-        keys = [p_key(2, 7), v_key(2, 7), p_key(2, 8), v_key(2, 8)]
-        for key, x in zip(keys, [p0, v0 * dt, p1, v1 * dt], strict=True):
-            values.insert(key, x)  # velocity variables hold v dt (factors.v_key)
-        e = np.concatenate([p1 - p0 - dt * v0, v1 - v0])
-        ref = 0.5 * e @ np.linalg.solve(constant_velocity_Q(q, dt), e)
-        assert f.error(values) == pytest.approx(ref, rel=1e-10)
+        for k, x in ((7, x0), (8, x1)):
+            for key, part, i in zip(factors.state_keys(model, 2, k), x, range(3), strict=False):
+                values.insert(key, part * dt**i)  # the variables are p, v dt, a dt^2 (factors.v_key, a_key)
+        e = x1.ravel() - F_(dt) @ x0.ravel()
+        ref = 0.5 * e @ np.linalg.solve(Q_(q, dt), e)
+        assert f.error(values) == pytest.approx(ref, rel=1e-9)
         b = f.linearize(values).jacobian()[1]  # whitened right-hand side at ``values`` = -residual
-        assert 0.5 * b @ b == pytest.approx(ref, rel=1e-9)
+        assert 0.5 * b @ b == pytest.approx(ref, rel=1e-8)
 
 
 def test_projection_jacobians_match_finite_differences():
@@ -136,13 +140,16 @@ def test_projection_jacobians_match_finite_differences():
 
 
 def _kalman(z, seen, model: MotionModel, mu0, r):
-    """Textbook KF and RTS on x = p (random walk) or [p, v] (constant velocity); prior as factors.prior_factors."""
-    n = 6 if model.has_velocity else 3
-    F_ = constant_velocity_F(model.dt_s) if model.has_velocity else np.eye(3)
-    Q_ = constant_velocity_Q(model.accel_psd_m2_s3, model.dt_s) if model.has_velocity else model.sigma_m**2 * np.eye(3)
+    """Textbook KF and RTS on x = p (random walk), [p, v] (constant velocity) or [p, v, a] (constant
+    acceleration); prior as factors.prior_factors."""
+    n = 3 * (model.order + 1)
+    F_, Q_ = {0: (lambda dt: np.eye(3), lambda s, dt: s**2 * np.eye(3)), 1: (constant_velocity_F, constant_velocity_Q),
+              2: (constant_acceleration_F, constant_acceleration_Q)}[model.order]
+    F_, Q_ = F_(model.dt_s), Q_(model.level, model.dt_s)
+    sig = [factors.PRIOR_POSITION_SIGMA_M, factors.PRIOR_VELOCITY_SIGMA_MPS, factors.PRIOR_ACCELERATION_SIGMA_MPS2]
     H = np.eye(3, n)
     x = np.concatenate([mu0, np.zeros(n - 3)])
-    P = np.diag([factors.PRIOR_POSITION_SIGMA_M**2] * 3 + [factors.PRIOR_VELOCITY_SIGMA_MPS**2] * (n - 3))
+    P = np.diag(np.repeat(np.square(sig[:model.order + 1]), 3))
     xs, Ps, xp, Pp = [], [], [], []
     for k in range(len(z)):
         if k:
@@ -164,7 +171,8 @@ def _kalman(z, seen, model: MotionModel, mu0, r):
 
 
 @pytest.mark.parametrize("model", [MotionModel("random_walk", 0.01, sigma_m=0.02),
-                                   MotionModel("constant_velocity", 0.01, accel_psd_m2_s3=50.0)])
+                                   MotionModel("constant_velocity", 0.01, accel_psd_m2_s3=50.0),
+                                   MotionModel("constant_acceleration", 0.01, jerk_psd_m2_s5=5e3)])
 def test_linear_gaussian_filter_is_kalman_and_smoother_is_rts(model):
     """factors.py's motion factors + linear position measurements (PriorFactorPoint3, sigma 5 mm, a gap
     of 6 frames): iSAM2 (IncrementalSolver) after frame k == Kalman filter at k; batch LM + marginals ==
@@ -187,9 +195,8 @@ def test_linear_gaussian_filter_is_kalman_and_smoother_is_rts(model):
         new = factors.prior_factors(model, m, 0, mu0) if k == 0 else [motion.between(m, k - 1)]
         new += [gtsam.PriorFactorPoint3(p_key(m, k), z[k], meas)] if seen[k] else []
         values = gtsam.Values()
-        values.insert(p_key(m, k), np.zeros(3))
-        if model.has_velocity:
-            values.insert(v_key(m, k), np.zeros(3))
+        for key in factors.state_keys(model, m, k):
+            values.insert(key, np.zeros(3))
         solver.add(new, values)
         solver.update([p_key(m, k)])
         xf.append(solver.points([p_key(m, k)])[0])

@@ -7,10 +7,11 @@ by 4 cameras with 0.5 px noise, so the maximum-likelihood q has a known target.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from conftest import cv_scene
 
 from batgraph.graph import factors, noise
-from batgraph.graph.factors import MotionFactors, MotionModel
+from batgraph.graph.factors import MotionFactors
 from batgraph.graph.fast import solve_fast
 from batgraph.graph.smoother import log_evidence, run_smoother, solve_batch
 from batgraph.result import Options
@@ -19,28 +20,31 @@ from batgraph.triangulate import triangulate_ideal
 FPS = 100.0
 
 
-def test_per_marker_evidence_matches_gtsam_subgraph():
-    """solve_fast with one q per marker gives, per marker, the Laplace evidence GTSAM computes on that
-    marker's own graph (its projections, chain and gauge priors) at the same q. Huber loss, q = 3 and
-    300 swapped between the two markers. Measured max abs difference 9e-7 (GTSAM's LM stops on a 1e-12
-    relative cost decrease, the fast solver on 1e-10 m steps; log det and cost move by ~1e-6 between
-    those stopping points); bound 1e-5."""
+@pytest.mark.parametrize(("name", "levels"), [("constant_velocity", (3.0, 300.0)),
+                                              ("constant_acceleration", (3e3, 3e5))])
+def test_per_marker_evidence_matches_gtsam_subgraph(name, levels):
+    """solve_fast with one noise level per marker gives, per marker, the Laplace evidence GTSAM computes on
+    that marker's own graph (its projections, chain and gauge priors) at the same level. Huber loss, the
+    two levels swapped between the two markers. Measured max abs difference 9e-7 (GTSAM's LM stops on a
+    1e-12 relative cost decrease, the fast solver on 1e-10 m steps; log det and cost move by ~1e-6
+    between those stopping points); bound 1e-5."""
     session, dense, ideal, _ = cv_scene([10.0, 10.0], n_frames=25)
     F, dt = 25, 1 / FPS
     tri, _ = triangulate_ideal(session.rig, ideal)
     p_init, v_init, _ = factors.initial_track(tri, FPS)
     obs = factors.ObservationFactors(session.rig, ideal, "huber", 2.0)
+    ca = name == "constant_acceleration"
     worst = 0.0
-    for qs in ([3.0, 300.0], [300.0, 3.0]):
-        _, _, info = solve_fast(session.rig, ideal, p_init, "constant_velocity", np.array(qs), FPS, "huber", 2.0,
-                                v_init=v_init)
-        mine = noise.laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], np.array(qs), dt, F - 1)
+    for qs in (list(levels), list(levels[::-1])):
+        _, _, info = solve_fast(session.rig, ideal, p_init, name, np.array(qs), FPS, "huber", 2.0, v_init=v_init)
+        mine = noise.laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], np.array(qs), dt, F - 1,
+                                          model=name)
         for m, q in enumerate(qs):
-            model = MotionModel("constant_velocity", dt, accel_psd_m2_s3=q)
+            model = factors.motion_model(name, dt, q)
             graph = factors.observation_graph(obs, np.array([m]), F)
             graph.push_back(factors.motion_graph(MotionFactors(model), p_init, np.array([m])))
             sol, _ = solve_batch(graph, factors.initial_values(obs, model, p_init, v_init, np.array([m])))
-            ref = log_evidence(graph, sol, q, dt, F - 1, F)
+            ref = log_evidence(graph, sol, q, dt, F - 1, F, model=name, n_acceleration=F if ca else 0)
             worst = max(worst, abs(mine[m] - ref))
     print("max |evidence difference|", worst)
     assert worst < 1e-5

@@ -11,8 +11,10 @@ camera pose covariances.
 
 The cost (shared with any fast path), per estimated marker m and frame k of the session's range:
 projection factors on ideal pixels whitened by the mapped pixel covariance (Huber / Cauchy / none);
-a random-walk (paper eq. 3-5) or constant-velocity motion factor between consecutive frames; weak
-gauge priors p[m, 0] ~ N(p_init, (10 m)^2), v[m, 0] ~ N(0, (10 m/s)^2). A marker is estimated when
+a random-walk (paper eq. 3-5), constant-velocity (white-noise acceleration) or constant-acceleration
+(white-noise jerk) motion factor between consecutive frames, the model per marker ("auto":
+batgraph.graph.noise); weak gauge priors p[m, 0] ~ N(p_init, (10 m)^2), v[m, 0] ~ N(0, (10 m/s)^2),
+a[m, 0] ~ N(0, (1000 m/s^2)^2). A marker is estimated when
 it is triangulated (>= 2 views) on at least one frame. Nothing is imported here, so importing the
 package does not load GTSAM.
 """

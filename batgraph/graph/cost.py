@@ -8,22 +8,34 @@ path does not load GTSAM.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..camera import Rig
 from ..measurement import IdealObservations
+from ..motion import constant_acceleration_Q, constant_velocity_Q
 
 PRIOR_POSITION_SIGMA_M = 10.0  # gauge prior on p[m, first frame] (cost spec, factor 3)
-PRIOR_VELOCITY_SIGMA_MPS = 10.0  # gauge prior on v[m, first frame] (constant velocity only)
+PRIOR_VELOCITY_SIGMA_MPS = 10.0  # gauge prior on v[m, first frame] (constant velocity and acceleration)
+# Gauge prior on a[m, first frame] (constant acceleration only), N(0, (1000 m/s^2)^2 I): weak, as the
+# others (a 15 Hz wingbeat of 15 cm amplitude peaks at (2 pi 15)^2 0.15 = 1300 m/s^2, the body at a few
+# m/s^2). Its normalising constant enters the model choice's evidence (batgraph.graph.noise): an Occam
+# term of about 3 log(1000 m/s^2 / the posterior std of a[0]), a few nats against the extra state.
+PRIOR_ACCELERATION_SIGMA_MPS2 = 1000.0
 CHI2_2DOF_999 = 13.8155  # 99.9 % quantile of chi-square, 2 DOF: outlier threshold on |r|^2
 # Outlier rejection drops an observation when |r|^2 > 25 (|r| > 5 sigma; Gaussian tail exp(-12.5) =
 # 4e-6): at 13.8155 an excluded inlier drifts away from the solution that no longer sees it and stays
 # flagged (measured: 25 of 12000 clean observations excluded, +2.6 % RMSE), at 25 none were, while
 # 595 of 601 planted mislabels still were (the rest within 5 sigma, harmless under Huber).
 REJECT_SQ_RESIDUAL = 25.0
-MOTION_MODELS = ("random_walk", "constant_velocity")
+MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration")
+# The polynomial order of each model's state: p (0), [p, v] (1), [p, v, a] (2); the state has d = 3 (order + 1)
+MOTION_ORDER = {"random_walk": 0, "constant_velocity": 1, "constant_acceleration": 2}
+# "auto" (opt-in, [motion] model or --motion): each marker's model among these, by its evidence (batgraph.graph.noise)
+AUTO = "auto"
+AUTO_CANDIDATES = ("constant_velocity", "constant_acceleration")
 ROBUST_LOSSES = ("huber", "cauchy", "none")
 # The smoother's outlier-rejection schedule (batgraph.graph.smoother's docstring; every path follows it)
 CLEANING_LOSS = "cauchy"  # redescending: the loss of the rejection pre-solve
@@ -36,12 +48,18 @@ def velocity_mps(u_m_per_frame: np.ndarray, dt_s: float) -> np.ndarray:
     return np.asarray(u_m_per_frame) / dt_s
 
 
+def acceleration_mps2(w_m_per_frame2: np.ndarray, dt_s: float) -> np.ndarray:
+    """Acceleration variables' values (..., 3) [m/frame^2] (w = a dt^2) -> accelerations [m/s^2]."""
+    return np.asarray(w_m_per_frame2) / (dt_s * dt_s)
+
+
 @dataclass(frozen=True)
 class MotionModel:
     """A motion prior between consecutive frames.
 
-    name: "random_walk" (p[k+1] = p[k] + w, per-axis std ``sigma_m`` [m], paper eq. 3-5) or
-        "constant_velocity" (state [p, v], white-noise acceleration of PSD ``accel_psd_m2_s3``).
+    name: "random_walk" (p[k+1] = p[k] + w, per-axis std ``sigma_m`` [m], paper eq. 3-5),
+        "constant_velocity" (state [p, v], white-noise acceleration of PSD ``accel_psd_m2_s3``) or
+        "constant_acceleration" (state [p, v, a], white-noise jerk of PSD ``jerk_psd_m2_s5``).
     dt_s: frame interval 1 / fps [s].
     """
 
@@ -49,17 +67,75 @@ class MotionModel:
     dt_s: float
     sigma_m: float | None = None
     accel_psd_m2_s3: float | None = None
+    jerk_psd_m2_s5: float | None = None
 
     def __post_init__(self):
         if self.name not in MOTION_MODELS:
             raise ValueError(f"motion model must be one of {MOTION_MODELS}, got {self.name!r}")
-        need = self.sigma_m if self.name == "random_walk" else self.accel_psd_m2_s3
-        if need is None or not need > 0:
-            raise ValueError(f"{self.name} needs a positive noise level, got {need!r}")
+        if self.level is None or not self.level > 0:
+            raise ValueError(f"{self.name} needs a positive noise level, got {self.level!r}")
+
+    @property
+    def level(self) -> float | None:
+        """The model's noise level: sigma_m [m], q [m^2/s^3] or j [m^2/s^5]."""
+        return {"random_walk": self.sigma_m, "constant_velocity": self.accel_psd_m2_s3,
+                "constant_acceleration": self.jerk_psd_m2_s5}[self.name]
+
+    @property
+    def order(self) -> int:
+        return MOTION_ORDER[self.name]
 
     @property
     def has_velocity(self) -> bool:
-        return self.name == "constant_velocity"
+        return self.order >= 1
+
+    @property
+    def has_acceleration(self) -> bool:
+        return self.order >= 2
+
+
+def motion_model(name: str, dt_s: float, level: float) -> MotionModel:
+    """The MotionModel ``name`` with noise level ``level`` (sigma_m [m], q [m^2/s^3] or j [m^2/s^5])."""
+    field = {"random_walk": "sigma_m", "constant_velocity": "accel_psd_m2_s3",
+             "constant_acceleration": "jerk_psd_m2_s5"}[name]
+    return MotionModel(name, dt_s, **{field: float(level)})
+
+
+def state_dim(name: str) -> int:
+    """d, the size of one frame's state of model ``name``: 3, 6 or 9."""
+    return 3 * (MOTION_ORDER[name] + 1)
+
+
+def noise_scale(name: str, level: float | np.ndarray) -> float | np.ndarray:
+    """The factor s with Q(level) = s Q(1): sigma_m^2 for the random walk, q or j otherwise."""
+    return np.square(level) if name == "random_walk" else level
+
+
+def scaled_motion(name: str, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of model ``name`` in the scaled state x = S [p, v, a] = [p, v dt, a dt^2] (all in metres,
+    S = diag(I, dt I, dt^2 I) cut to the model's order), which keeps every block well conditioned.
+
+    Returns A (d, d), the transition (x[k+1] = A x[k] + w; constant acceleration: [[I, I, I/2], [0, I, I],
+    [0, 0, I]]), Q1 (d, d), the covariance of w at unit noise (Q(level) = noise_scale(level) Q1, i.e.
+    S Q S with batgraph.motion's Q) [m^2], and P0 (d, d), the information of the first frame's gauge
+    priors: (10 m)^-2 on p, (10 m/s dt)^-2 on v dt, (1000 m/s^2 dt^2)^-2 on a dt^2 [1/m^2].
+    """
+    order, dt, I = MOTION_ORDER[name], dt_s, np.eye(3)
+    if order == 0:
+        return I, I, I / PRIOR_POSITION_SIGMA_M**2
+    s = np.repeat(dt ** np.arange(order + 1), 3)  # diag(S)
+    Q = constant_velocity_Q(1.0, dt) if order == 1 else constant_acceleration_Q(1.0, dt)
+    A = np.kron(np.array([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])[:order + 1, :order + 1], I)
+    sig = np.array([PRIOR_POSITION_SIGMA_M, PRIOR_VELOCITY_SIGMA_MPS, PRIOR_ACCELERATION_SIGMA_MPS2])[:order + 1]
+    return A, s[:, None] * Q * s[None, :], np.diag(np.repeat(sig, 3) ** -2.0 / s**2)
+
+
+def log_det_scale(name: str, dt_s: float) -> float:
+    """log det S of one frame (see :func:`scaled_motion`): 3 log(dt) (0 + 1 + ... + order). Information in
+    the spec's variables [p m, v m/s, a m/s^2] is S Lambda_x S, so its log det is log det Lambda_x + 2 F
+    log det S over F frames."""
+    order = MOTION_ORDER[name]
+    return 3.0 * math.log(dt_s) * order * (order + 1) / 2
 
 
 # ----- robust losses ---------------------------------------------------------------------------------

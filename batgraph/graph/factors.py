@@ -1,10 +1,10 @@
 """GTSAM factor-graph construction for batgraph: variable keys, projection, motion and prior factors.
 
 The cost is the one in the project's cost spec (see :mod:`batgraph.graph`): projection factors on
-ideal (undistorted) pixels with the mapped pixel noise, a random-walk or constant-velocity motion
-prior along every marker's frames, weak gauge priors on each marker's first frame, and (where the
-calibration carries a pose covariance) camera poses as variables with priors. This module builds
-factors and initial values only; solving is in :mod:`batgraph.graph.smoother` and
+ideal (undistorted) pixels with the mapped pixel noise, a random-walk, constant-velocity or
+constant-acceleration motion prior along every marker's frames, weak gauge priors on each marker's
+first frame, and (where the calibration carries a pose covariance) camera poses as variables with
+priors. This module builds factors and initial values only; solving is in :mod:`batgraph.graph.smoother` and
 :mod:`batgraph.graph.filter`. What needs no GTSAM (constants, the motion model's parameters, the initial
 track, residuals and the rejection rule) is in :mod:`batgraph.graph.cost` and re-exported here.
 
@@ -25,17 +25,21 @@ import numpy as np
 from ..camera import Camera, Rig
 from ..geometry import pose as geometry_pose
 from ..measurement import IdealObservations
-from ..motion import constant_velocity_Q
 from .cost import (  # noqa: F401  (re-exported: the numpy part of the cost, importable without GTSAM)
     CHI2_2DOF_999,
     MOTION_MODELS,
+    PRIOR_ACCELERATION_SIGMA_MPS2,
     PRIOR_POSITION_SIGMA_M,
     PRIOR_VELOCITY_SIGMA_MPS,
     REJECT_SQ_RESIDUAL,
     ROBUST_LOSSES,
     MotionModel,
+    acceleration_mps2,
     initial_track,
+    motion_model,
+    noise_scale,
     outlier_flags,
+    scaled_motion,
     to_exclude,
     velocity_mps,
     whitened_sq_residuals,
@@ -43,8 +47,8 @@ from .cost import (  # noqa: F401  (re-exported: the numpy part of the cost, imp
 )
 
 _FRAME_BITS = 32  # key index = marker << 32 | frame: room for 2^32 frames and 2^24 markers
-# Symbols: positions 'x', velocities 'v', camera poses 'c'. Velocities sort before positions on
-# purpose: see _CvFactorMaker.
+# Symbols: positions 'x', velocities 'v', accelerations 'a', camera poses 'c'. Accelerations and
+# velocities sort before positions on purpose: see _LinearMotionFactorMaker.
 
 
 # ----- keys ---------------------------------------------------------------------------------------
@@ -64,59 +68,74 @@ def v_key(m: int, k: int) -> int:
     return gtsam.symbol("v", (m << _FRAME_BITS) | k)
 
 
+def a_key(m: int, k: int) -> int:
+    """Key of marker m's acceleration at frame index k (constant acceleration), stored as w = a dt^2
+    (Point3 used as a vector, world [m per frame^2]; the same reason as :func:`v_key`).
+    Use :func:`acceleration_mps2`."""
+    return gtsam.symbol("a", (m << _FRAME_BITS) | k)
+
+
+def state_keys(model: MotionModel, m: int, k: int) -> list[int]:
+    """The keys of marker m's state at frame index k: [p] (random walk), [p, u], or [p, u, w]."""
+    return [p_key(m, k), v_key(m, k), a_key(m, k)][:model.order + 1]
+
+
 def pose_key(c: int) -> int:
     """Key of camera c's pose (Pose3, world_from_cam) when cameras are variables."""
     return gtsam.symbol("c", c)
 
 
 # ----- motion ---------------------------------------------------------------------------------------
-def cv_whitened_blocks(accel_psd_m2_s3: float, dt_s: float) -> np.ndarray:
-    """Whitened Jacobian of the constant-velocity residual, shape (6, 12), columns [p_k, u_k, p_k+1, u_k+1].
+def whitened_motion_blocks(model: MotionModel) -> np.ndarray:
+    """Whitened Jacobian of the motion residual of ``model`` (constant velocity or acceleration) in the
+    graph's variables, shape (d, 2 d), columns [x_k, x_k+1] with x = [p, u = v dt (, w = a dt^2)].
 
-    e = [p_k+1 - p_k - dt v_k; v_k+1 - v_k] (6) [m, m/s] with v = u / dt (see :func:`v_key`), e = A x,
-    and W with W^T W = Q^-1, so 0.5 |W A x|^2 = 0.5 e^T Q^-1 e exactly (Q from
-    :func:`batgraph.motion.constant_velocity_Q`).
+    e = x_k+1 - A x_k with A, Q from :func:`batgraph.graph.cost.scaled_motion` (batgraph.motion's Q in
+    the scaled state); W^T W = Q^-1, so 0.5 |W [-A, I] x|^2 = 0.5 e^T Q^-1 e exactly.
     """
-    dt, I, Z = dt_s, np.eye(3), np.zeros((3, 3))
-    A = np.block([[-I, -I, I, Z], [Z, -I / dt, Z, I / dt]])
-    W = np.linalg.cholesky(np.linalg.inv(constant_velocity_Q(accel_psd_m2_s3, dt))).T
-    return W @ A
+    A, Q1, _ = scaled_motion(model.name, model.dt_s)
+    W = np.linalg.cholesky(np.linalg.inv(noise_scale(model.name, model.level) * Q1)).T
+    return W @ np.hstack([-A, np.eye(len(A))])
 
 
-class _CvFactorMaker:
-    """Builds the 4-key constant-velocity LinearContainerFactor for given keys (blocks precomputed).
+class _LinearMotionFactorMaker:
+    """Builds the 2n-key motion LinearContainerFactor (n = 2 variables per frame: p, u; n = 3: p, u, w)
+    for given keys, from the whitened rows R (d, 6 n) of :func:`whitened_motion_blocks` (blocks precomputed).
 
-    GTSAM's Python JacobianFactor constructors take at most three keys, so the 4-key factor is made
-    from its information matrix: 3-key HessianFactors summed into one 4-key HessianFactor (exact),
-    converted by GTSAM's Cholesky into a 6-row JacobianFactor. That Cholesky pivots in sorted key
-    order, i.e. (v_k, v_k+1, p_k, p_k+1) with the symbols chosen here; its first six columns must
-    have full rank (the pair p_k, p_k+1 alone would not). The information is scaled to unit
-    maximum diagonal before that Cholesky (its zero-pivot threshold is absolute) and the scale is
-    returned through the noise sigmas, so the whitened rows reproduce W A exactly. The factor is
-    linear in vector-space variables, so a LinearContainerFactor linearised at zero is exact
-    everywhere (tested). (LinearContainerFactor.rekey shares the wrapped factor between copies, so
-    every factor is built afresh: ~40 us each.)
+    GTSAM's Python JacobianFactor constructors take at most three keys, so the factor is made from its
+    information matrix: one 2-key HessianFactor per pair of keys (each key's own block in its first
+    pair), summed into one HessianFactor (exact), converted by GTSAM's Cholesky into a d-row
+    JacobianFactor. That Cholesky pivots in sorted key order, i.e. (w_k, w_k+1, u_k, u_k+1, p_k, p_k+1)
+    with the symbols chosen here; its first d columns must have full rank (for constant velocity
+    (u_k, u_k+1), for constant acceleration (w_k, w_k+1, u_k): both are; the positions alone would not
+    be). The information is scaled to unit maximum diagonal before that Cholesky (its zero-pivot
+    threshold is absolute) and the scale is returned through the noise sigmas, so the whitened rows
+    reproduce R exactly. The factor is linear in vector-space variables, so a LinearContainerFactor
+    linearised at zero is exact everywhere (tested). (LinearContainerFactor.rekey shares the wrapped
+    factor between copies, so every factor is built afresh.)
     """
 
-    def __init__(self, accel_psd_m2_s3: float, dt_s: float):
-        R = cv_whitened_blocks(accel_psd_m2_s3, dt_s)
+    def __init__(self, R: np.ndarray):
         H = R.T @ R
+        self._rows = len(R)
+        n = H.shape[0] // 3
         self._scale = 1.0 / np.diag(H).max()
-        self._blocks = (H * self._scale).reshape(4, 3, 4, 3).transpose(0, 2, 1, 3).copy()  # [i, j] = (3, 3)
-        self._sigmas = np.full(6, np.sqrt(self._scale))
-        self._z, self._Z, self._zero = np.zeros(3), np.zeros((3, 3)), np.zeros(3)
+        b = (H * self._scale).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)  # [i, j] = (3, 3)
+        Z = np.zeros((3, 3))
+        first = {i: (i, i + 1) if i < n - 1 else (n - 2, n - 1) for i in range(n)}  # the pair holding b[i, i]
+        self._pairs = [(i, j, b[i, i] if first[i] == (i, j) else Z, b[i, j].copy(),
+                        b[j, j] if first[j] == (i, j) else Z) for i in range(n) for j in range(i + 1, n)]
+        self._sigmas = np.full(self._rows, np.sqrt(self._scale))
+        self._z, self._zero = np.zeros(3), np.zeros(3)
 
     def __call__(self, keys: list[int]) -> gtsam.LinearContainerFactor:
-        b, z, Z = self._blocks, self._z, self._Z
-        k0, k1, k2, k3 = keys
+        z = self._z
         parts = gtsam.GaussianFactorGraph()
-        parts.push_back(gtsam.HessianFactor(k0, k1, k2, b[0, 0], b[0, 1], b[0, 2], z, b[1, 1], b[1, 2], z,
-                                            b[2, 2], z, 0.0))
-        parts.push_back(gtsam.HessianFactor(k3, k0, k1, b[3, 3], b[3, 0], b[3, 1], z, Z, Z, z, Z, z, 0.0))
-        parts.push_back(gtsam.HessianFactor(k2, k3, Z, b[2, 3], z, Z, z, 0.0))
+        for i, j, Gii, Gij, Gjj in self._pairs:
+            parts.push_back(gtsam.HessianFactor(keys[i], keys[j], Gii, Gij, z, Gjj, z, 0.0))
         jac = gtsam.JacobianFactor(gtsam.HessianFactor(parts))
-        if jac.rows() != 6 or sorted(jac.keys()) != sorted(keys):
-            raise RuntimeError(f"constant-velocity factor has {jac.rows()} rows, keys {list(jac.keys())}")
+        if jac.rows() != self._rows or sorted(jac.keys()) != sorted(keys):
+            raise RuntimeError(f"motion factor has {jac.rows()} rows, keys {list(jac.keys())}")
         jac.setModel(False, self._sigmas)
         zero = gtsam.Values()
         for key in keys:
@@ -130,15 +149,15 @@ class MotionFactors:
     def __init__(self, model: MotionModel):
         self.model = model
         if model.has_velocity:
-            self._make_cv = _CvFactorMaker(model.accel_psd_m2_s3, model.dt_s)
+            self._make = _LinearMotionFactorMaker(whitened_motion_blocks(model))
         else:
             self._noise = gtsam.noiseModel.Isotropic.Sigma(3, model.sigma_m)  # [m] per axis per frame
             self._zero = np.zeros(3)
 
     def between(self, m: int, k: int) -> gtsam.NonlinearFactor:
-        """The factor joining (p, v)[m, k] and (p, v)[m, k + 1]."""
+        """The factor joining the state (p, u, w as the model has them) of marker m at frames k and k + 1."""
         if self.model.has_velocity:
-            return self._make_cv([p_key(m, k), v_key(m, k), p_key(m, k + 1), v_key(m, k + 1)])
+            return self._make(state_keys(self.model, m, k) + state_keys(self.model, m, k + 1))
         return gtsam.BetweenFactorPoint3(p_key(m, k), p_key(m, k + 1), self._zero, self._noise)
 
     def chain(self, m: int, frames: range) -> list[gtsam.NonlinearFactor]:
@@ -147,15 +166,20 @@ class MotionFactors:
 
 
 def prior_factors(model: MotionModel, m: int, k: int, xyz_m: np.ndarray) -> list[gtsam.NonlinearFactor]:
-    """Weak gauge priors on marker m's first frame k: p ~ N(xyz_m, (10 m)^2 I), v ~ N(0, (10 m/s)^2 I).
+    """Weak gauge priors on marker m's first frame k: p ~ N(xyz_m, (10 m)^2 I), v ~ N(0, (10 m/s)^2 I)
+    (constant velocity and acceleration), a ~ N(0, (1000 m/s^2)^2 I) (constant acceleration).
 
-    (The velocity prior is on u = v dt, so its sigma is 10 m/s * dt [m/frame]: the same prior.)
+    (The velocity prior is on u = v dt, so its sigma is 10 m/s * dt [m/frame]: the same prior; the
+    acceleration prior is on w = a dt^2, sigma 1000 m/s^2 * dt^2.)
     """
     out = [gtsam.PriorFactorPoint3(p_key(m, k), np.asarray(xyz_m, float),
                                    gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_POSITION_SIGMA_M))]
     if model.has_velocity:
         out.append(gtsam.PriorFactorPoint3(v_key(m, k), np.zeros(3),
                                            gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_VELOCITY_SIGMA_MPS * model.dt_s)))
+    if model.has_acceleration:
+        sigma_w = PRIOR_ACCELERATION_SIGMA_MPS2 * model.dt_s**2
+        out.append(gtsam.PriorFactorPoint3(a_key(m, k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma_w)))
     return out
 
 
@@ -279,18 +303,28 @@ def motion_graph(motion: MotionFactors | Mapping[int, MotionFactors], p_init: np
     return graph
 
 
-def initial_values(obs: ObservationFactors, model: MotionModel, p_init: np.ndarray, v_init: np.ndarray,
-                   markers: np.ndarray) -> gtsam.Values:
-    """Initial p (and u = v dt) of ``markers`` on every frame, and the variable cameras' calibrated poses.
+def initial_values(obs: ObservationFactors, model: MotionModel | Mapping[int, MotionModel], p_init: np.ndarray,
+                   v_init: np.ndarray, markers: np.ndarray, a_init: np.ndarray | None = None) -> gtsam.Values:
+    """Initial p (and u = v dt, w = a dt^2 as the model has them) of ``markers`` on every frame, and the
+    variable cameras' calibrated poses.
 
-    p_init, v_init: (F, M, 3) [m], [m/s].
+    model: one for every marker, or one per marker index. p_init, v_init, a_init: (F, M, 3) [m], [m/s],
+    [m/s^2]; a_init defaults to np.gradient(v_init) fps (as batgraph.graph.fast's start).
     """
     values = obs.camera_priors()[1]
     for m in markers:
+        mm = model[int(m)] if isinstance(model, Mapping) else model
+        dt = mm.dt_s
+        a_m = None
+        if mm.has_acceleration:
+            a_m = a_init[:, m] if a_init is not None else (
+                np.gradient(v_init[:, m], axis=0) / dt if len(v_init) > 1 else np.zeros_like(v_init[:, m]))
         for k in range(p_init.shape[0]):
             values.insert(p_key(int(m), k), p_init[k, m])
-            if model.has_velocity:
-                values.insert(v_key(int(m), k), v_init[k, m] * model.dt_s)
+            if mm.has_velocity:
+                values.insert(v_key(int(m), k), v_init[k, m] * dt)
+            if mm.has_acceleration:
+                values.insert(a_key(int(m), k), a_m[k] * dt * dt)
     return values
 
 

@@ -10,7 +10,8 @@ go to the GTSAM smoother.
 Layout: the state is ``x`` of shape (F, M, d) [m], frames first so that one frame of every marker is a
 contiguous (M, d) slice for the sweeps over frames. d = 3 (random walk: position) or 6 (constant
 velocity: position and u = v dt, the displacement per frame, as in factors.v_key, so both halves are in
-metres and every 6x6 block is well conditioned); results are reported in the spec's units (v in m/s).
+metres and every 6x6 block is well conditioned) or 9 (constant acceleration: [p, v dt, a dt^2], likewise);
+results are reported in the spec's units (v in m/s, a in m/s^2).
 
 Speed (issue "Speed a user feels"; BENCHMARKS.md): the linear solves are sweeps over frames, each step
 one batched operation over every column being solved. Measured alternatives on 5 x 24 x 160 and
@@ -40,7 +41,6 @@ from tqdm.auto import tqdm
 from ..camera import Rig
 from ..geometry import pinhole
 from ..measurement import IdealObservations
-from ..motion import constant_velocity_Q
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
@@ -62,6 +62,13 @@ STEP_TOL_M = 1e-10  # largest step component [m]
 # marker's cost cannot be judged by comparing costs (their sums differ by rounding, ~10-30 eps measured
 # on 10^4-term costs); such a step is ~1e-9 m or less and the marker is at its minimiser to rounding.
 ROUNDING_EPS = 4.0
+# A marker whose iterate brings an observed point closer to that camera than this fraction of the
+# closest depth at the start is running into the camera's centre, where every ray of the camera meets:
+# there the cost has no minimum in front of the camera, only an infimum on the cheirality boundary
+# (depth -> 0+), which Gauss-Newton approaches geometrically for hundreds of iterations (measured on
+# the flight sample: constant acceleration at j >= 1e5 m^2/s^5 extrapolating a single-view run through
+# the camera). Such a solve stops, not converged and ``at_camera``: its Laplace evidence is undefined.
+AT_CAMERA_DEPTH_FRACTION = 1e-3
 # Observations are evaluated in blocks of whole frames of about this many rows, so that the
 # temporaries of one block (a few hundred kB each) stay in the CPU cache whatever the scene's size.
 CHUNK_ROWS = 1 << 15
@@ -131,13 +138,14 @@ class _Observations:
         r0, r1, Jw0, Jw1 = self.block_residuals(_positions(x), slice(None), jacobian)
         return np.stack([r0, r1]), None if Jw0 is None else np.stack([Jw0, Jw1])
 
-    def block_residuals(self, pt: np.ndarray, rows: slice, jacobian: bool):
+    def block_residuals(self, pt: np.ndarray, rows: slice, jacobian: bool, inv_depth_out: list | None = None):
         """Whitened residuals (r0, r1), each (k,), of ``rows`` at positions pt (3, F * M') [m] and, if
         asked, the rows of the whitened Jacobian (Jw0, Jw1), each (3, k) [1/m].
 
         r = L^-1 (pi(p) - uv) in front of the camera (depth > 0); behind it r = L^-1 (2 fx, 2 fx) with a
         zero Jacobian, which is what GTSAM's TriangulationFactor returns on a cheirality exception
         (an initial track can put a single-view point behind its camera).
+        inv_depth_out: if a list, each row's inverse depth [1/m] (0 behind the camera) is appended to it.
         """
         p = np.take(pt, self.cell[rows], axis=1)  # (3, k)
         P = np.take(self.P, self.cam[rows], axis=1)  # (12, k)
@@ -148,6 +156,8 @@ class _Observations:
             behind = ~front
             e0[behind] = e1[behind] = self.behind_px[self.cam[rows][behind]]
             inv_depth[behind] = 0.0
+        if inv_depth_out is not None:
+            inv_depth_out.append(inv_depth)
         a, b, c = self.Linv[:, rows]
         r0, r1 = a * e0, b * e0 + c * e1
         if not jacobian:
@@ -218,32 +228,24 @@ class _Problem:
     """The cost of the shared spec for a set of markers at once, and its Gauss-Newton linearisation.
 
     Motion in the (scaled) state: e_k = x[k+1] - A x[k] with information Qi, i.e. cost 0.5 e^T Qi e;
-    random walk: A = I3, Qi = I3 / sigma_m^2; constant velocity: A = [[I, I], [0, I]] and Qi the
-    inverse of Q(q, dt) expressed for the state [p, v dt]. The methods take the state x (F, M', d) of
-    M' markers, their prior means mu0 (M', d) and their observations.
+    A, Qi = Q1^-1 / noise_scale and the gauge priors' information P0 are cost.scaled_motion's: random
+    walk d = 3, A = I3, Qi = I3 / sigma_m^2; constant velocity d = 6, A = [[I, I], [0, I]]; constant
+    acceleration d = 9, A = [[I, I, I/2], [0, I, I], [0, 0, I]] (state [p, v dt, a dt^2]). The methods
+    take the state x (F, M', d) of M' markers, their prior means mu0 (M', d) and their observations.
 
-    ``noise`` (sigma_m [m] or q [m^2/s^3]) is a scalar or one value per marker (M',): both noises are
-    a scale of a unit one (Q(q) = q Q(1), sigma_m^2 I), so Qi = ``wq`` Qi1 with the per-marker weight
-    wq = 1 / q (or 1 / sigma_m^2), shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d).
+    ``noise`` (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]) is a scalar or one value per marker (M',): every
+    noise is a scale of a unit one (Q(q) = q Q(1), sigma_m^2 I), so Qi = ``wq`` Qi1 with the per-marker
+    weight wq = 1 / noise_scale, shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d).
     """
 
     def __init__(self, model: str, noise: float | np.ndarray, fps: float, robust: str, robust_k: float):
         self.robust, self.k = robust, robust_k
-        self.d = 3 if model == "random_walk" else 6
-        dt = 1.0 / fps
-        noise = np.asarray(noise, float)
-        if model == "random_walk":
-            self.A = np.eye(3)
-            self.Qi1 = np.eye(3)
-            self.wq = 1.0 / noise**2
-            self.P0 = np.eye(3) / PRIOR_SIGMA_P_M**2
-        else:
-            S = np.diag([1.0] * 3 + [dt] * 3)  # x_scaled = S [p; v]
-            self.A = np.block([[np.eye(3), np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
-            self.Qi1 = np.linalg.inv(S @ constant_velocity_Q(1.0, dt) @ S)
-            self.Qi1 = 0.5 * (self.Qi1 + self.Qi1.T)
-            self.wq = 1.0 / noise
-            self.P0 = np.diag([PRIOR_SIGMA_P_M**-2] * 3 + [(PRIOR_SIGMA_V_MPS * dt) ** -2] * 3)
+        self.model = model
+        self.d = spec.state_dim(model)
+        self.A, Q1, self.P0 = spec.scaled_motion(model, 1.0 / fps)
+        self.Qi1 = np.linalg.inv(Q1)
+        self.Qi1 = 0.5 * (self.Qi1 + self.Qi1.T)
+        self.wq = 1.0 / spec.noise_scale(model, np.asarray(noise, float))
         w3 = self.wq[..., None, None]  # (1, 1) or (M', 1, 1)
         self.Qi = w3 * self.Qi1
         self.AtQiA = self.A.T @ self.Qi @ self.A
@@ -258,10 +260,11 @@ class _Problem:
         out.wq, out.Qi, out.AtQiA, out.B = self.wq[keep], self.Qi[keep], self.AtQiA[keep], self.B[keep]
         return out
 
-    def evaluate(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations,
-                 jacobian: bool) -> tuple[np.ndarray, _Linearization | None]:
+    def evaluate(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations, jacobian: bool,
+                 closest: np.ndarray | None = None) -> tuple[np.ndarray, _Linearization | None]:
         """Total cost per marker (M',) (inf where not finite) and, if asked, the projection factors'
-        linearisation at x.
+        linearisation at x. ``closest`` (M',), if given, is filled with each marker's largest inverse
+        depth over its observations [1/m] (0 when all are behind their cameras).
 
         The curvature correction Hc is ``w a / |r|^2 (Jw^T r)(Jw^T r)^T`` with a = 1 beyond Huber's k,
         a = min(1, 2|r|^2 / (k^2 + |r|^2)) for Cauchy (clamped so that Hw - Hc stays PSD), 0 for no
@@ -274,8 +277,13 @@ class _Problem:
         total = np.zeros(M)
         lin = _Linearization(np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3))) if jacobian else None
         kk = self.k * self.k
+        if closest is not None:
+            closest[:] = 0.0
         for rows, f0, f1 in obs.blocks:  # sums over each block's (frame, marker) cells
-            r0, r1, Jw0, Jw1 = obs.block_residuals(pt, rows, jacobian)
+            inv_depth = None if closest is None else []
+            r0, r1, Jw0, Jw1 = obs.block_residuals(pt, rows, jacobian, inv_depth)
+            if closest is not None:
+                np.maximum.at(closest, obs.m[rows], inv_depth[0])
             d2 = r0 * r0 + r1 * r1
             rho, w = robust_loss(d2, self.robust, self.k)
             total += np.bincount(obs.m[rows], weights=rho, minlength=M)
@@ -436,7 +444,8 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: np.ndarray, model: str,
                noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
-               covariances: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
+               covariances: bool = True, a_init: np.ndarray | None = None,
+               ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
     session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
@@ -444,11 +453,14 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     p_init: initial positions (F, M, 3) [m, world], finite on every frame of an estimated marker and
         all NaN for a marker not estimated (see batgraph.graph.cost.initial_track); p_init[0] is the
         mean of the weak position prior and p_init the starting point unless ``p_start`` is given.
-    model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]) or "constant_velocity"
-        (noise_level = q, acceleration PSD [m^2/s^3]); noise_level is one value for every marker or
-        one per marker, shape (M,) (entries of markers not estimated are ignored and may be NaN).
+    model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]), "constant_velocity"
+        (noise_level = q, acceleration PSD [m^2/s^3]) or "constant_acceleration" (noise_level = j, jerk
+        PSD [m^2/s^5]); noise_level is one value for every marker or one per marker, shape (M,) (entries
+        of markers not estimated are ignored and may be NaN).
     fps: frame rate [Hz]; robust, robust_k: loss on projection factors (see :func:`robust_loss`).
-    v_init: starting velocities (F, M, 3) [m/s] for constant_velocity; default np.gradient(p_init) * fps.
+    v_init: starting velocities (F, M, 3) [m/s] (constant velocity / acceleration); default
+        np.gradient(p_init) * fps. a_init: starting accelerations (F, M, 3) [m/s^2] (constant
+        acceleration); default np.gradient of the starting velocities times fps.
     p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
     covariances: False skips the marginal covariances (cov is None; log det is still computed, from
         the forward sweep alone): what a search over the noise level needs.
@@ -463,9 +475,11 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     Returns xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2] (marginal of each p[m, k] from the Gauss-Newton
     Hessian at the minimiser, with the IRLS weights there), both NaN for markers not estimated, and
     info: iterations (max over markers), iterations_per_marker (M,), converged (M,) bool, cost (total
-    at the minimiser), cost_per_marker (M,), logdet (log det of the whole Hessian in the spec's
-    variables [p m, v m/s]; sum over markers), logdet_per_marker (M,), velocity (F, M, 3) [m/s] or
-    None, estimated (M,) bool.
+    at the minimiser), at_camera (M,) bool (stopped, not converged: the iterate ran into a camera
+    centre along a single-view run, where the cost has no minimum in front of the camera; see
+    AT_CAMERA_DEPTH_FRACTION), cost_per_marker (M,), logdet (log det of the whole Hessian in the spec's
+    variables [p m, v m/s, a m/s^2]; sum over markers), logdet_per_marker (M,), velocity (F, M, 3) [m/s]
+    or None, acceleration (F, M, 3) [m/s^2] or None, estimated (M,) bool.
     """
     rig = session_or_rig.rig if isinstance(session_or_rig, Session) else session_or_rig
     C, F, M = ideal.seen.shape
@@ -475,8 +489,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     level = np.asarray(noise_level, float)
     prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k)
     obs = _observations(rig, ideal, estimated)
-    x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps)
-    x, cost, lin, iters, converged = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
+    x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps, a_init)
+    x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
     D, _ = prob.system(x, mu0, lin, exact=False)
     if covariances:
         Sigma_e, logdet_e = marginals(D, prob.B)
@@ -484,8 +498,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         Sigma_e, logdet_e = None, logdet(D, prob.B)
     dt = 1.0 / fps
     d = prob.d
-    if d == 6:  # back to the spec's variables: v = x_v / dt, so H_v = H_x dt^2 per velocity axis
-        logdet_e = logdet_e + 2 * 3 * F * np.log(dt)
+    # back to the spec's variables: v = u / dt, a = w / dt^2, so H_v = H_u dt^2, H_a = H_w dt^4 per axis
+    logdet_e = logdet_e + 2 * F * spec.log_det_scale(model, dt)
     x_all = np.full((F, M, d), np.nan)
     x_all[:, ms] = x
     xyz = x_all[..., :3]
@@ -495,7 +509,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         cov = Sigma[..., :3, :3]
     else:
         cov = None
-    velocity = x_all[..., 3:] / dt if d == 6 else None
+    velocity, acceleration = _derivatives(x_all, dt)
 
     def per_marker(a, fill):
         out = np.full(M, fill, dtype=np.asarray(a).dtype)
@@ -504,10 +518,11 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
 
     info = {
         "iterations": int(iters.max(initial=0)), "iterations_per_marker": per_marker(iters, 0),
-        "converged": per_marker(converged, False), "cost": float(cost.sum()),
+        "converged": per_marker(converged, False), "at_camera": per_marker(at_camera, False),
+        "cost": float(cost.sum()),
         "cost_per_marker": per_marker(cost, 0.0), "logdet": float(logdet_e.sum()),
         "logdet_per_marker": per_marker(logdet_e, 0.0), "position": xyz, "velocity": velocity,
-        "estimated": estimated,
+        "acceleration": acceleration, "estimated": estimated,
     }
     return xyz, cov, info
 
@@ -527,29 +542,53 @@ def _check(model: str, robust: str, p_init: np.ndarray, noise_level, F: int, M: 
 
 
 def _start(prob: _Problem, p_init: np.ndarray, v_init: np.ndarray | None, p_start: np.ndarray | None,
-           ms: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """The starting state x (F, M', d) of markers ``ms`` and their prior means mu0 (M', d) (velocity 0)."""
+           ms: np.ndarray, fps: float, a_init: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The starting state x (F, M', d) of markers ``ms`` and their prior means mu0 (M', d) (velocity and
+    acceleration 0). Velocities v_init [m/s] default to np.gradient(p_init) fps, accelerations a_init
+    [m/s^2] (constant acceleration) to np.gradient of the starting velocities times fps."""
     F = p_init.shape[0]
+    dt = 1.0 / fps
     x = np.zeros((F, len(ms), prob.d))
     x[..., :3] = (p_init if p_start is None else p_start)[:, ms]
-    if prob.d == 6:
-        if v_init is None:
-            v_init = np.gradient(p_init, axis=0) * fps if F > 1 else np.zeros_like(p_init)
-        x[..., 3:] = v_init[:, ms] * (1.0 / fps)
+    if prob.d >= 6:
+        v = _gradient(p_init, fps) if v_init is None else v_init
+        x[..., 3:6] = v[:, ms] * dt
+        if prob.d == 9:
+            x[..., 6:9] = (_gradient(v[:, ms], fps) if a_init is None else a_init[:, ms]) * (dt * dt)
     mu0 = np.zeros((len(ms), prob.d))
     mu0[:, :3] = p_init[0, ms]
     return x, mu0
+
+
+def _gradient(a: np.ndarray, fps: float) -> np.ndarray:
+    """d a / dt along frames (axis 0) by np.gradient, zero for a single frame."""
+    return np.gradient(a, axis=0) * fps if len(a) > 1 else np.zeros_like(a)
+
+
+def _derivatives(x: np.ndarray, dt: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Velocities [m/s] and accelerations [m/s^2] (..., 3) of states x (..., d) [m] (None where the model
+    has none): v = u / dt, a = w / dt^2."""
+    d = x.shape[-1]
+    v = spec.velocity_mps(x[..., 3:6], dt) if d >= 6 else None
+    a = spec.acceleration_mps2(x[..., 6:9], dt) if d == 9 else None
+    return v, a
 
 
 def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, mu0: np.ndarray,
                          max_iterations: int):
     """Levenberg-Marquardt per marker column from x (F, M', d) (see :func:`solve_fast`).
 
-    Returns (x, cost (M',), linearisation at x, iterations (M',), converged (M',) bool).
+    Returns (x, cost (M',), linearisation at x, iterations (M',), converged (M',) bool, at_camera (M',)
+    bool: stopped because an accepted iterate put an observed point at a depth below
+    AT_CAMERA_DEPTH_FRACTION of the marker's closest depth at the start, i.e. the minimiser lies on the
+    cheirality boundary at a camera centre and does not exist in front of it; never converged).
     """
     M = x.shape[1]
     d = prob.d
-    cost, lin = prob.evaluate(x, mu0, obs_all, jacobian=True)
+    near = np.zeros(M)  # each marker's largest inverse depth over its observations [1/m]
+    cost, lin = prob.evaluate(x, mu0, obs_all, jacobian=True, closest=near)
+    limit = np.where(near > 0, near / AT_CAMERA_DEPTH_FRACTION, np.inf)  # the "at the camera" inverse depth
+    at_camera = np.zeros(M, bool)
     lam = np.zeros(M)  # damping of IRLS steps
     lam_x = np.zeros(M)  # damping of exact steps (own curvature): remembers their rejections
     exact = np.zeros(M, bool)  # the next step uses the loss's own curvature (else IRLS's)
@@ -574,7 +613,8 @@ def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, 
         D[..., diag, diag] *= 1.0 + damping[None, :, None]
         dx = _solve(D, prob_a.B, -g)
         xn = xa + dx
-        cost_new, lin_new = prob_a.evaluate(xn, mu0[act], obs, jacobian=True)
+        near_new = np.zeros(len(act))
+        cost_new, lin_new = prob_a.evaluate(xn, mu0[act], obs, jacobian=True, closest=near_new)
         ok = cost_new <= cost[act]
         step = np.abs(dx).max(axis=(0, 2))
         rel = (cost[act] - cost_new) / np.maximum(cost[act], np.finfo(float).tiny)
@@ -583,8 +623,10 @@ def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, 
         x[:, act[ok]] = xn[:, ok]
         lin.put(act[ok], lin_new.take(ok))
         stuck = lam[act] > 1e12  # IRLS steps (which majorise the loss) rejected even when tiny
-        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck
-        converged[act] = done & ~stuck
+        pupil = ok & (near_new > limit[act])  # accepted into a camera centre: no minimum in front of it
+        at_camera[act] = pupil
+        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck | pupil
+        converged[act] = done & ~stuck & ~pupil
         iters[act] += 1
         cost[act] = np.where(ok, cost_new, cost[act])
         # accepted: less damping (of that kind of step), next step exact; rejected exact step: more
@@ -600,25 +642,26 @@ def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, 
             lam_x[act] = lam[act]
         exact[act] = ok
         active[act] = ~done
-    return x, cost, lin, iters, converged
+    return x, cost, lin, iters, converged, at_camera
 
 
 @_one_thread
 def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: str, levels: np.ndarray,
                  fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
                  p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
-                 ) -> dict:
+                 a_start: np.ndarray | None = None) -> dict:
     """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
 
-    levels: (K, M) noise levels (q [m^2/s^3] or sigma_m [m]), one row per candidate. The K copies of
+    levels: (K, M) noise levels (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]), one row per candidate. The K copies of
     every marker are independent columns of one Levenberg-Marquardt run (candidates x markers as the
     batch axis, each column with its own damping and stopping), so a candidate's answer is exactly
     the one solve_fast gives with that row (to the solver's tolerance); the observation rows are
     repeated per candidate, in groups of candidates of at most ``max_rows`` rows in all.
-    v_start, p_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
+    v_start, p_start, a_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
     Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
-    logdet_per_marker), position (K, F, M, 3), velocity (K, F, M, 3) or None, iterations (K, M),
-    converged (K, M); NaN / 0 for markers not estimated.
+    logdet_per_marker), position (K, F, M, 3), velocity and acceleration (K, F, M, 3) or None,
+    iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's); NaN / 0 for markers not
+    estimated.
     """
     levels = np.asarray(levels, float)
     C, F, M = ideal.seen.shape
@@ -630,9 +673,12 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     ms = np.flatnonzero(estimated)
     obs = _observations(rig, ideal, estimated)
     dt = 1.0 / fps
+    order = spec.MOTION_ORDER[model]
     out = {"cost": np.zeros((K, M)), "logdet": np.zeros((K, M)), "position": np.full((K, F, M, 3), np.nan),
-           "velocity": np.full((K, F, M, 3), np.nan) if model != "random_walk" else None,
-           "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool)}
+           "velocity": np.full((K, F, M, 3), np.nan) if order >= 1 else None,
+           "acceleration": np.full((K, F, M, 3), np.nan) if order >= 2 else None,
+           "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool),
+           "at_camera": np.zeros((K, M), bool)}
     group = max(1, int(max_rows // max(1, len(obs.f))))
 
     def pick(a, k):
@@ -641,82 +687,95 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     for k0 in range(0, K, group):
         ks = np.arange(k0, min(K, k0 + group))
         prob = _Problem(model, levels[ks][:, ms].ravel(), fps, robust, robust_k)
-        starts = [_start(prob, p_init, pick(v_start, k), pick(p_start, k), ms, fps) for k in ks]
+        starts = [_start(prob, p_init, pick(v_start, k), pick(p_start, k), ms, fps, pick(a_start, k)) for k in ks]
         x = np.concatenate([s[0] for s in starts], axis=1)
         mu0 = np.concatenate([s[1] for s in starts])
-        x, cost, lin, iters, converged = _levenberg_marquardt(prob, obs.tile(len(ks)), x, mu0, max_iterations)
+        x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs.tile(len(ks)), x, mu0,
+                                                                         max_iterations)
         D, _ = prob.system(x, mu0, lin, exact=False)
-        ld = logdet(D, prob.B)
-        if prob.d == 6:
-            ld = ld + 2 * 3 * F * np.log(dt)
+        ld = logdet(D, prob.B) + 2 * F * spec.log_det_scale(model, dt)  # spec units (as solve_fast)
+        v, a = _derivatives(x, dt)
         n = len(ms)
         for j, k in enumerate(ks):
             cols = slice(j * n, (j + 1) * n)
             out["cost"][k, ms], out["logdet"][k, ms] = cost[cols], ld[cols]
             out["iterations"][k, ms], out["converged"][k, ms] = iters[cols], converged[cols]
+            out["at_camera"][k, ms] = at_camera[cols]
             out["position"][k][:, ms] = x[:, cols, :3]
-            if prob.d == 6:
-                out["velocity"][k][:, ms] = x[:, cols, 3:] / dt
+            for key, val in (("velocity", v), ("acceleration", a)):
+                if val is not None:
+                    out[key][k][:, ms] = val[:, cols]
     return out
 
 
 @_one_thread
-def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
-                                markers: np.ndarray, fps: float, robust: str, robust_k: float,
-                                p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
-                                progress: bool = False,
-                                ) -> tuple[np.ndarray, dict]:
-    """Each marker's maximum-Laplace-marginal-likelihood q [m^2/s^3] for a fixed rig (module docstring).
+def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                            markers: np.ndarray, fps: float, robust: str, robust_k: float,
+                            p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
+                            progress: bool = False, model: str = "constant_velocity",
+                            a_start: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Each marker's maximum-Laplace-marginal-likelihood noise level of ``model`` for a fixed rig:
+    q [m^2/s^3] (constant velocity) or j [m^2/s^5] (constant acceleration) (batgraph.graph.noise).
 
     rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
     (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
     p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
-    p_start, v_start: where the decade grid's solves start (F, M, 3) [m], [m/s] (default p_init, v_init),
-    e.g. the cleaning solution.
-    The decade grid over noise.LOG10_Q_RANGE (9 decades) is ONE batched solve (:func:`solve_levels`:
+    p_start, v_start, a_start: where the decade grid's solves start (F, M, 3) [m], [m/s], [m/s^2]
+    (default p_init, v_init and solve_fast's default accelerations), e.g. the cleaning solution.
+    The decade grid over noise.LOG10_RANGE[model] is ONE batched solve (:func:`solve_levels`:
     decades x markers as the batch axis, every column from the start, so no stiff solution is ever
     carried to a neighbouring decade, which once dragged wing markers off their track). Then a
-    golden-section search per marker, vectorised (each step is one solve_fast with one q per marker,
+    golden-section search per marker, vectorised (each step is one solve_fast with one level per marker,
     warm-started from the previous step, without covariances), in [best decade - 1, best decade + 1]
-    until the bracket is noise.LOG10_Q_TOL wide; the answer is each marker's best q evaluated. Score
+    until the bracket is noise.LOG10_Q_TOL wide; the answer is each marker's best level evaluated. Score
     per marker: laplace_log_evidence of its own chain (cost and log det from :func:`solve_fast`, which
-    are exactly per marker). n_solves counts the batched grid as one.
+    are exactly per marker; the gauge priors' constant included, so scores of models compare); -inf
+    for a level whose solve ran into a camera centre (``at_camera``: no mode in front of the camera, so
+    no Laplace approximation; a marker with no other level scores -inf and "auto" keeps the other model).
+    n_solves counts the batched grid as one.
 
-    Returns q (M,) [m^2/s^3] (NaN for markers not in ``markers``) and info: per_marker {index: q},
-    rule, n_solves.
+    Returns the level (M,) (NaN for markers not in ``markers``) and info: per_marker {index: level},
+    rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others).
     """
     markers = np.asarray(markers, int)
     F, M = p_init.shape[:2]
     dt = 1.0 / fps
     sub = IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
     p0 = p_init[:, markers]
-    start = ((p_init if p_start is None else p_start)[:, markers], (v_init if v_start is None else v_start)[:, markers])
+    cut = (lambda a: None if a is None else a[:, markers])  # noqa: E731
+    start = (cut(p_init if p_start is None else p_start), cut(v_init if v_start is None else v_start), cut(a_start))
     n_solves = 0
 
-    def solve(q: np.ndarray, from_: tuple[np.ndarray, np.ndarray]):
+    def evidence(cost, logdet_, level):
+        return noise.laplace_log_evidence(cost, logdet_, level, dt, F - 1, model=model)
+
+    def solve(level: np.ndarray, from_: tuple):
         nonlocal n_solves
         n_solves += 1
-        _, _, info = solve_fast(rig, sub, p0, "constant_velocity", q, fps, robust, robust_k,
-                                v_init=from_[1], p_start=from_[0], covariances=False)
-        score = noise.laplace_log_evidence(info["cost_per_marker"], info["logdet_per_marker"], q, dt, F - 1)
-        return score, (info["position"], info["velocity"])
+        _, _, info = solve_fast(rig, sub, p0, model, level, fps, robust, robust_k, v_init=from_[1],
+                                p_start=from_[0], a_init=from_[2], covariances=False)
+        score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level)
+        score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
+        return score, (info["position"], info["velocity"], info["acceleration"])
 
     n_golden = math.ceil(math.log(noise.LOG10_Q_TOL / 2.0) / math.log(noise._GOLDEN)) + 2
-    lo, hi = noise.LOG10_Q_RANGE
+    lo, hi = noise.LOG10_RANGE[model]
     grid = np.arange(math.ceil(lo), math.floor(hi) + 1, dtype=float)
-    bar = tqdm(total=1 + n_golden, desc="choosing accel PSD per marker", disable=not progress, leave=False)
+    bar = tqdm(total=1 + n_golden, desc=f"choosing {noise.NOISE_UNIT[model]} per marker", disable=not progress,
+               leave=False)
     # the decade grid: every decade x every marker in one batched solve, each from the start
     levels = np.repeat(10.0 ** grid[:, None], len(markers), axis=1)
-    sol = solve_levels(rig, sub, p0, "constant_velocity", levels, fps, robust, robust_k,
-                       v_start=start[1], p_start=start[0])
+    sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
+                       v_start=start[1], p_start=start[0], a_start=start[2])
     n_solves += 1
     bar.update()
-    scores = noise.laplace_log_evidence(sol["cost"], sol["logdet"], levels, dt, F - 1)  # (len(grid), markers)
+    scores = evidence(sol["cost"], sol["logdet"], levels)  # (len(grid), markers)
+    scores = np.where(sol["at_camera"], -np.inf, scores)
     cols = np.arange(len(markers))
     best = np.argmax(scores, axis=0)
     x_best, s_best = grid[best], scores[best, cols]
-    state = (np.ascontiguousarray(sol["position"][best, :, cols].transpose(1, 0, 2)),
-             np.ascontiguousarray(sol["velocity"][best, :, cols].transpose(1, 0, 2)))
+    state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][best, :, cols].transpose(1, 0, 2))
+                  for key in ("position", "velocity", "acceleration"))
 
     def f(x: np.ndarray) -> np.ndarray:
         nonlocal state, x_best, s_best
@@ -738,10 +797,82 @@ def choose_accel_psd_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.n
         fn = f(new)
         fc, fd = np.where(left, fn, fd), np.where(left, fc, fn)
     bar.close()
-    q = np.full(M, np.nan)
-    q[markers] = 10.0**x_best
-    return q, {"rule": noise.PER_MARKER_RULE, "per_marker": {int(m): float(q[m]) for m in markers},
-               "n_solves": n_solves}
+    level, ev = np.full(M, np.nan), np.full(M, np.nan)
+    level[markers], ev[markers] = 10.0**x_best, s_best
+    return level, {"rule": noise.per_marker_rule(model), "per_marker": {int(m): float(level[m]) for m in markers},
+                   "n_solves": n_solves, "log_evidence": ev}
+
+
+choose_accel_psd_per_marker = choose_noise_per_marker  # the constant-velocity q per marker (its default model)
+
+
+def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                            markers: np.ndarray, fps: float, robust: str, robust_k: float,
+                            candidates: tuple[str, ...] = spec.AUTO_CANDIDATES, p_start: np.ndarray | None = None,
+                            v_start: np.ndarray | None = None, progress: bool = False,
+                            ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Each marker's motion model among ``candidates`` and its noise level, by maximum Laplace evidence.
+
+    Runs :func:`choose_noise_per_marker` for each candidate model (arguments as there; each search
+    batched over markers) and keeps per marker the model whose best evidence is the largest
+    (batgraph.graph.noise explains why the scores compare). Markers are independent, so this is the
+    joint choice exactly. Returns model (M,) object array of names (None for markers not in
+    ``markers``), level (M,) (that model's q [m^2/s^3] or j [m^2/s^5]; NaN elsewhere) and info:
+    {model: that search's info} plus ``log_evidence`` {model: (M,)}.
+    """
+    M = p_init.shape[1]
+    found = {name: choose_noise_per_marker(rig, ideal, p_init, v_init, markers, fps, robust, robust_k, p_start,
+                                           v_start, progress, model=name) for name in candidates}
+    ev = np.stack([found[name][1]["log_evidence"] for name in candidates])  # (n_candidates, M)
+    won = np.argmax(np.where(np.isfinite(ev), ev, -np.inf), axis=0)
+    model = np.full(M, None, dtype=object)
+    level = np.full(M, np.nan)
+    for i, name in enumerate(candidates):
+        mine = np.zeros(M, bool)
+        mine[markers] = won[markers] == i
+        model[mine], level[mine] = name, found[name][0][mine]
+    info = {name: found[name][1] for name in candidates}
+    info["log_evidence"] = {name: found[name][1]["log_evidence"] for name in candidates}
+    return model, level, info
+
+
+def solve_per_model(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray,
+                    level: np.ndarray, fps: float, robust: str, robust_k: float, v_init: np.ndarray | None = None,
+                    p_start: np.ndarray | None = None, a_init: np.ndarray | None = None,
+                    covariances: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """:func:`solve_fast` with a motion model per marker: one solve per model over its markers, merged
+    (markers are independent with fixed cameras, so this is the joint minimiser exactly).
+
+    model: (M,) model names (None for markers not estimated); level (M,) each marker's noise level.
+    Other arguments and the returns as solve_fast's; the info's per-marker arrays, velocity (NaN for
+    random-walk markers) and acceleration (NaN for markers without one) are merged, cost / logdet /
+    iterations are totals / maxima over the solves.
+    """
+    F, M = p_init.shape[:2]
+    xyz = np.full((F, M, 3), np.nan)
+    cov = np.full((F, M, 3, 3), np.nan) if covariances else None
+    merged = {"iterations_per_marker": np.zeros(M, int), "converged": np.zeros(M, bool), "at_camera": np.zeros(M, bool),
+              "cost_per_marker": np.zeros(M), "logdet_per_marker": np.zeros(M), "estimated": np.zeros(M, bool),
+              "velocity": np.full((F, M, 3), np.nan), "acceleration": np.full((F, M, 3), np.nan)}
+    for name in dict.fromkeys(m for m in model if m is not None):
+        mine = np.array([m == name for m in model])
+        p_mine = np.where(mine[None, :, None], p_init, np.nan)
+        x, c, info = solve_fast(rig, ideal, p_mine, name, np.where(mine, level, np.nan), fps, robust, robust_k,
+                                v_init=v_init, p_start=p_start, covariances=covariances, a_init=a_init)
+        xyz[:, mine] = x[:, mine]
+        if covariances:
+            cov[:, mine] = c[:, mine]
+        for key in ("iterations_per_marker", "converged", "at_camera", "cost_per_marker", "logdet_per_marker",
+                    "estimated"):
+            merged[key][mine] = info[key][mine]
+        for key in ("velocity", "acceleration"):
+            if info[key] is not None:
+                merged[key][:, mine] = info[key][:, mine]
+    est = merged["estimated"]
+    merged.update(iterations=int(merged["iterations_per_marker"].max(initial=0)),
+                  cost=float(merged["cost_per_marker"][est].sum()),
+                  logdet=float(merged["logdet_per_marker"][est].sum()), position=xyz)
+    return xyz, cov, merged
 
 
 @_one_thread
@@ -789,9 +920,13 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     """The ``smoother`` method on the fast path (fixed rig); same answer as the GTSAM batch smoother.
 
     Follows batgraph.graph.smoother.run_smoother step by step, including its outlier-rejection
-    schedule (Cauchy cleaning solve, exclusion set D, q chosen per marker without D by
-    noise.choose_accel_psd_per_marker, final rounds until D is stable; see that module's docstring),
-    each solve being :func:`solve_fast` with the same start.
+    schedule (Cauchy cleaning solve, exclusion set D, the model ("auto": constant velocity or
+    acceleration) and its noise chosen per marker without D by :func:`choose_model_per_marker`, final
+    rounds until D is stable; see that module's docstring), each solve being :func:`solve_per_model`
+    (solve_fast per model) with the same start. Figures: motion_model (as asked), motion_model_per_marker
+    {name: model}, accel_psd_m2_s3 / jerk_psd_m2_s5 {name: level} of the markers of each model,
+    log_evidence_per_marker (auto), acceleration_rms_mps2 of constant-acceleration markers
+    (noise.model_figures).
     Falls back to run_smoother when any camera has a pose covariance.
     """
 
@@ -811,47 +946,59 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     if not estimated.any():  # nothing triangulated anywhere: every output is NaN
         return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
                         np.zeros((C, F, M), bool), time.perf_counter() - t0, figures)
-
-    def level(q_: float | np.ndarray | None) -> float | np.ndarray:  # q_: one value or (M,) per marker
-        return sigma_m if model == "random_walk" else q_
-
+    markers = np.flatnonzero(estimated)
     excluded = np.zeros((C, F, M), bool)
-    p_start, v_start = p_init, v_init  # where the next solve starts (a warm start after cleaning)
+    p_start, v_start, a_start = p_init, v_init, None  # where the next solve starts (a warm start after cleaning)
     if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
-        q0 = q if q is not None or model == "random_walk" else noise.causal_accel_psd(session)
-        xyz0, _, info0 = solve_fast(rig, ideal, p_init, model, level(q0), fps, spec.CLEANING_LOSS, k, v_init=v_init)
+        clean, q0 = cleaning_motion(model, sigma_m, q, session)
+        xyz0, _, info0 = solve_fast(rig, ideal, p_init, clean, q0, fps, spec.CLEANING_LOSS, k, v_init=v_init)
         excluded = _rejected(rig, ideal, xyz0)
         p_start = xyz0
         v_start = v_init if info0["velocity"] is None else info0["velocity"]
         figures["cleaning"] = {"loss": spec.CLEANING_LOSS, "robust_k": k, "iterations": info0["iterations"],
                                "n_flagged": int(excluded.sum())}
-        if model == "constant_velocity":
+        if clean == "constant_velocity":
             figures["cleaning"]["accel_psd_m2_s3"] = q0
-    if model == "random_walk":
-        figures["sigma_m"] = sigma_m
-    elif q is None:  # step 3: q per marker on the observations left, first solve from the cleaning solution
-        markers = np.flatnonzero(estimated)
-        q, selection = choose_accel_psd_per_marker(
-            rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k,
+    models = np.full(M, None, dtype=object)
+    if model == "random_walk" or q is not None:  # one given noise level
+        models[markers], level = model, np.full(M, sigma_m if model == "random_walk" else q)
+        figures.update({"sigma_m": sigma_m} if model == "random_walk" else noise.q_figures(q))
+        figures["motion_model_per_marker"] = {dense.markers[m]: model for m in markers}
+    else:  # step 3: model (auto) and noise per marker on the observations left, from the cleaning solution
+        candidates = spec.AUTO_CANDIDATES if model == spec.AUTO else (model,)
+        models, level, selection = choose_model_per_marker(
+            rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
             p_start, v_start, progress=options.progress)
-        figures.update(noise.q_figures(q, markers, dense.markers, selection))
-    else:
-        figures.update(noise.q_figures(q))
+        figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     rounds = []
     n_rounds = spec.REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
-        xyz, cov, info = solve_fast(rig, spec.without_observations(ideal, excluded), p_init, model, level(q),
-                                    fps, robust, k, v_init=v_start, p_start=p_start)
+        xyz, cov, info = solve_per_model(rig, spec.without_observations(ideal, excluded), p_init, models, level,
+                                         fps, robust, k, v_init=v_start, p_start=p_start, a_init=a_start)
         rounds.append(info["iterations"])
         again = _rejected(rig, ideal, xyz)
         if r == n_rounds - 1 or (again == excluded).all():
             break
-        excluded, p_start, v_start = again, xyz, v_start if info["velocity"] is None else info["velocity"]
+        excluded, p_start, v_start, a_start = again, xyz, info["velocity"], info["acceleration"]
     outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
+    if (models == "constant_acceleration").any():  # the accelerations the model estimated [m/s^2]
+        figures["acceleration_rms_mps2"] = {
+            dense.markers[m]: float(np.sqrt(np.mean(np.sum(info["acceleration"][:, m] ** 2, axis=-1))))
+            for m in markers if models[m] == "constant_acceleration"}
     if reject:
         figures["iterations_per_round"] = rounds
         figures["rejected"] = int(excluded.sum())
         figures["rejection_converged"] = bool((again == excluded).all())
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)
+
+
+def cleaning_motion(model: str, sigma_m: float, q: float | None, session: Session) -> tuple[str, float]:
+    """The motion model and noise level of the rejection schedule's cleaning solve (step 1): the random
+    walk at sigma_m for a random walk; otherwise constant velocity at the given q, else the causal q
+    (noise.causal_accel_psd), also for "auto" and constant acceleration (whose jerk PSD is chosen after
+    cleaning; the cleaning solve only needs a plausible prior to spot mislabels)."""
+    if model == "random_walk":
+        return model, sigma_m
+    return "constant_velocity", q if q is not None else noise.causal_accel_psd(session)

@@ -1,4 +1,4 @@
-"""Choosing the motion model and its noise level: given values, or the constant-velocity q from the data.
+"""Choosing the motion model and its noise level: given values, or the model and its noise from the data.
 
 Rule for the smoother (documented in the README): when neither ``options.accel_psd_m2_s3`` nor the
 session's ``[motion] accel_psd_m2_s3`` sets it, the white-noise acceleration PSD q [m^2/s^3] is the
@@ -25,6 +25,18 @@ them), which kept the per-marker accuracy (a global q cost 8.6 % RMSE there). :f
 takes a score computed by the caller, so any solver of the same cost can reuse the search. The search
 itself is in :mod:`batgraph.graph.fast` (it needs the solver); this module imports no solver and no GTSAM.
 
+The MODEL is chosen per marker the same way (``[motion] model = "auto"``;
+opt-in, constant velocity is the default):
+:func:`batgraph.graph.fast.choose_model_per_marker` runs the search above for each model of
+cost.AUTO_CANDIDATES (constant velocity, q [m^2/s^3]; constant acceleration, white-noise jerk PSD j
+[m^2/s^5] over log10 j in LOG10_RANGE) and keeps per marker the model whose best evidence is larger.
+The two evidences are comparable because both are the same data term (the same observations, the
+same robust loss) times a normalised Gaussian prior over the marker's chain, and the Laplace formula
+above is then complete when log det Lambda_prior includes the gauge priors on the first frame
+(:func:`prior_logdet`): their normalising constants differ between models (constant acceleration has
+a third prior, on a[0]); the (2 pi)^(d F / 2) of prior and posterior cancel, and so do units (log det
+of posterior and prior are taken in the same variables). An explicit model keeps that model.
+
 Rule for the filter, which must not see the future: the session/option value if given, else
 :func:`causal_accel_psd` from the motion config alone. This module does not build graphs.
 """
@@ -40,14 +52,33 @@ from tqdm.auto import tqdm
 from ..motion import random_walk_sigma_m
 from ..result import Options
 from ..session import Session
-from .cost import MOTION_MODELS, MotionModel
+from .cost import (
+    AUTO,
+    MOTION_MODELS,
+    MOTION_ORDER,
+    PRIOR_ACCELERATION_SIGMA_MPS2,
+    PRIOR_POSITION_SIGMA_M,
+    PRIOR_VELOCITY_SIGMA_MPS,
+    MotionModel,
+    log_det_scale,
+    noise_scale,
+    scaled_motion,
+)
 
 LOG10_Q_RANGE = (-2.0, 6.0)  # plausible accel PSD 0.01 (a gliding body) .. 1e6 m^2/s^3
+# The search range of each model's noise level chosen from data: log10 of q [m^2/s^3] (constant velocity)
+# or of the jerk PSD j [m^2/s^5] (constant acceleration: a body changing its acceleration by ~1 m/s^2 in
+# a second, j ~ 1, .. a 15 Hz wing tip, j ~ (2 pi 15)^6 0.15^2 / (2 pi 15) ~ 1e9)
+LOG10_RANGE = {"constant_velocity": LOG10_Q_RANGE, "constant_acceleration": (0.0, 10.0)}
+NOISE_UNIT = {"random_walk": "sigma_m", "constant_velocity": "accel_psd_m2_s3",
+              "constant_acceleration": "jerk_psd_m2_s5"}
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
 GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
                " (decade grid + golden section), one q for all markers")
 PER_MARKER_RULE = (f"max Laplace marginal likelihood per marker over log10 q in [{LOG10_Q_RANGE[0]:g}, "
                    f"{LOG10_Q_RANGE[1]:g}] (shared decade grid + per-marker golden section)")
+AUTO_RULE = ("per marker, the model of larger Laplace marginal likelihood, each at its own best noise level "
+             "(constant velocity: q, constant acceleration: jerk PSD j)")
 LOG10_Q_TOL = 0.05  # golden-section stops when the bracket is this narrow (12 % in q; the peak is flat)
 _GOLDEN = (math.sqrt(5) - 1) / 2
 
@@ -55,14 +86,38 @@ _GOLDEN = (math.sqrt(5) - 1) / 2
 def motion_choice(session: Session, options: Options) -> tuple[str, float | None, float | None]:
     """(model, sigma_m, accel_psd) from options first, then session.toml.
 
+    model: one of cost.MOTION_MODELS, or "auto" (each marker's model from the data; a given q makes
+        it "constant_velocity", the model q belongs to).
     sigma_m [m]: the random walk's per-axis std per frame (paper eq. 4-5 or ``sigma_m``), always given.
-    accel_psd [m^2/s^3]: options.accel_psd_m2_s3, else the session's, else None ("choose from data").
+    accel_psd [m^2/s^3]: options.accel_psd_m2_s3, else the session's, else None ("choose from data");
+        the constant-velocity q (the constant-acceleration jerk PSD is always chosen from the data).
     """
     model = options.motion_model or session.motion.model
-    if model not in MOTION_MODELS:
-        raise ValueError(f"motion model must be one of {MOTION_MODELS}, got {model!r}")
+    if model not in (*MOTION_MODELS, AUTO):
+        raise ValueError(f"motion model must be one of {(*MOTION_MODELS, AUTO)}, got {model!r}")
     q = options.accel_psd_m2_s3 if options.accel_psd_m2_s3 is not None else session.motion.accel_psd_m2_s3
+    if model == AUTO and q is not None:
+        model = "constant_velocity"
     return model, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
+
+
+def logdet_Q(model: str, level: float | np.ndarray, dt_s: float) -> float | np.ndarray:
+    """log det Q(level, dt) of one step of ``model`` in the spec's variables [p m, v m/s, a m/s^2], (d, d).
+
+    Constant velocity: :func:`cv_logdet_Q`; constant acceleration: 3 log(j^3 dt^9 / 8640); random walk:
+    3 log(sigma_m^2). level: scalar or array.
+    """
+    _, Q1, _ = scaled_motion(model, dt_s)
+    d = len(Q1)
+    return d * np.log(noise_scale(model, np.asarray(level, float))) + np.linalg.slogdet(Q1)[1] - 2 * log_det_scale(
+        model, dt_s)
+
+
+def prior_logdet(model: str) -> float:
+    """log det of the information of one chain's first-frame gauge priors, spec units (cost spec):
+    -6 (log 10 m + log 10 m/s + log 1000 m/s^2), cut to the model's order (random walk: position only)."""
+    sig = np.array([PRIOR_POSITION_SIGMA_M, PRIOR_VELOCITY_SIGMA_MPS, PRIOR_ACCELERATION_SIGMA_MPS2])
+    return float(-6.0 * np.log(sig[:MOTION_ORDER[model] + 1]).sum())
 
 
 def cv_logdet_Q(accel_psd_m2_s3: float | np.ndarray, dt_s: float) -> float | np.ndarray:
@@ -74,17 +129,22 @@ def cv_logdet_Q(accel_psd_m2_s3: float | np.ndarray, dt_s: float) -> float | np.
 
 
 def laplace_log_evidence(error: float, logdet_post: float, accel_psd_m2_s3: float, dt_s: float,
-                         n_steps: int) -> float:
-    """Laplace log marginal likelihood up to a q-independent constant (module docstring).
+                         n_steps: int, model: str = "constant_velocity", n_chains: int = 1) -> float:
+    """Laplace log marginal likelihood up to a constant common to every model and noise level
+    (the data term's normaliser; module docstring).
 
-    Every argument but dt_s may also be an array (per marker: error, logdet_post and q of each chain).
+    Every argument but dt_s, model and n_chains may also be an array (per marker: error, logdet_post and
+    the noise level of each chain).
 
-    error: total cost E(x*) (0.5 sum of squared whitened residuals, robust where robust).
-    logdet_post: log det of the posterior information at x* (GTSAM's Bayes tree logDeterminant
-        is half of it: it is log det R, R^T R = Lambda).
-    n_steps: number of constant-velocity steps in the graph (sum over marker chains of F - 1).
+    error: total cost E(x*) (0.5 sum of squared whitened residuals, robust where robust, plus the
+        motion and gauge-prior terms).
+    logdet_post: log det of the posterior information at x*, spec units [p m, v m/s, a m/s^2] (GTSAM's
+        Bayes tree logDeterminant is half of it: it is log det R, R^T R = Lambda).
+    accel_psd_m2_s3: the model's noise level (for constant acceleration the jerk PSD [m^2/s^5]).
+    n_steps: number of motion steps in the graph (sum over marker chains of F - 1).
+    n_chains: number of marker chains, each with its first-frame gauge priors (:func:`prior_logdet`).
     """
-    logdet_prior = -n_steps * cv_logdet_Q(accel_psd_m2_s3, dt_s)
+    logdet_prior = -n_steps * logdet_Q(model, accel_psd_m2_s3, dt_s) + n_chains * prior_logdet(model)
     return -error - 0.5 * logdet_post + 0.5 * logdet_prior
 
 
@@ -150,6 +210,42 @@ def q_figures(q: float | np.ndarray, markers: np.ndarray | None = None, names: l
             "accel_psd_m2_s3": {names[m]: float(q[m]) for m in markers}}
 
 
+def per_marker_rule(model: str) -> str:
+    """The per-marker search's rule for ``model``'s noise level (PER_MARKER_RULE for constant velocity)."""
+    lo, hi = LOG10_RANGE[model]
+    what = "q" if model == "constant_velocity" else "j"
+    return (f"max Laplace marginal likelihood per marker over log10 {what} in [{lo:g}, {hi:g}] "
+            "(shared decade grid + per-marker golden section)")
+
+
+_PREFIX = {"constant_velocity": "accel_psd", "constant_acceleration": "jerk_psd"}
+
+
+def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, names: list[str],
+                  selection: dict, candidates: tuple[str, ...]) -> dict:
+    """The figures both smoothers report about a per-marker choice from the data
+    (:func:`batgraph.graph.fast.choose_model_per_marker`; one candidate = only its noise level chosen).
+
+    model (M,) names, level (M,) noise levels, markers: int indices of the estimated markers, names:
+    marker labels. Gives motion_model_per_marker {name: model}, per model its noise per marker
+    (accel_psd_m2_s3 {name: q} for the constant-velocity markers, jerk_psd_m2_s5 {name: j} for the
+    constant-acceleration ones), its search's rule and counts (``accel_psd_selection``,
+    ``jerk_psd_selection``) and, with several candidates, log_evidence_per_marker {name: {model: score}}.
+    """
+    out = {"accel_psd_source": "data", "motion_model_per_marker": {names[m]: str(model[m]) for m in markers}}
+    if len(candidates) > 1:
+        out["motion_model_rule"] = AUTO_RULE
+        out["log_evidence_per_marker"] = {names[m]: {c: float(selection["log_evidence"][c][m]) for c in candidates}
+                                          for m in markers}
+    for c in candidates:
+        sel = selection[c]
+        out[f"{_PREFIX[c]}_rule"] = sel["rule"]
+        out[f"{_PREFIX[c]}_selection"] = {"rule": sel["rule"], "n_solves": sel["n_solves"],
+                                          "per_marker": sel["per_marker"]}
+        out[NOISE_UNIT[c]] = {names[m]: float(level[m]) for m in markers if model[m] == c}
+    return out
+
+
 def causal_accel_psd(session: Session) -> float:
     """Constant-velocity q [m^2/s^3] from the motion config alone (the filter's default; sees no data).
 
@@ -183,12 +279,19 @@ def choose_accel_psd_per_marker(*args, **kwargs) -> tuple[np.ndarray, dict]:
 
 
 def filter_motion(session: Session, options: Options) -> tuple[MotionModel, dict]:
-    """The filter's motion model and where its noise came from (given, or the causal default)."""
+    """The filter's motion model and where its noise came from (given, or the causal default).
+
+    The filters have the random walk and constant velocity: "auto" (the smoother's per-marker choice
+    needs the whole sequence) and "constant_acceleration" (no causal rule for its jerk PSD) filter with
+    constant velocity; ``motion_model_requested`` in the figures says so.
+    """
     model_name, sigma_m, q = motion_choice(session, options)
     dt = 1.0 / session.fps
     if model_name == "random_walk":
         return MotionModel("random_walk", dt, sigma_m=sigma_m), {"sigma_m": sigma_m}
     source = "given" if q is not None else "motion config (noise.causal_accel_psd)"
     q = q if q is not None else causal_accel_psd(session)
-    return (MotionModel("constant_velocity", dt, accel_psd_m2_s3=q),
-            {"accel_psd_m2_s3": q, "accel_psd_source": source})
+    info = {"accel_psd_m2_s3": q, "accel_psd_source": source}
+    if model_name != "constant_velocity":
+        info["motion_model_requested"] = model_name
+    return MotionModel("constant_velocity", dt, accel_psd_m2_s3=q), info

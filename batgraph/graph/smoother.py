@@ -1,7 +1,7 @@
 """The batch smoother: Levenberg-Marquardt over the whole factor graph, then marginal covariances.
 
 Solves the project's cost spec with GTSAM (the reference every fast path is tested against); graph
-construction is in :mod:`batgraph.graph.factors`, the choice of the constant-velocity noise in
+construction is in :mod:`batgraph.graph.factors`, the choice of the motion model and its noise in
 :mod:`batgraph.graph.noise`. Uses every frame, past and future, so it bridges occlusion gaps.
 
 Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast path must follow it):
@@ -25,6 +25,10 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    conditional on the cameras at their calibrated means (the markers share the cameras, so the exact
    evidence would not split per marker); one global q instead cost 8.6 % in RMSE on observed points
    (1.448 -> 1.572 mm, simulated 5-camera flight, seed 1). A given q (options or session) is global.
+   With model "auto" (opt-in; constant velocity is the default) the same search runs for constant velocity (q) and constant
+   acceleration (jerk PSD j), and each marker keeps the model of larger evidence
+   (fast.choose_model_per_marker); an explicit constant_acceleration searches j only. The cleaning
+   solve of steps 1-2 uses constant velocity for both (fast.cleaning_motion).
 4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from the cleaning
    solution; then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
    REJECTION_ROUNDS solves in all), D = D' and re-solve warm. Covariances come from the last
@@ -46,9 +50,9 @@ from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import factors, noise
-from .cost import CLEANING_LOSS, REJECTION_ROUNDS  # noqa: F401  (the schedule's constants, module docstring)
-from .factors import MotionFactors, MotionModel, ObservationFactors
-from .fast import choose_accel_psd_per_marker
+from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, motion_model  # noqa: F401  (the schedule's constants, module docstring)
+from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
+from .fast import choose_model_per_marker, cleaning_motion
 
 MAX_ITERATIONS = 200
 
@@ -90,25 +94,28 @@ def marginal_covariances(graph: gtsam.NonlinearFactorGraph, solution: gtsam.Valu
 
 
 def posterior_logdet(graph: gtsam.NonlinearFactorGraph, solution: gtsam.Values, dt_s: float,
-                     n_velocity: int = 0) -> float:
-    """log det of the Gauss-Newton information at ``solution``, in units m (p) and m/s (v).
+                     n_velocity: int = 0, n_acceleration: int = 0) -> float:
+    """log det of the Gauss-Newton information at ``solution``, in units m (p), m/s (v) and m/s^2 (a).
 
     From a QR Bayes net: log det Lambda = 2 sum log|diag R|. The graph's velocity
     variables are u = v dt (factors.v_key); Lambda_v = dt^2 Lambda_u, so each of the ``n_velocity``
-    3-vectors adds 6 log dt.
+    3-vectors adds 6 log dt; its accelerations are w = a dt^2 (factors.a_key), so each of the
+    ``n_acceleration`` 3-vectors adds 12 log dt.
     """
     lin = graph.linearize(solution)
     bayes_net = lin.eliminateSequential(gtsam.Ordering.ColamdGaussianFactorGraph(lin), gtsam.EliminateQR)
     # QR's R may have negative diagonal entries (GTSAM's logDeterminant would take their log)
     log_det_R = sum(np.log(np.abs(np.diag(bayes_net.at(i).R()))).sum() for i in range(bayes_net.size()))
-    return 2.0 * log_det_R + 6 * n_velocity * np.log(dt_s)
+    return 2.0 * log_det_R + (6 * n_velocity + 12 * n_acceleration) * np.log(dt_s)
 
 
 def log_evidence(graph: gtsam.NonlinearFactorGraph, solution: gtsam.Values, q: float, dt_s: float,
-                 n_steps: int, n_velocity: int) -> float:
-    """Laplace log marginal likelihood of q (see :mod:`batgraph.graph.noise`) at the optimum ``solution``."""
-    logdet_post = posterior_logdet(graph, solution, dt_s, n_velocity)
-    return noise.laplace_log_evidence(graph.error(solution), logdet_post, q, dt_s, n_steps)
+                 n_steps: int, n_velocity: int, model: str = "constant_velocity", n_acceleration: int = 0,
+                 n_chains: int = 1) -> float:
+    """Laplace log marginal likelihood of the noise level q (see :mod:`batgraph.graph.noise`; for constant
+    acceleration the jerk PSD) at the optimum ``solution`` of a graph of ``n_chains`` marker chains."""
+    logdet_post = posterior_logdet(graph, solution, dt_s, n_velocity, n_acceleration)
+    return noise.laplace_log_evidence(graph.error(solution), logdet_post, q, dt_s, n_steps, model, n_chains)
 
 
 def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel | dict[int, MotionModel],
@@ -116,7 +123,7 @@ def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel |
                 start: gtsam.Values | None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, ObservationFactors]:
     """Minimise the cost on ``ideal``'s observations of ``markers`` from ``start`` (default the initial track).
 
-    model: one motion model, or one per marker index (the same kind, per-marker noise).
+    model: one motion model, or one per marker index (any mix of models and noise levels).
     Returns (graph, solution, iterations, its ObservationFactors).
     """
     F = p_init.shape[0]
@@ -124,7 +131,6 @@ def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel |
     graph = factors.observation_graph(obs, markers, F)
     if isinstance(model, dict):
         motion = {m: MotionFactors(mm) for m, mm in model.items()}
-        model = next(iter(model.values()))
     else:
         motion = MotionFactors(model)
     graph.push_back(factors.motion_graph(motion, p_init, markers))
@@ -136,11 +142,13 @@ def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel |
 
 def _velocities(values: gtsam.Values, markers: np.ndarray, n_frames: int, n_markers: int,
                 dt_s: float) -> np.ndarray:
-    """v of ``markers`` from ``values`` as (n_frames, n_markers, 3) [m/s] (stored as u = v dt); NaN elsewhere."""
+    """v of ``markers`` from ``values`` as (n_frames, n_markers, 3) [m/s] (stored as u = v dt); NaN elsewhere
+    (and for markers whose model has no velocity)."""
     v = np.full((n_frames, n_markers, 3), np.nan)
     for m in markers:
-        for k in range(n_frames):
-            v[k, m] = factors.velocity_mps(values.atPoint3(factors.v_key(int(m), k)), dt_s)
+        if values.exists(factors.v_key(int(m), 0)):
+            for k in range(n_frames):
+                v[k, m] = factors.velocity_mps(values.atPoint3(factors.v_key(int(m), k)), dt_s)
     return v
 
 
@@ -180,39 +188,36 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     if len(markers) == 0:
         return Estimate("smoother", xyz, cov, np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
 
-    def motion(q_: float | None) -> MotionModel:
-        if model_name == "random_walk":
-            return MotionModel("random_walk", dt, sigma_m=sigma_m)
-        return MotionModel("constant_velocity", dt, accel_psd_m2_s3=q_)
-
     excluded = np.zeros((C, F, M), bool)
     start = None
+    p_start, v_start = p_init, v_init
     if reject:  # steps 1-2: Cauchy from the initial track at q0, flags there
-        q0 = q if q is not None or model_name == "random_walk" else noise.causal_accel_psd(session)
-        graph, start, iterations, obs = _solve_cost(session, ideal, motion(q0), CLEANING_LOSS, options.robust_k,
-                                                    p_init, v_init, markers, None)
+        clean, q0 = cleaning_motion(model_name, sigma_m, q, session)
+        graph, start, iterations, obs = _solve_cost(session, ideal, motion_model(clean, dt, q0), CLEANING_LOSS,
+                                                    options.robust_k, p_init, v_init, markers, None)
         excluded = factors.to_exclude(_flags(obs, ideal, start, markers)[1], ideal.seen)
         info["cleaning"] = {"loss": CLEANING_LOSS, "robust_k": options.robust_k, "iterations": iterations,
                             "n_flagged": int(excluded.sum())}
-        if model_name == "constant_velocity":
+        if clean == "constant_velocity":
             info["cleaning"]["accel_psd_m2_s3"] = q0
-    if model_name == "random_walk":
-        info["sigma_m"] = sigma_m
-    elif q is None:  # step 3, per marker (cameras at their means when they are variables)
-        p_start = v_start = None
-        if start is not None:
-            p_start = factors.positions(start, markers, F, M)
-            v_start = _velocities(start, markers, F, M, dt)
-        q_m, selection = choose_accel_psd_per_marker(
+        p_start = factors.positions(start, markers, F, M)
+        v_start = _velocities(start, markers, F, M, dt) if clean != "random_walk" else v_init
+    models = np.full(M, None, dtype=object)
+    if model_name == "random_walk" or q is not None:  # one given noise level
+        models[markers], level = model_name, np.full(M, sigma_m if model_name == "random_walk" else q)
+        info.update({"sigma_m": sigma_m} if model_name == "random_walk" else noise.q_figures(q))
+        info["motion_model_per_marker"] = {dense.markers[m]: model_name for m in markers}
+    else:  # step 3, per marker (cameras at their means when they are variables)
+        candidates = AUTO_CANDIDATES if model_name == AUTO else (model_name,)
+        models, level, selection = choose_model_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
-            options.robust, options.robust_k, p_start, v_start, progress=options.progress)
-        info.update(noise.q_figures(q_m, markers, dense.markers, selection))
-    else:
-        info.update(noise.q_figures(q))
-    if model_name == "constant_velocity" and q is None:  # per marker
-        model = {int(m): motion(float(q_m[m])) for m in markers}
-    else:
-        model = motion(q)
+            options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress)
+        info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
+    model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
+    if start is not None:  # the final solves start from the cleaning solution, in the chosen models' variables
+        cleaned, start = start, factors.initial_values(obs, model, p_start, v_start, markers)
+        for c in np.flatnonzero(obs.variable):  # and its camera poses
+            start.update(factors.pose_key(int(c)), cleaned.atPose3(factors.pose_key(int(c))))
     rounds = []
     n_rounds = REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the flags are the excluded set
