@@ -9,7 +9,8 @@ markers with 4 cameras, a banked turn at 250 fps / 3 px, a glide at 60 fps / 2 p
 at 1000 fps / 8 px. ``--scenes`` picks scenes by key (shell patterns, e.g. ``--scenes 'wingbeat*'``).
 Rows: the smoother with its default constant velocity (q per marker by marginal likelihood), with the
 opt-in "auto" (each marker's model, constant velocity or constant acceleration, and its noise by marginal
-likelihood) and with the paper's random walk; the filter with constant velocity (its default) and with the random walk; the paper's
+likelihood) and with the paper's random walk; the filter with constant velocity (its default) and with
+the random walk; the paper's
 EKF and UKF, per-frame triangulation, and triangulation linearly interpolated through gaps
 (batgraph.graph.factors.initial_track, no covariance). Prints the tables and writes them to
 docs/accuracy.md with a checklist of the project's accuracy targets (measured value, pass/fail).

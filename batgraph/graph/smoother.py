@@ -25,8 +25,8 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    conditional on the cameras at their calibrated means (the markers share the cameras, so the exact
    evidence would not split per marker); one global q instead cost 8.6 % in RMSE on observed points
    (1.448 -> 1.572 mm, simulated 5-camera flight, seed 1). A given q (options or session) is global.
-   With model "auto" (opt-in; constant velocity is the default) the same search runs for constant velocity (q) and constant
-   acceleration (jerk PSD j), and each marker keeps the model of larger evidence
+   With model "auto" (opt-in; constant velocity is the default) the same search runs for constant
+   velocity (q) and constant acceleration (jerk PSD j), and each marker keeps the model of larger evidence
    (fast.choose_model_per_marker); an explicit constant_acceleration searches j only. The cleaning
    solve of steps 1-2 uses constant velocity for both (fast.cleaning_motion).
 4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from the cleaning
