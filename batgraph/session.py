@@ -126,8 +126,9 @@ class Session:
 
 
 def gap_frames(take_gap_s: float, fps: float) -> int:
-    """[session] take_gap_s [s] at ``fps`` [Hz] as a number of frames, at least 1."""
-    return max(1, round(take_gap_s * fps))
+    """[session] take_gap_s [s] at ``fps`` [Hz] as a number of frames, at least 1 and at most
+    inputs.MAX_FRAME (a huge take_gap_s means one take; the product may overflow to inf)."""
+    return max(1, round(min(take_gap_s * fps, inputs.MAX_FRAME)))
 
 
 def frame_axis(observed: np.ndarray, gap_frames: int) -> tuple[np.ndarray, list[slice]]:

@@ -87,9 +87,12 @@ def test_take_gap_is_read_from_session_toml_and_checked(tmp_path):
     toml = (folder / "session.toml").read_text()
     (folder / "session.toml").write_text(toml.replace("[session]\n", "[session]\ntake_gap_s = 0.2\n", 1))
     assert [(t.start, t.stop) for t in read_session(folder).takes] == [(0, 9), (9, 10)]
-    (folder / "session.toml").write_text(toml.replace("[session]\n", "[session]\ntake_gap_s = -1\n", 1))
-    with pytest.raises(InputError, match=r"session.toml \[session\] take_gap_s"):
-        read_session(folder)
+    (folder / "session.toml").write_text(toml.replace("[session]\n", "[session]\ntake_gap_s = 1e308\n", 1))
+    assert len(read_session(folder).takes) == 1  # huge (take_gap_s x fps overflows): one take, no error
+    for bad in ("-1", "inf", '"1 s"'):
+        (folder / "session.toml").write_text(toml.replace("[session]\n", f"[session]\ntake_gap_s = {bad}\n", 1))
+        with pytest.raises(InputError, match=r"session.toml \[session\] take_gap_s"):
+            read_session(folder)
 
 
 def test_reconstruct_and_export_with_two_takes(tmp_path, capsys):

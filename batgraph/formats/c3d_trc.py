@@ -143,9 +143,8 @@ def one_take(trajectories: pd.DataFrame, take: int | None = None) -> tuple[pd.Da
     frames = trajectories["frame"].to_numpy(np.int64)
     tk = take_of(frames) if len(frames) else np.zeros(0, int)
     n = int(tk.max()) + 1 if len(tk) else 1
-    if take is None:
-        lengths = [len(np.unique(frames[tk == i])) for i in range(n)]
-        take = int(np.argmax(lengths)) if n > 1 else 0
+    if take is None:  # frames per take: the table's distinct frames counted by take
+        take = int(np.argmax(np.bincount(take_of(np.unique(frames))))) if n > 1 else 0
     if not 0 <= take < n:
         raise InputError(f"take {take + 1}: the result has {n} take{'s' if n > 1 else ''} (1..{n})")
     return (trajectories if n == 1 else trajectories[tk == take]), take, n
