@@ -39,7 +39,7 @@ class Method:
 # In display order. The paper draws the EKF dashed and the UKF solid (Fig. 5); batgraph's own methods
 # get their own colours so that the two solid lines (ukf, smoother) stay distinguishable.
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("smoother", "graph.fast:run_smoother_fast", "#1f77b4", "-", False,
+    Method("smoother", "graph.schedule:run_smoother_fast", "#1f77b4", "-", False,
            "factor-graph smoother: every frame uses every other (GTSAM batch Levenberg-Marquardt problem)",
            run_gtsam="graph.smoother:run_smoother"),
     Method("filter", "graph.fast_filter:run_filter_fast", "#ff7f0e", "-.", True,

@@ -31,6 +31,11 @@ MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "a
 
 
 DEFAULT_TAKE_GAP_S = 1.0
+# [markers] rigid_sigma_m: the std of a rigid segment's length about its one estimated value [m]. Skin
+# markers over a joint move a few millimetres relative to the bone (Cappozzo et al. 1996 measured
+# soft-tissue artefacts of 2-20 mm on human limbs; a bat's thin skin over its wing bones is at the low
+# end), so 2 mm: stiff enough to pin a single-view marker's depth, loose enough for real markers.
+DEFAULT_RIGID_SIGMA_M = 0.002
 """[session] take_gap_s: a run of more frames than this many seconds in which no camera sees any marker
 separates two takes (see :func:`frame_axis`)."""
 
@@ -79,6 +84,9 @@ class Session:
         ``[noise] pixel_sigma_px``.
     warnings: non-fatal remarks found while loading (e.g. points outside the image).
     take_gap_s: [session] take_gap_s [s]: longer runs of frames with no observation split takes (:func:`frame_axis`).
+    rigid: [markers] rigid, pairs of markers on one rigid segment (a bone): the smoother ties their
+        distance to one estimated length per segment (batgraph.graph.rigid); none by default.
+    rigid_sigma_m: [markers] rigid_sigma_m, the std of such a distance about its length [m].
     """
 
     name: str
@@ -97,6 +105,8 @@ class Session:
     path: Path | None = None
     warnings: list[str] = field(default_factory=list)
     take_gap_s: float = DEFAULT_TAKE_GAP_S
+    rigid: list[tuple[str, str]] = field(default_factory=list)
+    rigid_sigma_m: float = DEFAULT_RIGID_SIGMA_M
 
     @property
     def markers(self) -> list[str]:
@@ -377,12 +387,17 @@ def _session_config(path: Path) -> dict:
             raise InputError(f"{path}: '{key}' must be a table [{key}], got {data[key]!r}")
     markers = data.get("markers", {})
     inputs.unique_names(markers.get("names", []), f"{path} [markers] names", "marker name")
-    skeleton = markers.get("skeleton", [])
-    if not isinstance(skeleton, list):
-        raise InputError(f"{path} [markers] skeleton: expected a list of [marker, marker] pairs, got {skeleton!r}")
-    for i, edge in enumerate(skeleton):
-        if not (isinstance(edge, list) and len(edge) == 2 and all(isinstance(e, str) for e in edge)):
-            raise InputError(f"{path} [markers] skeleton[{i}]: expected a pair of marker names, got {edge!r}")
+    for key in ("skeleton", "rigid"):
+        pairs = markers.get(key, [])
+        if not isinstance(pairs, list):
+            raise InputError(f"{path} [markers] {key}: expected a list of [marker, marker] pairs, got {pairs!r}")
+        for i, edge in enumerate(pairs):
+            if not (isinstance(edge, list) and len(edge) == 2 and all(isinstance(e, str) for e in edge)):
+                raise InputError(f"{path} [markers] {key}[{i}]: expected a pair of marker names, got {edge!r}")
+            if key == "rigid" and edge[0] == edge[1]:
+                raise InputError(f"{path} [markers] rigid[{i}]: a segment needs two different markers, got {edge!r}")
+    if "rigid_sigma_m" in markers:
+        inputs.number(markers["rigid_sigma_m"], f"{path} [markers] rigid_sigma_m", positive=True)
     motion = data.get("motion", {})
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:
@@ -421,12 +436,14 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     markers = cfg.get("markers", {})
     names = [str(n) for n in markers.get("names", [])]
     skeleton = [(str(a), str(b)) for a, b in markers.get("skeleton", [])]
+    rigid = list(dict.fromkeys((str(a), str(b)) for a, b in markers.get("rigid", [])))
     known_markers = set(names) | set(observations["marker"])
-    for i, edge in enumerate(skeleton):
-        for e in edge:
-            if e not in known_markers:
-                raise InputError(f"{folder / 'session.toml'} [markers] skeleton[{i}]: marker {e!r} is neither in "
-                                 f"[markers] names nor observed in {obs_path.name}")
+    for key, pairs in (("skeleton", skeleton), ("rigid", rigid)):
+        for i, edge in enumerate(pairs):
+            for e in edge:
+                if e not in known_markers:
+                    raise InputError(f"{folder / 'session.toml'} [markers] {key}[{i}]: marker {e!r} is neither in "
+                                     f"[markers] names nor observed in {obs_path.name}")
     take_gap_s = float(sess.get("take_gap_s", DEFAULT_TAKE_GAP_S))
     frames, _ = frame_axis(observations["frame"].to_numpy(), gap_frames(take_gap_s, float(sess["fps"])))
     n_markers = len(set(names) | set(observations["marker"]))
@@ -445,7 +462,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
         pixel_sigma_px=float(noise["pixel_sigma_px"]) if "pixel_sigma_px" in noise else None,
         marker_names=names, skeleton=skeleton,
         truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder,
-        warnings=warnings, take_gap_s=take_gap_s,
+        warnings=warnings, take_gap_s=take_gap_s, rigid=rigid,
+        rigid_sigma_m=float(markers.get("rigid_sigma_m", DEFAULT_RIGID_SIGMA_M)),
     )
 
 
@@ -485,8 +503,12 @@ def session_toml(session: Session) -> str:
         doc["session"]["take_gap_s"] = session.take_gap_s
     if isinstance(session.pixel_sigma_px, int | float):
         doc["noise"] = {"pixel_sigma_px": session.pixel_sigma_px}
-    if session.marker_names or session.skeleton:
+    if session.marker_names or session.skeleton or session.rigid:
         doc["markers"] = {"names": list(session.marker_names), "skeleton": [list(e) for e in session.skeleton]}
+        if session.rigid:
+            doc["markers"]["rigid"] = [list(e) for e in session.rigid]
+        if session.rigid_sigma_m != DEFAULT_RIGID_SIGMA_M:
+            doc["markers"]["rigid_sigma_m"] = session.rigid_sigma_m
     doc.update(session.extra_toml)
     return tomli_w.dumps(doc)
 

@@ -359,7 +359,8 @@ def flight_scene(
 
 
 def flight_skeleton(marker_names: list[str]) -> list[tuple[str, str]]:
-    """Edges body - shoulder - elbow - wrist - digits for each wing present in ``marker_names``."""
+    """Edges body - shoulder - elbow - wrist - digits for each wing present in ``marker_names``: every one is a
+    bone or fixed in the body frame, so the simulator also writes them as ``[markers] rigid``."""
     edges = [("body1", "body2")]
     for s in "rl":
         edges += [("body1", f"shoulder_{s}"), (f"shoulder_{s}", f"elbow_{s}"), (f"elbow_{s}", f"wrist_{s}")]
@@ -488,7 +489,7 @@ def _assemble(
     rng: np.random.Generator, streams: list[np.random.Generator], scene: Scene, rig: Rig, *, name: str,
     fps: float, motion: MotionConfig, skeleton: list[tuple[str, str]], pixel_sigma_px: float,
     outlier_rate: float, calib_rot_deg: float, calib_trans_mm: float, calib_cameras: list[int] | None,
-    params: dict,
+    params: dict, rigid: list[tuple[str, str]] = (),
 ) -> Session:
     """Render, apply the calibration error, and pack a Session (shared by both scenes)."""
     if not 0 <= outlier_rate <= 1:
@@ -513,6 +514,7 @@ def _assemble(
         name=name, fps=float(fps), rig=written, observations=obs, motion=motion,
         pixel_sigma_px=float(pixel_sigma_px), marker_names=list(scene.marker_names), skeleton=skeleton,
         truth=truth_table(scene), true_rig=true_rig, mislabels=mis, extra_toml={"simulation": sim},
+        rigid=list(rigid),
     )
 
 
@@ -551,7 +553,7 @@ def simulate_flight(
     return _assemble(rng, streams, scene, rig, name=name or f"flight_{n_cameras}cam", fps=fps, motion=motion,
                      skeleton=flight_skeleton(scene.marker_names), pixel_sigma_px=pixel_sigma_px,
                      outlier_rate=outlier_rate, calib_rot_deg=calib_rot_deg, calib_trans_mm=calib_trans_mm,
-                     calib_cameras=calib_cameras, params=params)
+                     calib_cameras=calib_cameras, params=params, rigid=flight_skeleton(scene.marker_names))
 
 
 def simulate_ear(

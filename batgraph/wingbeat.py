@@ -35,7 +35,7 @@ moves the wing forward and down), deviation ``theta`` out of the stroke plane (p
 and pronation ``psi`` about the humerus. The forearm turns forward by the elbow angle ``eps`` in the
 wing plane and bends dorsally by ``kappa_e``; the hand turns back by the wrist angle ``omega`` and
 bends by ``kappa_w``; digits III, IV, V fan back by the spread angles. Every bone is a fixed length,
-so every segment is rigid (``markers_rigid``). Over the cycle, with ``s`` the stroke phase (0 = top of
+so every segment is rigid (``[markers] rigid``). Over the cycle, with ``s`` the stroke phase (0 = top of
 the stroke, 0.5 = bottom; the time warp ``p(s) = s + c (1 - cos 2 pi s) / 2 pi`` makes the downstroke
 last the fraction ``D`` of the cycle, C-infinity):
 
@@ -420,7 +420,8 @@ def simulate_wingbeat(
     Also drawn: the wingbeat phase at frame 0, stroke-plane tilt, body pitch, bat size, the heading, the
     cameras. The session states no motion physics (batgraph measures its motion noise from the data);
     ``extra_toml`` holds ``[wingbeat]`` (every parameter, enough to rebuild the scene with
-    :func:`wingbeat_scene`) and ``markers_rigid`` (marker pairs at a constant distance).
+    :func:`wingbeat_scene`); ``rigid`` (session.toml's ``[markers] rigid``) the marker pairs at a constant
+    distance (:func:`rigid_pairs`).
     """
     if flight not in FLIGHTS:
         raise ValueError(f"flight must be one of {FLIGHTS}, got {flight!r}")
@@ -462,5 +463,5 @@ def simulate_wingbeat(
         name=name or f"wingbeat_{flight}_{n_cameras}cam", fps=float(fps), rig=rig, observations=obs,
         motion=MotionConfig(model="constant_velocity"), pixel_sigma_px=p["pixel_sigma_px"],
         marker_names=list(scene.marker_names), skeleton=skeleton(), truth=truth_table(scene), mislabels=mis,
-        extra_toml={"wingbeat": p, "markers_rigid": [list(e) for e in rigid_pairs()]},
+        extra_toml={"wingbeat": p}, rigid=rigid_pairs(),
     )

@@ -20,6 +20,7 @@ Run by ``make study``. Nothing is asserted: it reports what it measures.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import fnmatch
 import os
@@ -55,6 +56,7 @@ SPLIT_GROUPS = tuple(f"{st}/{sp}" for st in STATUSES for sp in evaluate.SPANS)
 # default; "auto" is opt-in).
 METHOD_ROWS = (
     ("smoother", "smoother", "constant_velocity"),
+    ("smoother_noseg", "smoother", "constant_velocity"),
     ("smoother_auto", "smoother", "auto"),
     ("smoother_rw", "smoother", "random_walk"),
     ("filter", "filter", None),
@@ -63,6 +65,7 @@ METHOD_ROWS = (
     ("ukf", "ukf", None),
     ("triangulate", "triangulate", None),
 )
+NO_SEGMENT_ROWS = ("smoother_noseg",)  # rows run on the session without its [markers] rigid segments
 INTERPOLATION = "interpolation"  # triangulation interpolated through gaps (derived from the triangulate row)
 ROW_NAMES = tuple(r[0] for r in METHOD_ROWS) + (INTERPOLATION,)
 PAPER_STEREO_MM = 1.0  # paper: EKF/UKF within 1 mm of stereo triangulation on the ear
@@ -152,9 +155,9 @@ def inside_gaps(n_views: np.ndarray) -> np.ndarray:
 
 
 def partner_mask(session: Session, markers: list[str], n_views: np.ndarray) -> np.ndarray | None:
-    """Single-view points inside a marker's span with a rigid segment partner (session.toml's ``markers_rigid``,
-    batgraph.wingbeat) observed (>= 2 views) on the same frame, bool (F, M); None without ``markers_rigid``."""
-    pairs = session.extra_toml.get("markers_rigid")
+    """Single-view points inside a marker's span with a rigid segment partner (session.toml's ``[markers] rigid``,
+    batgraph.wingbeat) observed (>= 2 views) on the same frame, bool (F, M); None without segments."""
+    pairs = session.rigid
     if not pairs:
         return None
     idx = {m: i for i, m in enumerate(markers)}
@@ -209,7 +212,8 @@ def run_scene(scene: StudyScene, seed: int, bar: tqdm) -> tuple[list[dict], dict
     summaries, estimates, trajs = {}, {}, {}
     for row, method, motion_model in METHOD_ROWS:
         bar.set_postfix_str(f"{scene.key} seed {seed} {row}")
-        res = run_methods(session, [method], Options(motion_model=motion_model, progress=False))
+        res = run_methods(dataclasses.replace(session, rigid=[]) if row in NO_SEGMENT_ROWS else session, [method],
+                          Options(motion_model=motion_model, progress=False))
         summaries[row], estimates[row] = res.summary["methods"][method], res.estimates[method]
         trajs[row] = res.trajectories
         bar.update()
@@ -512,7 +516,9 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "* each cell: median over seeds [min, max] (one value when all seeds agree or there is one seed); "
         "'—' = no such point or no figure (interpolation has no covariance; the filters and triangulation "
         "give no estimate before a marker's first triangulation).",
-        "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data; "
+        "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data, "
+        "with the session's segment-length factors (both generators write their bones as `[markers] rigid`; "
+        "default stiffness rigid_sigma_m = 2 mm); `smoother_noseg` = the same without the segments; "
         "`smoother_auto` = the opt-in \"auto\": per marker constant velocity or constant acceleration "
         "(white-noise jerk), whichever has the larger marginal likelihood, each with its noise chosen from "
         "the data; `filter` = "
@@ -545,7 +551,7 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         out += ["", "## Targets on the hold-out generator (batgraph.wingbeat; a target passes when it holds on every "
                 "seed)", "", "Scenes from a second, independent generator that batgraph was not tuned on (joint-angle "
                 "wing chain, random flight-section rigs; see batgraph/wingbeat.py). The single-view row counts the "
-                "single-view points inside a marker's span whose rigid segment partner (`markers_rigid`) is "
+                "single-view points inside a marker's span whose rigid segment partner (`[markers] rigid`) is "
                 "observed on the same frame.", ""]
         for s in held:
             out += [f"### {s.title} (`{s.key}`)", "", markdown_table(target_head, holdout_target_rows(by[s.key])), ""]

@@ -4,7 +4,8 @@ Prints a table and ratios measured in this run (medians over repeats); nothing h
 ``make bench``; BENCHMARKS.md records a run. Sections:
 (a) the smoother's fast path (batgraph.graph.fast) against a straightforward GTSAM build-and-solve of
     the same graph (one Python loop adding factors, LM, gtsam.Marginals for every point), checking
-    that both reach the same optimum;
+    that both reach the same optimum; (a') the same with segment-length factors on the simulator's bones
+    (batgraph.graph.rigid) against without;
 (b) the filters' frames per second (iSAM2 and the fast per-marker filter) and their difference;
 (c) per-frame triangulation time;
 (d) how the paper's stacked EKF's time and memory grow with the number of markers;
@@ -18,6 +19,7 @@ Prints a table and ratios measured in this run (medians over repeats); nothing h
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import os
 import platform
@@ -33,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from batgraph.graph import factors, fast, noise  # noqa: E402
+from batgraph.graph import factors, fast, noise, rigid, schedule  # noqa: E402
 from batgraph.measurement import IdealObservations, ideal_observations  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import Session, dense_observations  # noqa: E402
@@ -210,12 +212,48 @@ def bench_smoother(session: Session, dense, ideal: IdealObservations, args) -> l
                  f"1 run; build {b['build_s']:.1f} + LM {b['solve_s']:.1f} + Marginals {b['marginals_s']:.1f} s"))
     rows.append((f"  ratio GTSAM / fast ({len(sub)} markers)", f"{t_base / t_fast_sub:.0f}x",
                  f"goal >= 5x; max position diff {dx:.1e} m; cov diff {dcov_at:.0e} rel at the same point"))
-    t_meth, _, est = timed(lambda: fast.run_smoother_fast(session, dense, ideal, Options(progress=False)), 1)
+    plain = dataclasses.replace(session, rigid=[])
+    t_meth, _, est = timed(lambda: schedule.run_smoother_fast(plain, dense, ideal, Options(progress=False)), 1)
     q = est.info.get("accel_psd_m2_s3", float("nan"))
     q_text = (f"per-marker q {min(q.values()):.3g}..{max(q.values()):.3g}" if isinstance(q, dict) else f"q = {q:.4g}")
     rows.append(("smoother method end to end (fast path: init + robust schedule + choose q per marker + solve)",
-                 f"{t_meth:.2f} s", f"1 run; {q_text}"))
-    return rows
+                 f"{t_meth:.2f} s", f"1 run, no segments; {q_text}"))
+    return rows + bench_segments(session, dense, ideal, p_init, v_init, args)
+
+
+def bench_segments(session: Session, dense, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
+                   args) -> list[tuple[str, str, str]]:
+    """(a'): segment-length factors (the simulator's bones, [markers] rigid): one final solve with and without
+    them at the same q, alternating, medians; and the smoother method end to end both ways."""
+    opt = Options(progress=False)
+    pairs = rigid.segment_pairs(session.rigid, dense.markers)
+    M = p_init.shape[1]
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    models = np.where(estimated, "constant_velocity", None).astype(object)
+    level = np.full(M, noise.causal_accel_psd(session))
+    solve = {"without": lambda: fast.solve_per_model(session.rig, ideal, p_init, models, level, session.fps,
+                                                     opt.robust, opt.robust_k, v_init=v_init),
+             "with": lambda: rigid.solve_rigid(session.rig, ideal, p_init, models, level, session.fps, opt.robust,
+                                               opt.robust_k, pairs, session.rigid_sigma_m, v_init=v_init)}
+    plain = dataclasses.replace(session, rigid=[])
+    method = {"without": lambda: schedule.run_smoother_fast(plain, dense, ideal, opt),
+              "with": lambda: schedule.run_smoother_fast(session, dense, ideal, opt)}
+    times = {(k, w): [] for k in ("solve", "method") for w in ("without", "with")}
+    for _ in range(args.repeats):
+        for w in ("without", "with"):
+            times["solve", w].append(timed(solve[w], 1)[0])
+            times["method", w].append(timed(method[w], 1)[0])
+    med = {k: statistics.median(v) for k, v in times.items()}
+    n_grouped = len(np.unique(pairs))
+    print(f"(a') segments: {len(pairs)} segments joining {n_grouped} of {M} markers; one solve without / with: "
+          f"{med['solve', 'without']:.2f} / {med['solve', 'with']:.2f} s; method end to end "
+          f"{med['method', 'without']:.2f} / {med['method', 'with']:.2f} s (medians of {args.repeats})")
+    return [(f"smoother solve with {len(pairs)} segments / without (same q)",
+             f"{med['solve', 'with'] / med['solve', 'without']:.2f}x",
+             f"goal <= 2x; {med['solve', 'with']:.2f} vs {med['solve', 'without']:.2f} s, medians of {args.repeats}"),
+            (f"smoother method end to end with {len(pairs)} segments / without",
+             f"{med['method', 'with'] / med['method', 'without']:.2f}x",
+             f"{med['method', 'with']:.2f} vs {med['method', 'without']:.2f} s, medians of {args.repeats}")]
 
 
 def _subset_markers(dense, ideal: IdealObservations, markers: np.ndarray, n_frames: int | None = None):

@@ -55,7 +55,7 @@ def _stage(out: dict, name: str, fn, repeats: int = 1):
 def run_one(n_cameras: int, n_markers: int, n_frames: int, end_to_end: bool) -> dict:
     """All stages on one simulated flight; a dict of per-stage figures (printed as JSON by ``--one``)."""
     import batgraph.simulate as simulate
-    from batgraph.graph import factors, fast
+    from batgraph.graph import factors, fast, schedule
     from batgraph.graph.fast_filter import run_filter_fast
     from batgraph.measurement import ideal_observations
     from batgraph.result import Options
@@ -84,7 +84,7 @@ def run_one(n_cameras: int, n_markers: int, n_frames: int, end_to_end: bool) -> 
     out["solve_iterations"] = int(info["iterations"])
     _stage(out, "filter_fast", lambda: run_filter_fast(session, dense, ideal, opt), REPEATS)
     if end_to_end:
-        _stage(out, "smoother_e2e", lambda: fast.run_smoother_fast(session, dense, ideal, opt))
+        _stage(out, "smoother_e2e", lambda: schedule.run_smoother_fast(session, dense, ideal, opt))
     out["rss_peak_mib"] = _maxrss_mib()
     return out
 

@@ -14,7 +14,7 @@ import pytest
 from conftest import observations_table, tiny_rig, tiny_scene
 
 from batgraph.camera import Rig
-from batgraph.graph import factors, fast
+from batgraph.graph import factors, fast, schedule
 from batgraph.graph.smoother import posterior_logdet, run_smoother
 from batgraph.measurement import ideal_observations
 from batgraph.motion import constant_acceleration_F, constant_acceleration_Q, constant_velocity_Q
@@ -310,7 +310,7 @@ def test_run_smoother_fast_matches_run_smoother(scene, model, robust, bound_cov)
     session, dense, ideal, _ = scene
     session = dataclasses.replace(session, motion=dataclasses.replace(session.motion, accel_psd_m2_s3=None))
     opt = Options(motion_model=model, robust=robust, progress=False)
-    a = fast.run_smoother_fast(session, dense, ideal, opt)
+    a = schedule.run_smoother_fast(session, dense, ideal, opt)
     b = run_smoother(session, dense, ideal, opt)
     assert a.method == b.method == "smoother" and a.info["solver"] == "fast"
     np.testing.assert_allclose(a.xyz_m, b.xyz_m, rtol=0, atol=1e-6)
@@ -334,7 +334,7 @@ def test_rig_with_pose_covariance_goes_to_gtsam(scene):
     cams = [dataclasses.replace(c) for c in session.rig]
     cams[0].pose_cov = np.diag([1e-6] * 3 + [1e-6] * 3)
     session = dataclasses.replace(session, rig=Rig(cams))
-    est = fast.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", progress=False))
+    est = schedule.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", progress=False))
     assert est.info["solver"] == "gtsam" and est.info["camera_variables"] == 1
 
 
@@ -371,7 +371,7 @@ def test_huber_downweights_planted_outliers(scene):
     Rejection off: this is Huber alone (with rejection this stiff random walk also excludes 12 inlier
     views of m1 next to its gap, measured; the schedule is tested below)."""
     session, dense, ideal, p_init = scene
-    est = fast.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", robust="huber",
+    est = schedule.run_smoother_fast(session, dense, ideal, Options(motion_model="random_walk", robust="huber",
                                                                 outlier_rejection=False))
     c = session.rig.index("cam3")
     assert est.outlier[c, 7, 2] and est.outlier[c, 15, 2]
@@ -415,7 +415,7 @@ def test_rejection_schedule_matches_run_smoother(model):
     dense = dense_observations(session)
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
     opt = Options(motion_model=model, progress=False)
-    a = fast.run_smoother_fast(session, dense, ideal, opt)
+    a = schedule.run_smoother_fast(session, dense, ideal, opt)
     b = run_smoother(session, dense, ideal, opt)
     D = [factors.to_exclude(np.nan_to_num(factors.whitened_sq_residuals(session.rig, ideal, e.xyz_m)) >
                             factors.REJECT_SQ_RESIDUAL, ideal.seen) for e in (a, b)]
@@ -432,7 +432,7 @@ def test_rejection_schedule_matches_run_smoother(model):
         assert a.info["accel_psd_m2_s3"] == b.info["accel_psd_m2_s3"]
         assert a.info["motion_model_per_marker"] == b.info["motion_model_per_marker"]
         assert a.info.get("jerk_psd_m2_s5") == b.info.get("jerk_psd_m2_s5")
-    off = fast.run_smoother_fast(session, dense, ideal, Options(motion_model=model, outlier_rejection=False,
+    off = schedule.run_smoother_fast(session, dense, ideal, Options(motion_model=model, outlier_rejection=False,
                                                                    progress=False))
     assert np.nanmax(np.abs(off.xyz_m - b.xyz_m)) > 1e-3
 

@@ -17,7 +17,7 @@ from conftest import cv_scene, observations_table, tiny_rig
 from scipy.linalg import expm
 
 from batgraph import triangulate
-from batgraph.graph import cost, fast, noise
+from batgraph.graph import cost, fast, noise, schedule
 from batgraph.measurement import ideal_observations
 from batgraph.motion import constant_acceleration_F, constant_acceleration_Q, constant_velocity_F, constant_velocity_Q
 from batgraph.result import Options
@@ -144,7 +144,7 @@ def wing_scene(n_frames: int = 80, seed: int = 0) -> tuple[Session, np.ndarray]:
 def _auto(session: Session):
     dense = dense_observations(session)
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
-    return fast.run_smoother_fast(session, dense, ideal, Options(progress=False)), dense
+    return schedule.run_smoother_fast(session, dense, ideal, Options(progress=False)), dense
 
 
 def test_auto_picks_constant_velocity_on_constant_velocity_tracks():
@@ -174,10 +174,11 @@ def test_auto_picks_constant_acceleration_on_wing_like_tracks():
     assert set(est.info["motion_model_per_marker"].values()) == {"constant_acceleration"}
     j = np.array([est.info["jerk_psd_m2_s5"][m] for m in dense.markers])
     ca_session = dataclasses.replace(session, motion=MotionConfig("constant_acceleration", **PAPER_PHYSICS))
-    ca = fast.run_smoother_fast(ca_session, dense, ideal_observations(session.rig, dense, 0.5), Options(progress=False))
+    ca = schedule.run_smoother_fast(ca_session, dense, ideal_observations(session.rig, dense, 0.5),
+                                    Options(progress=False))
     assert ca.info["jerk_psd_m2_s5"] == est.info["jerk_psd_m2_s5"]
     np.testing.assert_allclose(est.xyz_m, ca.xyz_m, rtol=0, atol=1e-12)
-    cv = fast.run_smoother_fast(session, dense, ideal_observations(session.rig, dense, 0.5),
+    cv = schedule.run_smoother_fast(session, dense, ideal_observations(session.rig, dense, 0.5),
                                 Options(motion_model="constant_velocity", progress=False))
     rmse = {k: float(np.sqrt(np.mean((e.xyz_m - truth) ** 2))) for k, e in (("auto", est), ("cv", cv))}
     print("jerk PSD", j, "RMSE", rmse)

@@ -8,6 +8,8 @@ clean one (measured 5.20 vs 1.80 mm at the given q), so every comparison below c
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,9 @@ def flight(outlier_rate: float, seed: int = 1, n_frames: int = 60, n_markers: in
     """(session, dense, ideal, truth (F, M, 3) [m], planted mislabels bool (C, F, M))."""
     s = simulate_flight(np.random.default_rng(seed), n_cameras=4, n_markers=n_markers, n_frames=n_frames,
                         outlier_rate=outlier_rate)
+    # without the simulator's [markers] rigid: these tests measure the rejection schedule alone (the segments
+    # also pull mislabelled markers back: without rejection 2.31 instead of 5.20 mm, clean 1.55 vs 1.80, measured)
+    s = dataclasses.replace(s, rigid=[])
     dense = dense_observations(s)
     ideal = ideal_observations(s.rig, dense, s.pixel_sigma_px)
     ci = {n: i for i, n in enumerate(dense.cameras)}

@@ -29,12 +29,12 @@ def straight():
 
 @pytest.mark.parametrize("flight", wingbeat.FLIGHTS)
 def test_bones_and_body_are_rigid(flight):
-    """Every pair in markers_rigid keeps its distance to 1e-9 m; bones are the documented lengths x the bat's size."""
+    """Every pair in [markers] rigid keeps its distance to 1e-9 m; bones are the documented lengths x the bat's size."""
     s = wingbeat.simulate_wingbeat(np.random.default_rng(7), flight=flight, fps=250.0, n_frames=100,
                                    marker_side="dorsal")
     xyz, idx = _cube(s), {m: i for i, m in enumerate(s.marker_names)}
-    assert s.extra_toml["markers_rigid"] and all(a in idx and b in idx for a, b in s.extra_toml["markers_rigid"])
-    for a, b in s.extra_toml["markers_rigid"]:
+    assert s.rigid and all(a in idx and b in idx for a, b in s.rigid)
+    for a, b in s.rigid:
         d = np.linalg.norm(xyz[:, idx[a]] - xyz[:, idx[b]], axis=-1)
         assert d.max() - d.min() < 1e-9, (a, b)
     scale = s.extra_toml["wingbeat"]["size_scale"]
@@ -128,7 +128,7 @@ def test_dorsal_markers_hide_more(straight):
 
 
 def test_session_states_no_motion_physics_and_round_trips(straight, tmp_path):
-    """Nothing in the session comes from batgraph's motion models; [wingbeat] and markers_rigid survive a write."""
+    """Nothing in the session comes from batgraph's motion models; [wingbeat] and [markers] rigid survive a write."""
     assert not straight.motion.has_physics and straight.motion.accel_psd_m2_s3 is None
     assert straight.motion.sigma_m is None
     assert straight.pixel_sigma_px == 1.0
@@ -136,7 +136,7 @@ def test_session_states_no_motion_physics_and_round_trips(straight, tmp_path):
     assert again.observations.equals(straight.observations)
     back = read_session(write_session(straight, tmp_path / "wb"))
     assert back.extra_toml["wingbeat"] == straight.extra_toml["wingbeat"]
-    assert back.extra_toml["markers_rigid"] == straight.extra_toml["markers_rigid"]
+    assert back.rigid == straight.rigid
     with pytest.raises(ValueError):
         wingbeat.simulate_wingbeat(np.random.default_rng(1), flight="hover")
     drawn = wingbeat.simulate_wingbeat(np.random.default_rng(2), pixel_sigma_px=None, n_frames=10)

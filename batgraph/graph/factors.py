@@ -80,6 +80,11 @@ def state_keys(model: MotionModel, m: int, k: int) -> list[int]:
     return [p_key(m, k), v_key(m, k), a_key(m, k)][:model.order + 1]
 
 
+def length_key(s: int) -> int:
+    """Key of segment s's length (a 1-vector [m]; segment-length factors, batgraph.graph.rigid)."""
+    return gtsam.symbol("l", s)
+
+
 def pose_key(c: int) -> int:
     """Key of camera c's pose (Pose3, world_from_cam) when cameras are variables."""
     return gtsam.symbol("c", c)
@@ -271,6 +276,40 @@ class ObservationFactors:
                              cam.pose_cov)
             cams.append(cam)
         return Rig(cams)
+
+
+# ----- segment lengths ----------------------------------------------------------------------------
+def _segment_error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+    """|p_a - p_b| - L (1,) [m] of a segment-length factor on keys (p_a, p_b, L), with its Jacobians."""
+    ka, kb, kl = this.keys()
+    diff = values.atPoint3(ka) - values.atPoint3(kb)
+    dist = float(np.linalg.norm(diff))
+    if H is not None:
+        u = (diff / max(dist, 1e-9)).reshape(1, 3)
+        H[0], H[1], H[2] = u, -u, -np.ones((1, 1))
+    return np.array([dist - values.atVector(kl)[0]])
+
+
+def segment_graph(pairs: np.ndarray, sigma_m: float, n_frames: int) -> gtsam.NonlinearFactorGraph:
+    """Segment-length factors (batgraph.graph.rigid's cost) of marker pairs (S, 2) on every frame
+    0..n_frames-1: a Python CustomFactor on (p_a,k, p_b,k, length_key(s)), Gaussian noise sigma_m [m].
+    Slow (a Python call per factor and iteration): the reference, not the fast path."""
+    graph = gtsam.NonlinearFactorGraph()
+    model = gtsam.noiseModel.Isotropic.Sigma(1, sigma_m)
+    for s, (a, b) in enumerate(np.asarray(pairs, int)):
+        for k in range(n_frames):
+            graph.push_back(gtsam.CustomFactor(model, [p_key(int(a), k), p_key(int(b), k), length_key(s)],
+                                               _segment_error))
+    return graph
+
+
+def insert_lengths(values: gtsam.Values, pairs: np.ndarray, n_frames: int) -> None:
+    """Insert each segment's length (the median distance of its markers' positions in ``values``) where missing."""
+    for s, (a, b) in enumerate(np.asarray(pairs, int)):
+        if not values.exists(length_key(s)):
+            d = [np.linalg.norm(values.atPoint3(p_key(int(a), k)) - values.atPoint3(p_key(int(b), k)))
+                 for k in range(n_frames)]
+            values.insert(length_key(s), np.array([float(np.median(d))]))
 
 
 # ----- whole graphs -----------------------------------------------------------------------------------

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import functools
 import math
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
@@ -41,9 +40,7 @@ from tqdm.auto import tqdm
 from ..camera import Rig
 from ..geometry import pinhole
 from ..measurement import IdealObservations
-from ..result import Estimate, Options
-from ..session import DenseObservations, Session
-from ..triangulate import dlt_points
+from ..session import Session
 from . import cost as spec
 from . import noise
 from .cost import robust_loss  # noqa: F401  (re-exported: fast_filter and tests use it from here)
@@ -382,14 +379,16 @@ def _T(a: np.ndarray) -> np.ndarray:
 def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant over frames).
 
-    D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d). Returns dx (F, M, d).
+    D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d), or (F, M, d, r)
+    for r right-hand sides at once. Returns dx of rhs's shape.
     One sweep over frames eliminates and substitutes forwards (S_k = D_k - L_k B^T with L_k = B S_{k-1}^-1,
     y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes; each step is vectorised over markers.
     """
     F = len(D)
     BT = _T(B)
     Sinv = np.empty_like(D)
-    y = rhs[..., None].copy()  # (F, M, d, 1)
+    many = rhs.ndim == D.ndim
+    y = rhs.copy() if many else rhs[..., None].copy()  # (F, M, d, r)
     Sinv[0] = np.linalg.inv(D[0])
     for k in range(1, F):
         L = B @ Sinv[k - 1]
@@ -399,7 +398,7 @@ def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     dx[-1] = Sinv[-1] @ y[-1]
     for k in range(F - 2, -1, -1):
         dx[k] = Sinv[k] @ (y[k] - BT @ dx[k + 1])
-    return dx[..., 0]
+    return dx if many else dx[..., 0]
 
 
 def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -633,16 +632,22 @@ def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, 
         # damping for exact steps, retry now with the IRLS curvature (it majorises the robust loss);
         # rejected IRLS step: more damping. (One damping for both let an undamped exact step overshoot a
         # Huber kink again after every accepted IRLS step: measured 60 such rejected/accepted pairs.)
-        was_exact = exact[act] & robust
-        less = np.where(damping > 1e-9, damping / 10, 0.0)
-        more = np.maximum(damping * 10, 1e-6)
-        lam_x[act] = np.where(was_exact, np.where(ok, less, more), lam_x[act])
-        lam[act] = np.where(was_exact, lam[act], np.where(ok, less, more))
-        if not robust:
-            lam_x[act] = lam[act]
+        lam[act], lam_x[act] = next_damping(exact[act] & robust, ok, damping, lam[act], lam_x[act], robust)
         exact[act] = ok
         active[act] = ~done
     return x, cost, lin, iters, converged, at_camera
+
+
+def next_damping(was_exact, ok, damping, lam, lam_x, robust: bool):
+    """The Levenberg-Marquardt damping after a step (arrays per column, or scalars): returns (lam, lam_x),
+    the damping of IRLS and of exact steps. An accepted step divides its kind's damping by 10 (down to
+    0), a rejected one multiplies it by 10 (from 1e-6); ``damping`` is what the step used, ``was_exact``
+    whether it was an exact step. Without a robust loss both curvatures are one: one damping."""
+    less = np.where(damping > 1e-9, damping / 10, 0.0)
+    more = np.maximum(damping * 10, 1e-6)
+    lam_x = np.where(was_exact, np.where(ok, less, more), lam_x)
+    lam = np.where(was_exact, lam, np.where(ok, less, more))
+    return lam, (lam_x if robust else lam)
 
 
 @_one_thread
@@ -810,13 +815,17 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             markers: np.ndarray, fps: float, robust: str, robust_k: float,
                             candidates: tuple[str, ...] = spec.AUTO_CANDIDATES, p_start: np.ndarray | None = None,
                             v_start: np.ndarray | None = None, progress: bool = False,
+                            groups: list[np.ndarray] = (),
                             ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Each marker's motion model among ``candidates`` and its noise level, by maximum Laplace evidence.
 
     Runs :func:`choose_noise_per_marker` for each candidate model (arguments as there; each search
     batched over markers) and keeps per marker the model whose best evidence is the largest
     (batgraph.graph.noise explains why the scores compare). Markers are independent, so this is the
-    joint choice exactly. Returns model (M,) object array of names (None for markers not in
+    joint choice exactly. ``groups``: marker index arrays that must share one model (markers joined by
+    segment-length factors, batgraph.graph.rigid): a group takes the model of the largest sum of its
+    members' evidences, searched without the segments (each member keeps its own noise level of that
+    model). Returns model (M,) object array of names (None for markers not in
     ``markers``), level (M,) (that model's q [m^2/s^3] or j [m^2/s^5]; NaN elsewhere) and info:
     {model: that search's info} plus ``log_evidence`` {model: (M,)}.
     """
@@ -824,7 +833,10 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     found = {name: choose_noise_per_marker(rig, ideal, p_init, v_init, markers, fps, robust, robust_k, p_start,
                                            v_start, progress, model=name) for name in candidates}
     ev = np.stack([found[name][1]["log_evidence"] for name in candidates])  # (n_candidates, M)
-    won = np.argmax(np.where(np.isfinite(ev), ev, -np.inf), axis=0)
+    ev_ok = np.where(np.isfinite(ev), ev, -np.inf)
+    won = np.argmax(ev_ok, axis=0)
+    for members in groups:
+        won[members] = np.argmax(ev_ok[:, members].sum(axis=1))
     model = np.full(M, None, dtype=object)
     level = np.full(M, np.nan)
     for i, name in enumerate(candidates):
@@ -905,100 +917,3 @@ def choose_accel_psd_fast(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
     return q, {"rule": noise.GLOBAL_RULE,
                "fit_markers": [int(m) for m in fit],
                "scores": [{"accel_psd_m2_s3": a, "log_evidence": s} for a, s in trace]}
-
-
-def _rejected(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
-    """What the rejection schedule leaves out at ``xyz_m`` (F, M, 3) [m]: observations of ``ideal`` with
-    |r|^2 > spec.REJECT_SQ_RESIDUAL (plain Gaussian whitening) through spec.to_exclude, (C, F, M)."""
-    r2 = np.nan_to_num(spec.whitened_sq_residuals(rig, ideal, xyz_m), nan=0.0)
-    return spec.to_exclude(r2 > spec.REJECT_SQ_RESIDUAL, ideal.seen)
-
-
-@_one_thread
-def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealObservations,
-                      options: Options) -> Estimate:
-    """The ``smoother`` method on the fast path (fixed rig); same answer as the GTSAM batch smoother.
-
-    Follows batgraph.graph.smoother.run_smoother step by step, including its outlier-rejection
-    schedule (Cauchy cleaning solve, exclusion set D, the model ("auto": constant velocity or
-    acceleration) and its noise chosen per marker without D by :func:`choose_model_per_marker`, final
-    rounds until D is stable; see that module's docstring), each solve being :func:`solve_per_model`
-    (solve_fast per model) with the same start. Figures: motion_model (as asked), motion_model_per_marker
-    {name: model}, accel_psd_m2_s3 / jerk_psd_m2_s5 {name: level} of the markers of each model,
-    log_evidence_per_marker (auto), acceleration_rms_mps2 of constant-acceleration markers
-    (noise.model_figures).
-    Falls back to run_smoother when any camera has a pose covariance.
-    """
-
-    if any(cam.pose_cov is not None for cam in session.rig):
-        from .smoother import run_smoother  # the GTSAM reference (camera variables); imports GTSAM
-
-        return run_smoother(session, dense, ideal, options)
-    t0 = time.perf_counter()
-    rig, fps, robust, k = session.rig, session.fps, options.robust, options.robust_k
-    model, sigma_m, q = noise.motion_choice(session, options)
-    tri = dlt_points(rig, ideal)
-    p_init, v_init, estimated = spec.initial_track(tri, fps)
-    reject = options.outlier_rejection and robust != "none"
-    figures: dict = {"solver": "fast", "motion_model": model, "robust": robust, "robust_k": k,
-                     "outlier_rejection": reject}
-    C, F, M = ideal.seen.shape
-    if not estimated.any():  # nothing triangulated anywhere: every output is NaN
-        return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
-                        np.zeros((C, F, M), bool), time.perf_counter() - t0, figures)
-    markers = np.flatnonzero(estimated)
-    excluded = np.zeros((C, F, M), bool)
-    p_start, v_start, a_start = p_init, v_init, None  # where the next solve starts (a warm start after cleaning)
-    if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
-        clean, q0 = cleaning_motion(model, sigma_m, q, session)
-        xyz0, _, info0 = solve_fast(rig, ideal, p_init, clean, q0, fps, spec.CLEANING_LOSS, k, v_init=v_init)
-        excluded = _rejected(rig, ideal, xyz0)
-        p_start = xyz0
-        v_start = v_init if info0["velocity"] is None else info0["velocity"]
-        figures["cleaning"] = {"loss": spec.CLEANING_LOSS, "robust_k": k, "iterations": info0["iterations"],
-                               "n_flagged": int(excluded.sum())}
-        if clean == "constant_velocity":
-            figures["cleaning"]["accel_psd_m2_s3"] = q0
-    models = np.full(M, None, dtype=object)
-    if model == "random_walk" or q is not None:  # one given noise level
-        models[markers], level = model, np.full(M, sigma_m if model == "random_walk" else q)
-        figures.update({"sigma_m": sigma_m} if model == "random_walk" else noise.q_figures(q))
-        figures["motion_model_per_marker"] = {dense.markers[m]: model for m in markers}
-    else:  # step 3: model (auto) and noise per marker on the observations left, from the cleaning solution
-        candidates = spec.AUTO_CANDIDATES if model == spec.AUTO else (model,)
-        models, level, selection = choose_model_per_marker(
-            rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
-            p_start, v_start, progress=options.progress)
-        figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
-    rounds = []
-    n_rounds = spec.REJECTION_ROUNDS if reject else 1
-    for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
-        xyz, cov, info = solve_per_model(rig, spec.without_observations(ideal, excluded), p_init, models, level,
-                                         fps, robust, k, v_init=v_start, p_start=p_start, a_init=a_start)
-        rounds.append(info["iterations"])
-        again = _rejected(rig, ideal, xyz)
-        if r == n_rounds - 1 or (again == excluded).all():
-            break
-        excluded, p_start, v_start, a_start = again, xyz, info["velocity"], info["acceleration"]
-    outlier = spec.outlier_flags(rig, ideal, xyz)
-    figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
-                   markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
-    if (models == "constant_acceleration").any():  # the accelerations the model estimated [m/s^2]
-        figures["acceleration_rms_mps2"] = {
-            dense.markers[m]: float(np.sqrt(np.mean(np.sum(info["acceleration"][:, m] ** 2, axis=-1))))
-            for m in markers if models[m] == "constant_acceleration"}
-    if reject:
-        figures["iterations_per_round"] = rounds
-        figures["rejected"] = int(excluded.sum())
-        figures["rejection_converged"] = bool((again == excluded).all())
-    return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)
-
-
-def cleaning_motion(model: str, sigma_m: float, q: float | None, session: Session) -> tuple[str, float]:
-    """The motion model and noise level of the rejection schedule's cleaning solve (step 1): the random
-    walk at sigma_m for a random walk; otherwise constant velocity at the given q, else the causal q
-    (noise.causal_accel_psd), also for "auto" and constant acceleration (whose jerk PSD is chosen after
-    cleaning; the cleaning solve only needs a plausible prior to spot mislabels)."""
-    if model == "random_walk":
-        return model, sigma_m
-    return "constant_velocity", q if q is not None else noise.causal_accel_psd(session)

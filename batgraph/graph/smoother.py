@@ -49,12 +49,18 @@ from ..measurement import IdealObservations
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
-from . import factors, noise
+from . import factors, noise, rigid
 from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, motion_model  # noqa: F401  (the schedule's constants, module docstring)
 from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
-from .fast import choose_model_per_marker, cleaning_motion
+from .fast import choose_model_per_marker
+from .schedule import cleaning_motion
 
 MAX_ITERATIONS = 200
+SEGMENTS_WITH_CAMERA_VARIABLES = (
+    "[markers] rigid: the segments are left out because cameras with a pose covariance make every marker "
+    "depend on every other, and GTSAM's QR over a group of joined markers took minutes per solve (a 14-marker "
+    "group, 80 frames, one variable camera: 15 s against 1.3 s without segments, and over 7 min at 160 "
+    "frames, measured); the fast path, with the rig fixed, uses them")
 
 
 # Why QR everywhere: GTSAM's Cholesky declares a clique indeterminate when the last two diagonal
@@ -120,10 +126,13 @@ def log_evidence(graph: gtsam.NonlinearFactorGraph, solution: gtsam.Values, q: f
 
 def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel | dict[int, MotionModel],
                 robust: str, robust_k: float, p_init: np.ndarray, v_init: np.ndarray, markers: np.ndarray,
-                start: gtsam.Values | None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, ObservationFactors]:
+                start: gtsam.Values | None, pairs: np.ndarray | None = None,
+                ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, int, ObservationFactors]:
     """Minimise the cost on ``ideal``'s observations of ``markers`` from ``start`` (default the initial track).
 
     model: one motion model, or one per marker index (any mix of models and noise levels).
+    pairs: (S, 2) marker indices of segment-length factors (session.rigid_sigma_m; batgraph.graph.rigid),
+    their lengths started at the median distance in the start where the start has none.
     Returns (graph, solution, iterations, its ObservationFactors).
     """
     F = p_init.shape[0]
@@ -136,6 +145,10 @@ def _solve_cost(session: Session, ideal: IdealObservations, model: MotionModel |
     graph.push_back(factors.motion_graph(motion, p_init, markers))
     if start is None:
         start = factors.initial_values(obs, model, p_init, v_init, markers)
+    if pairs is not None and len(pairs):
+        graph.push_back(factors.segment_graph(pairs, session.rigid_sigma_m, F))
+        start = gtsam.Values(start)
+        factors.insert_lengths(start, pairs, F)
     solution, iterations = solve_batch(graph, start)
     return graph, solution, iterations, obs
 
@@ -171,6 +184,9 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     triangulated; outlier (C, F, M) where |r|^2 > 13.8155 at the solution (plain Gaussian whitening).
     With a robust loss and ``options.outlier_rejection``, the solution is the final solve of the
     rejection schedule (module docstring); the observations it left out are among the flagged ones.
+    Segment-length factors (``[markers] rigid``, batgraph.graph.rigid) enter the final solves on a fixed
+    rig (the reference the fast path is tested against); with camera variables they are left out and
+    info["segments_left_out"] says why (SEGMENTS_WITH_CAMERA_VARIABLES).
     """
     t0 = time.perf_counter()
     C, F, M = ideal.seen.shape
@@ -179,10 +195,16 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     tri = dlt_points(session.rig, ideal)
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
+    pairs = rigid.segment_pairs(session.rigid, dense.markers)
     reject = options.outlier_rejection and options.robust != "none"
     info: dict = {"solver": "gtsam", "motion_model": model_name, "robust": options.robust,
                   "robust_k": options.robust_k, "outlier_rejection": reject,
                   "camera_variables": int(sum(c.pose_cov is not None for c in session.rig))}
+    if info["camera_variables"] and len(pairs):
+        info["segments_left_out"] = SEGMENTS_WITH_CAMERA_VARIABLES
+        pairs = pairs[:0]
+    found = rigid.groups(pairs, estimated)
+    pairs = pairs[np.concatenate([ids for _, ids in found])] if found else pairs[:0]
     xyz = np.full((F, M, 3), np.nan)
     cov = np.full((F, M, 3, 3), np.nan)
     if len(markers) == 0:
@@ -211,7 +233,8 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         candidates = AUTO_CANDIDATES if model_name == AUTO else (model_name,)
         models, level, selection = choose_model_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
-            options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress)
+            options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress,
+            groups=[members for members, _ in found])
         info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
     if start is not None:  # the final solves start from the cleaning solution, in the chosen models' variables
@@ -223,7 +246,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     for r in range(n_rounds):  # step 4: final solves until the flags are the excluded set
         graph, solution, iterations, obs = _solve_cost(session, factors.without_observations(ideal, excluded),
                                                        model, options.robust, options.robust_k, p_init, v_init,
-                                                       markers, start)
+                                                       markers, start, pairs)
         rounds.append(iterations)
         outlier, again = _flags(obs, ideal, solution, markers)
         again = factors.to_exclude(again, ideal.seen)
@@ -239,4 +262,13 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     xyz = factors.positions(solution, markers, F, M)
     keys = [factors.p_key(int(m), k) for k in range(F) for m in markers]
     cov[:, markers] = marginal_covariances(graph, solution, keys).reshape(F, len(markers), 3, 3)
+    if len(pairs):
+        var = marginal_covariances(graph, solution, [factors.length_key(s) for s in range(len(pairs))])
+        info["rigid_sigma_m"] = session.rigid_sigma_m
+        info["segments"] = {f"{dense.markers[a]}-{dense.markers[b]}": {
+            "length_m": float(solution.atVector(factors.length_key(s))[0]),
+            "length_sigma_m": float(np.sqrt(var[s].ravel()[0])),
+            "scatter_rms_m": float(np.sqrt(np.mean((np.linalg.norm(xyz[:, a] - xyz[:, b], axis=-1)
+                                                    - solution.atVector(factors.length_key(s))[0]) ** 2)))}
+            for s, (a, b) in enumerate(pairs)}
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, info)

@@ -1,0 +1,282 @@
+"""Segment-length factors: markers on one rigid segment (a bone) keep their distance.
+
+Cost, added to the smoother's (:mod:`batgraph.graph.cost`) for every segment s = (a, b) of session.toml's
+``[markers] rigid`` and every frame k of the take:
+
+    0.5 ((|p_a,k - p_b,k| - L_s) / sigma)^2
+
+with L_s one variable per segment [m], estimated with the trajectories (never given), and sigma =
+``[markers] rigid_sigma_m`` (default batgraph.session.DEFAULT_RIGID_SIGMA_M, the few millimetres a
+skin marker moves over its bone). Plain Gaussian, no robust loss: a pair that is not rigid is a wrong
+declaration, which :func:`solve_rigid` reports (each segment's length scatter), not an outlier to
+down-weight. Gauss-Newton: dr/dp_a = u^T / sigma, dr/dp_b = -u^T / sigma, dr/dL = -1 / sigma, with u
+the unit vector from b to a; the curvature of |p_a - p_b| is left out, as GTSAM's Gauss-Newton does.
+
+Fast backend. Segments couple markers, so the markers joined by segments (a connected group) are
+solved together; markers in no segment stay in the vectorised per-marker solve (batgraph.graph.fast).
+A group's state at frame k is its g members' states stacked (n = g d values), so without the lengths
+its Hessian T is block tridiagonal in frames with n x n blocks (segment terms add to the diagonal
+blocks); the s lengths touch every frame and border it:
+
+    H = [[T, C], [C^T, E]],   C (F n, s),   E (s, s) diagonal.
+
+Solved exactly by the Schur complement on the lengths: [z, W] = T^-1 [rhs_x, C] (one block-tridiagonal
+sweep with 1 + s right-hand sides), S = E - C^T W (s x s), dL = S^-1 (rhs_L - C^T z), dx = z - W dL.
+The marginals stay exact: the x part of H^-1 is T^-1 + W S^-1 W^T, so each frame's diagonal block is
+T^-1's (fast.marginals) plus W_k S^-1 W_k^T; cov(L) = S^-1; log det H = log det T + log det S.
+A group has one motion model (each member keeps its own noise level); "auto" picks it per group
+(fast.choose_model_per_marker's ``groups``). The Levenberg-Marquardt step, its damping and stopping
+rules are fast.solve_fast's, with the group as one column.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ..camera import Rig
+from ..measurement import IdealObservations
+from . import cost as spec
+from . import fast
+
+MIN_DISTANCE_M = 1e-9  # two markers of a segment closer than this have no direction: u is taken as 0
+
+
+def segment_pairs(rigid: list[tuple[str, str]], names: list[str]) -> np.ndarray:
+    """Marker index pairs (S, 2) int, in ``names``' order, of the segments whose two markers are in ``names``."""
+    index = {n: i for i, n in enumerate(names)}
+    return np.array([(index[a], index[b]) for a, b in rigid if a in index and b in index], int).reshape(-1, 2)
+
+
+def groups(pairs: np.ndarray, estimated: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The connected groups of estimated markers joined by segments.
+
+    pairs: (S, 2) marker indices; estimated: (M,) bool (a segment with a marker not estimated is dropped).
+    Returns [(members (g,) sorted marker indices, segments (s,) row indices into pairs)], g >= 2.
+    """
+    M = len(estimated)
+    keep = np.flatnonzero(estimated[pairs].all(axis=1)) if len(pairs) else np.zeros(0, int)
+    if len(keep) == 0:
+        return []
+    a, b = pairs[keep, 0], pairs[keep, 1]
+    _, label = connected_components(coo_matrix((np.ones(len(keep)), (a, b)), shape=(M, M)), directed=False)
+    out = []
+    for lab in np.unique(label[a]):
+        out.append((np.flatnonzero(label == lab), keep[label[a] == lab]))
+    return out
+
+
+class _Segments:
+    """The segment terms of one group: ``local`` (s, 2) pairs of member positions, state size d per member,
+    sigma [m]. States x are (F, g, d) [m] (fast's layout), lengths L (s,) [m]."""
+
+    def __init__(self, local: np.ndarray, d: int, sigma_m: float):
+        self.local, self.d, self.sigma = local, d, sigma_m
+
+    def residuals(self, x: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals r (F, s) and unit vectors u (F, s, 3) from b to a."""
+        r, u, _ = self._geometry(x, L)
+        return r, u
+
+    def _geometry(self, x: np.ndarray, L: np.ndarray):
+        diff = x[:, self.local[:, 0], :3] - x[:, self.local[:, 1], :3]
+        dist = np.maximum(np.linalg.norm(diff, axis=-1), MIN_DISTANCE_M)
+        return (dist - L) / self.sigma, diff / dist[..., None], dist
+
+    def cost(self, x: np.ndarray, L: np.ndarray) -> float:
+        r, _ = self.residuals(x, L)
+        c = 0.5 * float(np.sum(r * r))
+        return c if np.isfinite(c) else np.inf
+
+    def system(self, x: np.ndarray, L: np.ndarray, D: np.ndarray, g: np.ndarray, exact: bool = False):
+        """The group's bordered Gauss-Newton system from its members' blocks D (F, g, d, d) and gradient
+        g (F, g, d): returns T (F, n, n), gx (F, n), C (F, n, s), E (s, s), gL (s,), n = g d.
+
+        ``exact`` adds the curvature of |p_a - p_b| that Gauss-Newton leaves out, (r / sigma) (I - u u^T) /
+        |p_a - p_b|, where r > 0 (clamped at 0 so that the system stays positive semi-definite, as the
+        robust losses' own curvature is): across the segment it is all the curvature a single-view marker
+        at a track end has besides its weak motion prior, and without it the iteration crept there (110
+        iterations measured); the marginals use Gauss-Newton's, as GTSAM's do."""
+        F, gm, d = g.shape
+        n = gm * d
+        T = np.zeros((F, n, n))
+        for i in range(gm):
+            T[:, i * d:(i + 1) * d, i * d:(i + 1) * d] = D[:, i]
+        gx = g.reshape(F, n).copy()
+        r, u, dist = self._geometry(x, L)
+        s2 = self.sigma * self.sigma
+        C = np.zeros((F, n, len(self.local)))
+        uu = u[..., :, None] * u[..., None, :] / s2  # (F, s, 3, 3)
+        if exact:
+            bend = (np.maximum(r, 0.0) / (self.sigma * dist))[..., None, None]  # clamped: stays PSD
+            uu = uu + bend * (np.eye(3) - s2 * uu)
+        for j, (a, b) in enumerate(self.local):
+            pa, pb = slice(a * d, a * d + 3), slice(b * d, b * d + 3)
+            T[:, pa, pa] += uu[:, j]
+            T[:, pb, pb] += uu[:, j]
+            T[:, pa, pb] -= uu[:, j]
+            T[:, pb, pa] -= uu[:, j]
+            C[:, pa, j] = -u[:, j] / s2
+            C[:, pb, j] = u[:, j] / s2
+            gx[:, pa] += u[:, j] * (r[:, j, None] / self.sigma)
+            gx[:, pb] -= u[:, j] * (r[:, j, None] / self.sigma)
+        E = np.eye(len(self.local)) * (F / s2)
+        gL = -r.sum(axis=0) / self.sigma
+        return T, gx, C, E, gL
+
+
+def _block_diag(B: np.ndarray, g: int) -> np.ndarray:
+    """The group's sub-diagonal block (n, n) from its members' B: one (d, d) for all, or (g, d, d)."""
+    return scipy.linalg.block_diag(*(B if B.ndim == 3 else [B] * g))
+
+
+def _bordered_solve(T, BG, C, E, rx, rL) -> tuple[np.ndarray, np.ndarray]:
+    """Solve [[T, C], [C^T, E]] [dx, dL] = [rx, rL] by the Schur complement on dL (module docstring).
+    T (F, n, n) with sub-diagonal block BG (n, n), C (F, n, s), E (s, s), rx (F, n), rL (s,)."""
+    Y = fast._solve(T[:, None], BG, np.concatenate([rx[..., None], C], axis=-1)[:, None])[:, 0]
+    z, W = Y[..., 0], Y[..., 1:]
+    S = E - np.einsum("fns,fnt->st", C, W)
+    dL = np.linalg.solve(S, rL - np.einsum("fns,fn->s", C, z))
+    return z - W @ dL, dL
+
+
+def _levenberg_marquardt(prob, obs, x: np.ndarray, mu0: np.ndarray, L: np.ndarray, seg: _Segments,
+                         max_iterations: int):
+    """fast's Levenberg-Marquardt (same damping, acceptance and stopping rules) for one group, one column.
+
+    x (F, g, d), mu0 (g, d), L (s,). Returns (x, L, members' costs (g,), linearisation at x, iterations,
+    converged, at_camera)."""
+    F, gm, d = x.shape
+    near = np.zeros(gm)
+    cost_m, lin = prob.evaluate(x, mu0, obs, jacobian=True, closest=near)
+    cost = cost_m.sum() + seg.cost(x, L)
+    limit = np.where(near > 0, near / fast.AT_CAMERA_DEPTH_FRACTION, np.inf)
+    robust = prob.robust != "none"
+    BG = _block_diag(prob.B, gm)
+    diag_x, diag_L = np.arange(gm * d), np.arange(len(L))
+    lam = lam_x = np.float64(0.0)
+    exact, converged, at_camera, iters = False, False, False, 0
+    eps = np.finfo(float).eps
+    while iters < max_iterations:
+        iters += 1
+        T, gx, C, E, gL = seg.system(x, L, *prob.system(x, mu0, lin, exact), exact=exact)
+        damping = lam_x if exact and robust else lam
+        T[:, diag_x, diag_x] *= 1.0 + damping
+        E[diag_L, diag_L] *= 1.0 + damping
+        dx, dL = _bordered_solve(T, BG, C, E, -gx, -gL)
+        xn, Ln = x + dx.reshape(F, gm, d), L + dL
+        near_new = np.zeros(gm)
+        cost_mn, lin_new = prob.evaluate(xn, mu0, obs, jacobian=True, closest=near_new)
+        cost_new = cost_mn.sum() + seg.cost(xn, Ln)
+        ok = bool(cost_new <= cost)
+        step = max(np.abs(dx).max(), np.abs(dL).max(initial=0.0))
+        rel = (cost - cost_new) / max(cost, np.finfo(float).tiny)
+        gain = -0.5 * (np.sum(gx * dx) + gL @ dL)
+        flat = not ok and gain <= fast.ROUNDING_EPS * eps * cost
+        if ok:
+            x, L, lin, cost, cost_m = xn, Ln, lin_new, cost_new, cost_mn
+        stuck = lam > 1e12
+        at_camera = ok and bool((near_new > limit).any())
+        lam, lam_x = fast.next_damping(exact and robust, ok, damping, lam, lam_x, robust)
+        exact = ok
+        if (ok and rel < fast.REL_COST_TOL) or step < fast.STEP_TOL_M or flat or stuck or at_camera:
+            converged = not (stuck or at_camera)
+            break
+    return x, L, cost_m, lin, iters, converged, at_camera
+
+
+def _group_marginals(prob, x, mu0, lin, L, seg: _Segments, covariances: bool):
+    """At the minimiser: the members' marginal state covariances (F, g, d, d) (or None), the lengths'
+    covariance (s, s) and log det H of the group (scaled state, lengths in m)."""
+    F, gm, d = x.shape
+    T, _, C, E, _ = seg.system(x, L, *prob.system(x, mu0, lin, exact=False))
+    BG = _block_diag(prob.B, gm)
+    W = fast._solve(T[:, None], BG, C[:, None])[:, 0]  # T^-1 C, (F, n, s)
+    S = E - np.einsum("fns,fnt->st", C, W)
+    Sinv = np.linalg.inv(S)
+    ld_S = np.linalg.slogdet(S)[1]
+    if not covariances:
+        return None, Sinv, float(fast.logdet(T[:, None], BG)[0] + ld_S)
+    Sig, ld_T = fast.marginals(T[:, None], BG)
+    Sig = Sig[:, 0] + W @ Sinv @ fast._T(W)
+    Sig = 0.5 * (Sig + fast._T(Sig))
+    cov = np.stack([Sig[:, i * d:(i + 1) * d, i * d:(i + 1) * d] for i in range(gm)], axis=1)
+    return cov, Sinv, float(ld_T[0] + ld_S)
+
+
+def initial_lengths(xyz_m: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Each segment's median distance over frames (S,) [m] of positions (F, M, 3) [m] (NaN frames skipped)."""
+    return np.nanmedian(np.linalg.norm(xyz_m[:, pairs[:, 0]] - xyz_m[:, pairs[:, 1]], axis=-1), axis=0)
+
+
+@fast._one_thread
+def solve_rigid(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray, level: np.ndarray,
+                fps: float, robust: str, robust_k: float, pairs: np.ndarray, sigma_m: float,
+                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None,
+                a_init: np.ndarray | None = None, covariances: bool = True, max_iterations: int = 200,
+                ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """fast.solve_per_model with segment-length factors on ``pairs`` (S, 2) marker indices, stiffness
+    sigma_m [m]: markers in no segment are solved per marker as there, each group of joined markers
+    jointly (module docstring). Arguments and returns as fast.solve_per_model's (the members of a group
+    must share one model); a group's log det (not separable into markers) is on its first member's
+    logdet_per_marker, its segments' cost on its first member's cost_per_marker. The info adds
+    ``segments``: one dict per segment used, {pair: (a, b) marker indices, length_m, length_sigma_m
+    (marginal std), scatter_rms_m (RMS of |p_a - p_b| - length over frames at the solution)}.
+    """
+    F, M = p_init.shape[:2]
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    found = groups(np.asarray(pairs, int).reshape(-1, 2), estimated)
+    grouped = np.zeros(M, bool)
+    for members, _ in found:
+        grouped[members] = True
+    free = np.where(grouped, None, model)
+    xyz, cov, info = fast.solve_per_model(rig, ideal, np.where(grouped[None, :, None], np.nan, p_init), free, level,
+                                          fps, robust, robust_k, v_init=v_init, p_start=p_start, a_init=a_init,
+                                          covariances=covariances)
+    info["segments"] = []
+    dt = 1.0 / fps
+    for members, seg_ids in found:
+        names = set(model[members])
+        if len(names) != 1 or None in names:
+            raise ValueError(f"markers {members.tolist()} are joined by segments but have models "
+                             f"{sorted(map(str, names))}")
+        name = names.pop()
+        prob = fast._Problem(name, np.asarray(level, float)[members], fps, robust, robust_k)
+        mask = np.zeros(M, bool)
+        mask[members] = True
+        obs = fast._observations(rig, ideal, mask)
+        x, mu0 = fast._start(prob, p_init, v_init, p_start, members, fps, a_init)
+        local = np.searchsorted(members, pairs[seg_ids])
+        seg = _Segments(local, prob.d, sigma_m)
+        L0 = initial_lengths(x[..., :3], local)
+        x, L, cost_m, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, L0, seg,
+                                                                             max_iterations)
+        cov_g, cov_L, ld = _group_marginals(prob, x, mu0, lin, L, seg, covariances)
+        xyz[:, members] = x[..., :3]
+        if covariances:
+            cov[:, members] = cov_g[..., :3, :3]
+        v, a = fast._derivatives(x, dt)
+        for key, val in (("velocity", v), ("acceleration", a)):
+            if val is not None:
+                info[key][:, members] = val
+        r, _ = seg.residuals(x, L)
+        seg_cost = 0.5 * float(np.sum(r * r))
+        info["iterations_per_marker"][members] = iters
+        info["converged"][members] = converged
+        info["at_camera"][members] = at_camera
+        info["estimated"][members] = True
+        info["cost_per_marker"][members] = cost_m
+        info["cost_per_marker"][members[0]] += seg_cost
+        info["logdet_per_marker"][members] = 0.0
+        info["logdet_per_marker"][members[0]] = ld + 2 * F * len(members) * spec.log_det_scale(name, dt)
+        for j, sid in enumerate(seg_ids):
+            info["segments"].append({"pair": (int(pairs[sid, 0]), int(pairs[sid, 1])), "length_m": float(L[j]),
+                                     "length_sigma_m": float(np.sqrt(cov_L[j, j])),
+                                     "scatter_rms_m": float(np.sqrt(np.mean((r[:, j] * sigma_m) ** 2)))})
+    est = info["estimated"]
+    info.update(iterations=int(info["iterations_per_marker"].max(initial=0)),
+                cost=float(info["cost_per_marker"][est].sum()), logdet=float(info["logdet_per_marker"][est].sum()),
+                position=xyz)
+    return xyz, cov, info
