@@ -227,6 +227,11 @@ def as_values(xyz: np.ndarray, velocity: np.ndarray | None, markers,
 
 @pytest.fixture(scope="module")
 def scene():
+    return make_problem()
+
+
+def make_problem():
+    """(session, dense, ideal, p_init) of :func:`make_session` (the tests' scene; test_rigid uses it too)."""
     session = make_session()
     dense = dense_observations(session)
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)

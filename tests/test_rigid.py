@@ -11,17 +11,15 @@ import dataclasses
 import gtsam
 import numpy as np
 import pytest
-from test_fast import FPS, _level, _rel_cov_error, as_values, gtsam_graph, make_session
+from test_fast import FPS, _level, _rel_cov_error, as_values, gtsam_graph, make_problem
 
 from batgraph import evaluate, pipeline, simulate
 from batgraph.camera import Rig
 from batgraph.errors import InputError
 from batgraph.graph import factors, rigid, schedule
 from batgraph.graph.smoother import posterior_logdet, run_smoother
-from batgraph.measurement import ideal_observations
 from batgraph.result import Options
-from batgraph.session import dense_observations, read_session, write_session
-from batgraph.triangulate import triangulate_ideal
+from batgraph.session import read_session, write_session
 
 SIGMA = 0.01  # segment stiffness for the equality tests [m] (the tiny scene's markers are not rigid)
 PAIRS = np.array([[0, 1], [1, 2], [2, 3]])  # m3 is never triangulated: its segment is dropped
@@ -29,11 +27,8 @@ PAIRS = np.array([[0, 1], [1, 2], [2, 3]])  # m3 is never triangulated: its segm
 
 @pytest.fixture(scope="module")
 def scene():
-    session = make_session()
-    dense = dense_observations(session)
-    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
-    tri, _ = triangulate_ideal(session.rig, ideal)
-    return session, dense, ideal, factors.initial_track(tri, session.fps)[0]
+    """test_fast's scene: 4 cameras, 4 markers (m3 never triangulated), 24 frames, gaps and outliers."""
+    return make_problem()
 
 
 def test_groups_are_connected_components_of_estimated_markers():
