@@ -36,6 +36,10 @@ DEFAULT_TAKE_GAP_S = 1.0
 # soft-tissue artefacts of 2-20 mm on human limbs; a bat's thin skin over its wing bones is at the low
 # end), so 2 mm: stiff enough to pin a single-view marker's depth, loose enough for real markers.
 DEFAULT_RIGID_SIGMA_M = 0.002
+# Its accepted range [m]: stiffer than 10 um the segment's information (1/sigma^2) swamps the pixels' by so many
+# orders that the solve loses its precision (measured: 1e-9 m gave negative variances, 1e-300 a division by
+# zero); looser than 1 m a segment constrains nothing on a bat (and 1e300 made the bordered system singular).
+RIGID_SIGMA_RANGE_M = (1e-5, 1.0)
 """[session] take_gap_s: a run of more frames than this many seconds in which no camera sees any marker
 separates two takes (see :func:`frame_axis`)."""
 
@@ -397,7 +401,11 @@ def _session_config(path: Path) -> dict:
             if key == "rigid" and edge[0] == edge[1]:
                 raise InputError(f"{path} [markers] rigid[{i}]: a segment needs two different markers, got {edge!r}")
     if "rigid_sigma_m" in markers:
-        inputs.number(markers["rigid_sigma_m"], f"{path} [markers] rigid_sigma_m", positive=True)
+        sigma = inputs.number(markers["rigid_sigma_m"], f"{path} [markers] rigid_sigma_m", positive=True)
+        lo, hi = RIGID_SIGMA_RANGE_M
+        if not lo <= sigma <= hi:
+            raise InputError(f"{path} [markers] rigid_sigma_m: {sigma:g} m is outside [{lo:g}, {hi:g}] m (the std of "
+                             "a segment's length about its one value; default 0.002)")
     motion = data.get("motion", {})
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:
