@@ -61,6 +61,10 @@ def _add_reconstruct(sub):
                         "constant velocity for auto and constant_acceleration)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
+    p.add_argument("--noise-rule", choices=["evidence", "loo"],
+                   help="how the smoother scores a noise level it chooses from the data: evidence (Laplace "
+                        "marginal likelihood) or loo (leave-one-frame-out prediction); default: the session's "
+                        "[motion] noise_rule, else evidence")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
                    help="robust loss on projection factors (default huber)")
     p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
@@ -129,7 +133,8 @@ def _cmd_reconstruct(args) -> int:
 
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, progress=_progress_bars(args), solver=args.solver)
+                      accel_psd_m2_s3=args.accel_psd, noise_rule=args.noise_rule, progress=_progress_bars(args),
+                      solver=args.solver)
     batch = is_batch(args.sessions) or args.scheduler is not None
     if args.out is not None or (not batch and Path(args.sessions[0]).is_dir()):
         check_output_dir(args.out if args.out is not None else Path(args.sessions[0]) / "out")
@@ -187,6 +192,7 @@ def _add_validate(sub):
                    help="motion model (as reconstruct)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
+    p.add_argument("--noise-rule", choices=["evidence", "loo"], help="as reconstruct")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber", help="robust loss (default huber)")
     p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
     p.add_argument("--solver", choices=["fast", "gtsam"], default="fast", help="smoother/filter solver (default fast)")
@@ -220,7 +226,8 @@ def _cmd_validate(args) -> int:
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, progress=not args.quiet, solver=args.solver)
+                      accel_psd_m2_s3=args.accel_psd, noise_rule=args.noise_rule, progress=not args.quiet,
+                      solver=args.solver)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)
     for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong

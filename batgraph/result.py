@@ -18,6 +18,8 @@ class Options:
         triangulated track and drops the observations that solution flags before its final solve
         (batgraph.graph.smoother); ignored when robust is "none".
     accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
+    noise_rule: how a noise level chosen from the data is scored, "loo" or "evidence"; None = the
+        session's [motion] noise_rule (batgraph.graph.noise).
     progress: show progress bars.
     solver: "fast" (default) solves the smoother and filter with batgraph's vectorised per-marker
         solvers when every camera is fixed (they solve the GTSAM graph's problem and are tested against
@@ -29,6 +31,7 @@ class Options:
     robust_k: float = 2.0
     outlier_rejection: bool = True
     accel_psd_m2_s3: float | None = None
+    noise_rule: str | None = None
     progress: bool = True
     solver: str = "fast"
 

@@ -28,6 +28,7 @@ from .geometry.dlt import UNITS_M
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
 MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto")
+NOISE_RULES = ("evidence", "loo")  # [motion] noise_rule (batgraph.graph.noise)
 
 
 DEFAULT_TAKE_GAP_S = 1.0
@@ -59,6 +60,9 @@ class MotionConfig:
         acceleration [m^2/s^3]; None means "choose it from the data" (see batgraph.motion).
     causal_accel_psd_m2_s3: the filter's q when the physics are not given (filled by reconstruct from
         the triangulated track; not read from session.toml).
+    noise_rule: how the smoother scores a noise level (and, with "auto", a model) it chooses from the
+        data: "evidence" (Laplace marginal likelihood, the default) or "loo" (opt-in: leave-one-frame-out
+        log predictive density); see batgraph.graph.noise and docs/accuracy.md for what each gives.
     """
 
     model: str = "constant_velocity"  # or random_walk, constant_acceleration, auto (batgraph.graph.noise)
@@ -69,6 +73,7 @@ class MotionConfig:
     sigma_m: float | None = None
     accel_psd_m2_s3: float | None = None
     causal_accel_psd_m2_s3: float | None = None
+    noise_rule: str = "evidence"
 
     @property
     def has_physics(self) -> bool:
@@ -410,6 +415,9 @@ def _session_config(path: Path) -> dict:
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:
         raise InputError(f"{path} [motion] model: {model!r} is not one of {', '.join(MOTION_MODELS)}")
+    rule = motion.get("noise_rule", MotionConfig.noise_rule)
+    if rule not in NOISE_RULES:
+        raise InputError(f"{path} [motion] noise_rule: {rule!r} is not one of {', '.join(NOISE_RULES)}")
     for k in ("flight_speed_mps", "span_m", "flap_hz", "flap_angle_deg", "sigma_m", "accel_psd_m2_s3"):
         if k in motion:
             inputs.number(motion[k], f"{path} [motion] {k}", positive=True, allow_zero=k == "flight_speed_mps")
@@ -503,6 +511,8 @@ def session_toml(session: Session) -> str:
     """The text of session.toml: only what the session states (no physics, no noise it does not know)."""
     m = session.motion
     motion = {"model": m.model}
+    if m.noise_rule != MotionConfig.noise_rule:
+        motion["noise_rule"] = m.noise_rule
     for k in (*PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"):
         if getattr(m, k) is not None:
             motion[k] = getattr(m, k)

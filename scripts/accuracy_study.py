@@ -57,6 +57,7 @@ SPLIT_GROUPS = tuple(f"{st}/{sp}" for st in STATUSES for sp in evaluate.SPANS)
 METHOD_ROWS = (
     ("smoother", "smoother", "constant_velocity"),
     ("smoother_noseg", "smoother", "constant_velocity"),
+    ("smoother_loo", "smoother", "constant_velocity"),
     ("smoother_auto", "smoother", "auto"),
     ("smoother_rw", "smoother", "random_walk"),
     ("filter", "filter", None),
@@ -66,6 +67,7 @@ METHOD_ROWS = (
     ("triangulate", "triangulate", None),
 )
 NO_SEGMENT_ROWS = ("smoother_noseg",)  # rows run on the session without its [markers] rigid segments
+NOISE_RULE_ROWS = {"smoother_loo": "loo"}  # rows whose noise level is scored by another rule ([motion] noise_rule)
 INTERPOLATION = "interpolation"  # triangulation interpolated through gaps (derived from the triangulate row)
 ROW_NAMES = tuple(r[0] for r in METHOD_ROWS) + (INTERPOLATION,)
 PAPER_STEREO_MM = 1.0  # paper: EKF/UKF within 1 mm of stereo triangulation on the ear
@@ -213,7 +215,7 @@ def run_scene(scene: StudyScene, seed: int, bar: tqdm) -> tuple[list[dict], dict
     for row, method, motion_model in METHOD_ROWS:
         bar.set_postfix_str(f"{scene.key} seed {seed} {row}")
         res = run_methods(dataclasses.replace(session, rigid=[]) if row in NO_SEGMENT_ROWS else session, [method],
-                          Options(motion_model=motion_model, progress=False))
+                          Options(motion_model=motion_model, progress=False, noise_rule=NOISE_RULE_ROWS.get(row)))
         summaries[row], estimates[row] = res.summary["methods"][method], res.estimates[method]
         trajs[row] = res.trajectories
         bar.update()
@@ -518,7 +520,10 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "give no estimate before a marker's first triangulation).",
         "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data, "
         "with the session's segment-length factors (both generators write their bones as `[markers] rigid`; "
-        "default stiffness rigid_sigma_m = 2 mm); `smoother_noseg` = the same without the segments; "
+        "default stiffness rigid_sigma_m = 2 mm), q scored by the Laplace marginal likelihood (the default "
+        "[motion] noise_rule = \"evidence\"); `smoother_noseg` = the same without the segments; `smoother_loo` = "
+        "the same as `smoother` with q scored by the leave-one-frame-out log predictive density (the opt-in "
+        "noise_rule = \"loo\"); "
         "`smoother_auto` = the opt-in \"auto\": per marker constant velocity or constant acceleration "
         "(white-noise jerk), whichever has the larger marginal likelihood, each with its noise chosen from "
         "the data; `filter` = "

@@ -207,18 +207,27 @@ class _Linearization:
     Hw: ``sum w Jw^T Jw`` with the IRLS weights w (GTSAM's robust whitening), (F, M', 6) upper-triangle
     entries (rows of _IU) [1/m^2]; Hc: the correction ``sum w a Jw^T r r^T Jw / |r|^2`` whose
     subtraction gives the robust loss's own curvature (see :meth:`_Problem.evaluate`), same shape;
-    g: gradient ``sum w Jw^T r``, (F, M', 3) [1/m].
+    g: gradient ``sum w Jw^T r``, (F, M', 3) [1/m]; rr: ``sum w |r|^2``, (F, M') (the leave-one-out score's).
     """
 
     Hw: np.ndarray
     Hc: np.ndarray
     g: np.ndarray
+    rr: np.ndarray
 
     def take(self, cols: np.ndarray) -> _Linearization:
-        return _Linearization(self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols])
+        return _Linearization(self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols], self.rr[:, cols])
 
     def put(self, cols: np.ndarray, other: _Linearization) -> None:
-        self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols] = other.Hw, other.Hc, other.g
+        self.Hw[:, cols], self.Hc[:, cols], self.g[:, cols], self.rr[:, cols] = other.Hw, other.Hc, other.g, other.rr
+
+    def loo(self, Sigma: np.ndarray) -> np.ndarray:
+        """Each marker's leave-one-frame-out log predictive score (M',) (noise.loo_log_predictive summed
+        over frames) with the marginal covariances Sigma (F, M', d, d) of the same (IRLS) system."""
+        A = np.zeros(self.g.shape + (3,))
+        A[..., _IU[0], _IU[1]] = self.Hw
+        A[..., _IU[1], _IU[0]] = self.Hw
+        return noise.loo_log_predictive(self.rr, self.g, A, Sigma[..., :3, :3]).sum(axis=0)
 
 
 class _Problem:
@@ -272,7 +281,8 @@ class _Problem:
         F, M = x.shape[:2]
         pt = _positions(x)
         total = np.zeros(M)
-        lin = _Linearization(np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3))) if jacobian else None
+        lin = (_Linearization(np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3)), np.zeros(F * M))
+               if jacobian else None)
         kk = self.k * self.k
         if closest is not None:
             closest[:] = 0.0
@@ -291,6 +301,7 @@ class _Problem:
             Jr = Jw0 * r0 + Jw1 * r1  # Jw^T r, (3, k)
             for i in range(3):
                 lin.g[cells, i] = np.bincount(local, weights=w * Jr[i], minlength=n_local)
+            lin.rr[cells] = np.bincount(local, weights=w * d2, minlength=n_local)
             for s, (i, j) in enumerate(_IU_PAIRS):
                 lin.Hw[cells, s] = np.bincount(local, weights=w * (Jw0[i] * Jw0[j] + Jw1[i] * Jw1[j]),
                                                minlength=n_local)
@@ -310,7 +321,8 @@ class _Problem:
         total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
         total = np.where(np.isnan(total), np.inf, total)
         if jacobian:
-            lin = _Linearization(lin.Hw.reshape(F, M, 6), lin.Hc.reshape(F, M, 6), lin.g.reshape(F, M, 3))
+            lin = _Linearization(lin.Hw.reshape(F, M, 6), lin.Hc.reshape(F, M, 6), lin.g.reshape(F, M, 3),
+                                 lin.rr.reshape(F, M))
         return total, lin
 
     def system(self, x: np.ndarray, mu0: np.ndarray, lin: _Linearization,
@@ -462,7 +474,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         acceleration); default np.gradient of the starting velocities times fps.
     p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
     covariances: False skips the marginal covariances (cov is None; log det is still computed, from
-        the forward sweep alone): what a search over the noise level needs.
+        the forward sweep alone): what a search over the noise level by the evidence needs.
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
@@ -478,7 +490,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     centre along a single-view run, where the cost has no minimum in front of the camera; see
     AT_CAMERA_DEPTH_FRACTION), cost_per_marker (M,), logdet (log det of the whole Hessian in the spec's
     variables [p m, v m/s, a m/s^2]; sum over markers), logdet_per_marker (M,), velocity (F, M, 3) [m/s]
-    or None, acceleration (F, M, 3) [m/s^2] or None, estimated (M,) bool.
+    or None, acceleration (F, M, 3) [m/s^2] or None, estimated (M,) bool, loo_per_marker (M,) (each
+    marker's leave-one-frame-out score, noise.loo_log_predictive; None without covariances).
     """
     rig = session_or_rig.rig if isinstance(session_or_rig, Session) else session_or_rig
     C, F, M = ideal.seen.shape
@@ -493,8 +506,9 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     D, _ = prob.system(x, mu0, lin, exact=False)
     if covariances:
         Sigma_e, logdet_e = marginals(D, prob.B)
+        loo_e = lin.loo(Sigma_e)
     else:
-        Sigma_e, logdet_e = None, logdet(D, prob.B)
+        Sigma_e, logdet_e, loo_e = None, logdet(D, prob.B), None
     dt = 1.0 / fps
     d = prob.d
     # back to the spec's variables: v = u / dt, a = w / dt^2, so H_v = H_u dt^2, H_a = H_w dt^4 per axis
@@ -522,6 +536,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         "cost_per_marker": per_marker(cost, 0.0), "logdet": float(logdet_e.sum()),
         "logdet_per_marker": per_marker(logdet_e, 0.0), "position": xyz, "velocity": velocity,
         "acceleration": acceleration, "estimated": estimated,
+        "loo_per_marker": None if loo_e is None else per_marker(loo_e, 0.0),
     }
     return xyz, cov, info
 
@@ -654,7 +669,7 @@ def next_damping(was_exact, ok, damping, lam, lam_x, robust: bool):
 def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: str, levels: np.ndarray,
                  fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
                  p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
-                 a_start: np.ndarray | None = None) -> dict:
+                 a_start: np.ndarray | None = None, loo: bool = False) -> dict:
     """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
 
     levels: (K, M) noise levels (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]), one row per candidate. The K copies of
@@ -665,8 +680,9 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     v_start, p_start, a_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
     Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
     logdet_per_marker), position (K, F, M, 3), velocity and acceleration (K, F, M, 3) or None,
-    iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's); NaN / 0 for markers not
-    estimated.
+    iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's), and with ``loo`` the
+    leave-one-frame-out score loo (K, M) (solve_fast's loo_per_marker: the marginals are then computed);
+    NaN / 0 for markers not estimated.
     """
     levels = np.asarray(levels, float)
     C, F, M = ideal.seen.shape
@@ -683,7 +699,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
            "velocity": np.full((K, F, M, 3), np.nan) if order >= 1 else None,
            "acceleration": np.full((K, F, M, 3), np.nan) if order >= 2 else None,
            "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool),
-           "at_camera": np.zeros((K, M), bool)}
+           "at_camera": np.zeros((K, M), bool), "loo": np.zeros((K, M)) if loo else None}
     group = max(1, int(max_rows // max(1, len(obs.f))))
 
     def pick(a, k):
@@ -698,12 +714,19 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
         x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs.tile(len(ks)), x, mu0,
                                                                          max_iterations)
         D, _ = prob.system(x, mu0, lin, exact=False)
-        ld = logdet(D, prob.B) + 2 * F * spec.log_det_scale(model, dt)  # spec units (as solve_fast)
+        if loo:
+            Sigma, ld = marginals(D, prob.B)
+            score = lin.loo(Sigma)
+        else:
+            ld = logdet(D, prob.B)
+        ld = ld + 2 * F * spec.log_det_scale(model, dt)  # spec units (as solve_fast)
         v, a = _derivatives(x, dt)
         n = len(ms)
         for j, k in enumerate(ks):
             cols = slice(j * n, (j + 1) * n)
             out["cost"][k, ms], out["logdet"][k, ms] = cost[cols], ld[cols]
+            if loo:
+                out["loo"][k, ms] = score[cols]
             out["iterations"][k, ms], out["converged"][k, ms] = iters[cols], converged[cols]
             out["at_camera"][k, ms] = at_camera[cols]
             out["position"][k][:, ms] = x[:, cols, :3]
@@ -718,9 +741,12 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             markers: np.ndarray, fps: float, robust: str, robust_k: float,
                             p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
                             progress: bool = False, model: str = "constant_velocity",
-                            a_start: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
-    """Each marker's maximum-Laplace-marginal-likelihood noise level of ``model`` for a fixed rig:
-    q [m^2/s^3] (constant velocity) or j [m^2/s^5] (constant acceleration) (batgraph.graph.noise).
+                            a_start: np.ndarray | None = None, rule: str = "evidence") -> tuple[np.ndarray, dict]:
+    """Each marker's best-scoring noise level of ``model`` for a fixed rig: q [m^2/s^3] (constant
+    velocity) or j [m^2/s^5] (constant acceleration) (batgraph.graph.noise). ``rule`` (noise.NOISE_RULES):
+    "evidence" scores by the Laplace marginal likelihood (as described below), "loo" by the
+    leave-one-frame-out log predictive density (noise.loo_log_predictive; every solve then computes
+    the marginal covariances); the search is the same.
 
     rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
     (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
@@ -751,15 +777,19 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     start = (cut(p_init if p_start is None else p_start), cut(v_init if v_start is None else v_start), cut(a_start))
     n_solves = 0
 
-    def evidence(cost, logdet_, level):
-        return noise.laplace_log_evidence(cost, logdet_, level, dt, F - 1, model=model)
+    if rule not in noise.NOISE_RULES:
+        raise ValueError(f"rule must be one of {noise.NOISE_RULES}, got {rule!r}")
+    loo = rule == "loo"
+
+    def evidence(cost, logdet_, level, loo_score=None):
+        return loo_score if loo else noise.laplace_log_evidence(cost, logdet_, level, dt, F - 1, model=model)
 
     def solve(level: np.ndarray, from_: tuple):
         nonlocal n_solves
         n_solves += 1
         _, _, info = solve_fast(rig, sub, p0, model, level, fps, robust, robust_k, v_init=from_[1],
-                                p_start=from_[0], a_init=from_[2], covariances=False)
-        score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level)
+                                p_start=from_[0], a_init=from_[2], covariances=loo)
+        score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"])
         score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
         return score, (info["position"], info["velocity"], info["acceleration"])
 
@@ -771,10 +801,10 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     # the decade grid: every decade x every marker in one batched solve, each from the start
     levels = np.repeat(10.0 ** grid[:, None], len(markers), axis=1)
     sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
-                       v_start=start[1], p_start=start[0], a_start=start[2])
+                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo)
     n_solves += 1
     bar.update()
-    scores = evidence(sol["cost"], sol["logdet"], levels)  # (len(grid), markers)
+    scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"])  # (len(grid), markers)
     scores = np.where(sol["at_camera"], -np.inf, scores)
     cols = np.arange(len(markers))
     best = np.argmax(scores, axis=0)
@@ -804,7 +834,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     bar.close()
     level, ev = np.full(M, np.nan), np.full(M, np.nan)
     level[markers], ev[markers] = 10.0**x_best, s_best
-    return level, {"rule": noise.per_marker_rule(model), "per_marker": {int(m): float(level[m]) for m in markers},
+    return level, {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(level[m]) for m in markers},
                    "n_solves": n_solves, "log_evidence": ev}
 
 
@@ -815,10 +845,13 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             markers: np.ndarray, fps: float, robust: str, robust_k: float,
                             candidates: tuple[str, ...] = spec.AUTO_CANDIDATES, p_start: np.ndarray | None = None,
                             v_start: np.ndarray | None = None, progress: bool = False,
-                            groups: list[np.ndarray] = (),
+                            groups: list[np.ndarray] = (), rule: str = "evidence",
                             ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Each marker's motion model among ``candidates`` and its noise level, by maximum Laplace evidence.
 
+    ``rule`` (noise.NOISE_RULES) scores both the noise level and the model: the Laplace evidence or the
+    leave-one-frame-out log predictive density (both are comparable across models: the same
+    observations scored under each model's normalised prior / predictive).
     Runs :func:`choose_noise_per_marker` for each candidate model (arguments as there; each search
     batched over markers) and keeps per marker the model whose best evidence is the largest
     (batgraph.graph.noise explains why the scores compare). Markers are independent, so this is the
@@ -831,7 +864,7 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     """
     M = p_init.shape[1]
     found = {name: choose_noise_per_marker(rig, ideal, p_init, v_init, markers, fps, robust, robust_k, p_start,
-                                           v_start, progress, model=name) for name in candidates}
+                                           v_start, progress, model=name, rule=rule) for name in candidates}
     ev = np.stack([found[name][1]["log_evidence"] for name in candidates])  # (n_candidates, M)
     ev_ok = np.where(np.isfinite(ev), ev, -np.inf)
     won = np.argmax(ev_ok, axis=0)

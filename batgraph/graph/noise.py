@@ -51,7 +51,7 @@ from tqdm.auto import tqdm
 
 from ..motion import random_walk_sigma_m
 from ..result import Options
-from ..session import Session
+from ..session import NOISE_RULES, Session  # noqa: F401  (NOISE_RULES re-exported)
 from .cost import (
     AUTO,
     MOTION_MODELS,
@@ -99,6 +99,15 @@ def motion_choice(session: Session, options: Options) -> tuple[str, float | None
     if model == AUTO and q is not None:
         model = "constant_velocity"
     return model, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
+
+
+def noise_rule(session: Session, options: Options) -> str:
+    """The rule that scores a noise level chosen from the data: options.noise_rule, else the session's
+    [motion] noise_rule (session.NOISE_RULES)."""
+    rule = options.noise_rule or session.motion.noise_rule
+    if rule not in NOISE_RULES:
+        raise ValueError(f"noise rule must be one of {NOISE_RULES}, got {rule!r}")
+    return rule
 
 
 def logdet_Q(model: str, level: float | np.ndarray, dt_s: float) -> float | np.ndarray:
@@ -197,6 +206,11 @@ def maximise_log10(score: Callable[[float], float], lo: float = LOG10_Q_RANGE[0]
 
 
 GIVEN_RULE = "given (options or session), one q for all markers"
+# How a noise level is scored when chosen from the data ([motion] noise_rule): "evidence" = the Laplace
+# marginal likelihood (module docstring); "loo" = the leave-one-frame-out log predictive density of the
+# observations (:func:`loo_log_predictive`), which scores what the model predicts for a frame from all
+# the others and so prefers the level that follows motion the model family fits badly (a body bobbing
+# with the wingbeat) where the evidence prefers a smoother, overconfident track. session.NOISE_RULES.
 
 
 def q_figures(q: float | np.ndarray, markers: np.ndarray | None = None, names: list[str] | None = None,
@@ -210,12 +224,48 @@ def q_figures(q: float | np.ndarray, markers: np.ndarray | None = None, names: l
             "accel_psd_m2_s3": {names[m]: float(q[m]) for m in markers}}
 
 
-def per_marker_rule(model: str) -> str:
-    """The per-marker search's rule for ``model``'s noise level (PER_MARKER_RULE for constant velocity)."""
+def per_marker_rule(model: str, rule: str = "evidence") -> str:
+    """The per-marker search's rule for ``model``'s noise level under score ``rule`` (NOISE_RULES;
+    PER_MARKER_RULE for constant velocity and the evidence)."""
     lo, hi = LOG10_RANGE[model]
     what = "q" if model == "constant_velocity" else "j"
-    return (f"max Laplace marginal likelihood per marker over log10 {what} in [{lo:g}, {hi:g}] "
+    score = "Laplace marginal likelihood" if rule == "evidence" else "leave-one-frame-out log predictive density"
+    return (f"max {score} per marker over log10 {what} in [{lo:g}, {hi:g}] "
             "(shared decade grid + per-marker golden section)")
+
+
+def loo_log_predictive(rr: np.ndarray, g: np.ndarray, A: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
+    """Leave-one-frame-out log predictive density of each (frame, marker) cell's observations, up to a
+    constant common to every noise level: the ``"loo"`` rule's score (NOISE_RULES; a marker's score is
+    the sum over its frames).
+
+    rr: sum of w |r|^2 over the cell's observations (whitened residuals r at the solution x*, IRLS
+    weights w: the robust loss's Gaussian surrogate), shape (...); g: sum of w J^T r, (..., 3) [1/m];
+    A: sum of w J^T J, (..., 3, 3) [1/m^2] (J: whitened Jacobians in the position); Sigma: the
+    position's marginal covariance at x* from the same Gauss-Newton system, (..., 3, 3) [m^2].
+    Cells without observations (rr = 0 and A = 0) score 0.
+
+    For the Gaussian (linearised) model the posterior without the cell's observations has precision
+    Sigma^-1 - A, the cell's predictive residual is r_(-t) = (I - H)^-1 r with the leverage
+    H = J Sigma J^T, and its predictive covariance I + J Sigma_(-t) J^T = (I - H)^-1, so
+    log p(y_t | y_(-t)) = -0.5 r^T (I - H)^-1 r + 0.5 log det (I - H) + const; by Woodbury and
+    Sylvester r^T (I - H)^-1 r = rr + g^T (Sigma^-1 - A)^-1 g and det (I - H) = det (I_3 - Sigma A),
+    3x3 per cell whatever the number of views. -inf where the cell's leave-out precision is not
+    positive (rounding, when one cell's views carry nearly all of a marker's information).
+    """
+    out = np.zeros(rr.shape)
+    has = rr > 0
+    S, Ah, gh = Sigma[has], A[has], g[has]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        P = np.linalg.inv(S) - Ah  # the leave-out precision (Sigma_(-t))^-1
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        sign_p, _ = np.linalg.slogdet(P)
+        sign, ld = np.linalg.slogdet(np.eye(3) - S @ Ah)
+        ok = (sign > 0) & (sign_p > 0)
+        quad = rr[has] + np.einsum("ni,ni->n", gh, np.linalg.solve(np.where(ok[:, None, None], P, np.eye(3)),
+                                                                     gh[..., None])[..., 0])
+    out[has] = np.where(ok, -0.5 * quad + 0.5 * ld, -np.inf)
+    return out
 
 
 _PREFIX = {"constant_velocity": "accel_psd", "constant_acceleration": "jerk_psd"}

@@ -93,7 +93,7 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         candidates = spec.AUTO_CANDIDATES if model == spec.AUTO else (model,)
         models, level, selection = choose_model_per_marker(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
-            p_start, v_start, progress=options.progress, groups=groups)
+            p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options))
         figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     rounds = []
     n_rounds = spec.REJECTION_ROUNDS if reject else 1

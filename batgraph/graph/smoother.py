@@ -234,7 +234,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         models, level, selection = choose_model_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
             options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress,
-            groups=[members for members, _ in found])
+            groups=[members for members, _ in found], rule=noise.noise_rule(session, options))
         info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
     if start is not None:  # the final solves start from the cleaning solution, in the chosen models' variables
