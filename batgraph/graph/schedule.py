@@ -106,6 +106,10 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         if r == n_rounds - 1 or (again == excluded).all():
             break
         excluded, p_start, v_start, a_start = again, xyz, info["velocity"], info["acceleration"]
+    if info["segments"]:  # the second depth a segment allows a single-view point
+        cov, figures["depth_ambiguous_points"] = rigid.ambiguity_covariances(
+            rig, spec.without_observations(ideal, excluded), p_init, v_init, models, level, fps, robust, k,
+            info["segments"], xyz, cov)
     outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))

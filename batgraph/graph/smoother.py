@@ -263,6 +263,11 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     keys = [factors.p_key(int(m), k) for k in range(F) for m in markers]
     cov[:, markers] = marginal_covariances(graph, solution, keys).reshape(F, len(markers), 3, 3)
     if len(pairs):
+        lengths = [float(solution.atVector(factors.length_key(s))[0]) for s in range(len(pairs))]
+        cov, info["depth_ambiguous_points"] = rigid.ambiguity_covariances(  # as the fast schedule (rigid.py)
+            session.rig, factors.without_observations(ideal, excluded), p_init, v_init, models, level, session.fps,
+            options.robust, options.robust_k,
+            [{"pair": tuple(ab), "length_m": L} for ab, L in zip(pairs, lengths, strict=True)], xyz, cov)
         var = marginal_covariances(graph, solution, [factors.length_key(s) for s in range(len(pairs))])
         info["rigid_sigma_m"] = session.rigid_sigma_m
         info["segments"] = {f"{dense.markers[a]}-{dense.markers[b]}": {
