@@ -84,7 +84,7 @@ def test_closed_form_equals_the_dense_leave_out(q):
     to 1e-8 relative, for a smooth, a matched and a loose prior (single-view frames included)."""
     session, ideal, _ = _scene()
     p0, v0 = _track(session, ideal)
-    xyz, _, info = fast.solve_fast(session.rig, ideal, p0, "constant_velocity", q, FPS, "none", v_init=v0)
+    xyz, _, info = fast.solve_fast(session.rig, ideal, p0, "constant_velocity", q, FPS, "none", v_init=v0, loo=True)
     for m in range(2):
         ref = _dense_loo(session, ideal, xyz[:, m], q, m)
         assert info["loo_per_marker"][m] == pytest.approx(ref, rel=1e-8)
@@ -130,10 +130,11 @@ def test_search_picks_the_best_scoring_level():
     q, info = fast.choose_noise_per_marker(session.rig, ideal, p0, v0, np.array([0, 1]), FPS, "huber", 2.0,
                                            rule="loo")
     assert "leave-one-frame-out" in info["rule"]
-    best = fast.solve_fast(session.rig, ideal, p0, "constant_velocity", q, FPS, "huber", v_init=v0)[2]["loo_per_marker"]
+    best = fast.solve_fast(session.rig, ideal, p0, "constant_velocity", q, FPS, "huber", v_init=v0,
+                           loo=True)[2]["loo_per_marker"]
     for decade in range(-2, 7):
         other = fast.solve_fast(session.rig, ideal, p0, "constant_velocity", 10.0**decade, FPS, "huber",
-                                v_init=v0)[2]["loo_per_marker"]
+                                v_init=v0, loo=True)[2]["loo_per_marker"]
         assert np.all(best >= other - 1e-6)
     np.testing.assert_allclose(info["log_evidence"], best, rtol=1e-9)
     with pytest.raises(ValueError, match="rule"):

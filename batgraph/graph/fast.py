@@ -455,7 +455,7 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: np.ndarray, model: str,
                noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
-               covariances: bool = True, a_init: np.ndarray | None = None,
+               covariances: bool = True, a_init: np.ndarray | None = None, loo: bool = False,
                ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
@@ -475,6 +475,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     p_start: starting positions (F, M, 3) [m] (a warm start), default p_init.
     covariances: False skips the marginal covariances (cov is None; log det is still computed, from
         the forward sweep alone): what a search over the noise level by the evidence needs.
+    loo: also each marker's leave-one-frame-out score (needs, and implies, the marginal covariances).
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
@@ -491,7 +492,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     AT_CAMERA_DEPTH_FRACTION), cost_per_marker (M,), logdet (log det of the whole Hessian in the spec's
     variables [p m, v m/s, a m/s^2]; sum over markers), logdet_per_marker (M,), velocity (F, M, 3) [m/s]
     or None, acceleration (F, M, 3) [m/s^2] or None, estimated (M,) bool, loo_per_marker (M,) (each
-    marker's leave-one-frame-out score, noise.loo_log_predictive; None without covariances).
+    marker's leave-one-frame-out score, noise.loo_log_predictive; None unless ``loo``).
     """
     rig = session_or_rig.rig if isinstance(session_or_rig, Session) else session_or_rig
     C, F, M = ideal.seen.shape
@@ -504,11 +505,12 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps, a_init)
     x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
     D, _ = prob.system(x, mu0, lin, exact=False)
+    covariances = covariances or loo
     if covariances:
         Sigma_e, logdet_e = marginals(D, prob.B)
-        loo_e = lin.loo(Sigma_e)
     else:
-        Sigma_e, logdet_e, loo_e = None, logdet(D, prob.B), None
+        Sigma_e, logdet_e = None, logdet(D, prob.B)
+    loo_e = lin.loo(Sigma_e) if loo else None
     dt = 1.0 / fps
     d = prob.d
     # back to the spec's variables: v = u / dt, a = w / dt^2, so H_v = H_u dt^2, H_a = H_w dt^4 per axis
@@ -788,7 +790,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         nonlocal n_solves
         n_solves += 1
         _, _, info = solve_fast(rig, sub, p0, model, level, fps, robust, robust_k, v_init=from_[1],
-                                p_start=from_[0], a_init=from_[2], covariances=loo)
+                                p_start=from_[0], a_init=from_[2], covariances=False, loo=loo)
         score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"])
         score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
         return score, (info["position"], info["velocity"], info["acceleration"])

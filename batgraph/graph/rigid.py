@@ -335,42 +335,37 @@ def depth_ambiguity(rig: Rig, ideal: IdealObservations, xyz: np.ndarray, cov: np
     xyz_free, cov_free: as xyz, cov without segments. Returns the covariances (a copy) and the number of
     points whose covariance grew.
     """
-    cov = cov.copy()
     n_views = ideal.seen.sum(axis=0)  # (F, M)
+    first_cam = np.argmax(ideal.seen, axis=0)  # (F, M): the camera of a single-view point
     centres = np.array([cam.center_world for cam in rig])  # (C, 3)
-    partners: dict[int, list[tuple[int, float]]] = {}
-    for (a, b), L in zip(np.asarray(pairs, int), lengths, strict=True):
-        partners.setdefault(int(a), []).append((int(b), float(L)))
-        partners.setdefault(int(b), []).append((int(a), float(L)))
-    grown = 0
-    for m, mine in partners.items():
-        for f in np.flatnonzero((n_views[:, m] == 1) & np.isfinite(xyz[:, m]).all(axis=-1)):
-            c0 = centres[np.flatnonzero(ideal.seen[:, f, m])[0]]
-            t_e = float(np.linalg.norm(xyz[f, m] - c0))
-            if t_e <= 0:
-                continue
-            u = (xyz[f, m] - c0) / t_e
-            sd_e = float(np.sqrt(max(u @ cov[f, m] @ u, 0.0)))
-            t_free = float((xyz_free[f, m] - c0) @ u)
-            s2 = float(u @ cov_free[f, m] @ u) + sd_e * sd_e
-            if not (np.isfinite(t_free) and s2 > 0):
-                continue
-            extra = 0.0
-            for p, L in mine:
-                d = c0 - xyz[f, p]
-                b = float(u @ d)
-                disc = b * b - (float(d @ d) - L * L)
-                if not disc > 0:
-                    continue
-                t_o = max((-b - np.sqrt(disc), -b + np.sqrt(disc)), key=lambda t: abs(t - t_e))
-                if t_o <= 0 or abs(t_o - t_e) < AMBIGUITY_MIN_SEPARATION_SD * sd_e:
-                    continue
-                log_ratio = 0.5 * ((t_o - t_free) ** 2 - (t_e - t_free) ** 2) / s2  # log w_e - log w_o
-                w_o = 1.0 / (1.0 + np.exp(min(log_ratio, 700.0)))
-                if w_o < AMBIGUITY_MIN_WEIGHT:
-                    continue
-                extra = max(extra, w_o * (t_o - t_e) ** 2)
-            if extra > 0:
-                cov[f, m] += extra * np.outer(u, u)
-                grown += 1
+    extra = np.zeros(n_views.shape)  # (F, M): the largest w_o (t_o - t_e)^2 over a point's partners [m^2]
+    u_all = np.zeros(xyz.shape)
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    for (m, p), L in zip(np.concatenate([pairs, pairs[:, ::-1]]), np.concatenate([lengths, lengths]), strict=True):
+        f = np.flatnonzero((n_views[:, m] == 1) & np.isfinite(xyz[:, m]).all(axis=-1)
+                           & np.isfinite(xyz[:, p]).all(axis=-1))
+        c0 = centres[first_cam[f, m]]  # (n, 3)
+        t_e = np.linalg.norm(xyz[f, m] - c0, axis=-1)
+        u = (xyz[f, m] - c0) / np.where(t_e > 0, t_e, 1.0)[:, None]
+        sd_e = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, cov[f, m], u), 0.0))
+        t_free = np.einsum("ni,ni->n", xyz_free[f, m] - c0, u)
+        s2 = np.einsum("ni,nij,nj->n", u, cov_free[f, m], u) + sd_e**2
+        d = c0 - xyz[f, p]
+        b = np.einsum("ni,ni->n", u, d)
+        disc = b * b - (np.einsum("ni,ni->n", d, d) - L * L)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        t1, t2 = -b - root, -b + root
+        t_o = np.where(np.abs(t1 - t_e) > np.abs(t2 - t_e), t1, t2)  # the intersection farther from the estimate
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            log_ratio = 0.5 * ((t_o - t_free) ** 2 - (t_e - t_free) ** 2) / s2  # log w_e - log w_o
+            w_o = 1.0 / (1.0 + np.exp(np.minimum(log_ratio, 700.0)))
+        other = ((t_e > 0) & (disc > 0) & (t_o > 0) & (np.abs(t_o - t_e) >= AMBIGUITY_MIN_SEPARATION_SD * sd_e)
+                 & np.isfinite(t_free) & (s2 > 0) & (w_o >= AMBIGUITY_MIN_WEIGHT))
+        add = np.where(other, w_o * (t_o - t_e) ** 2, 0.0)
+        bigger = add > extra[f, m]
+        extra[f[bigger], m], u_all[f[bigger], m] = add[bigger], u[bigger]
+    grown = extra > 0
+    cov = cov.copy()
+    cov[grown] += extra[grown][:, None, None] * np.einsum("ni,nj->nij", u_all[grown], u_all[grown])
+    grown = int(grown.sum())
     return cov, grown
