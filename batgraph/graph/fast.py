@@ -42,7 +42,7 @@ from ..geometry import pinhole
 from ..measurement import IdealObservations
 from ..session import Session
 from . import cost as spec
-from . import noise
+from . import kernels, noise
 from .cost import robust_loss  # noqa: F401  (re-exported: fast_filter and tests use it from here)
 
 MODELS = spec.MOTION_MODELS
@@ -66,9 +66,6 @@ ROUNDING_EPS = 4.0
 # the flight sample: constant acceleration at j >= 1e5 m^2/s^5 extrapolating a single-view run through
 # the camera). Such a solve stops, not converged and ``at_camera``: its Laplace evidence is undefined.
 AT_CAMERA_DEPTH_FRACTION = 1e-3
-# Observations are evaluated in blocks of whole frames of about this many rows, so that the
-# temporaries of one block (a few hundred kB each) stay in the CPU cache whatever the scene's size.
-CHUNK_ROWS = 1 << 15
 # solve_levels repeats the observation rows once per candidate noise level; candidates go in groups
 # of at most this many rows in all (~64 B a row: 32 MB), so memory stays bounded at any scene size; a
 # larger scene solves its candidates one by one (there the sweeps are work, not per-call overhead).
@@ -100,16 +97,6 @@ class _Observations:
     def cell(self) -> np.ndarray:
         """The (frame, marker) cell of each row, f * M' + m, (n,) int, non-decreasing."""
         return self.f * self.n_markers + self.m
-
-    @cached_property
-    def blocks(self) -> list[tuple[slice, int, int]]:
-        """(rows, f0, f1): blocks of whole frames [f0, f1) of about CHUNK_ROWS rows (at least one frame)."""
-        row_of_frame = np.searchsorted(self.f, np.arange(self.n_frames + 1))
-        edges = [0]
-        while edges[-1] < self.n_frames:
-            f1 = np.searchsorted(row_of_frame, row_of_frame[edges[-1]] + CHUNK_ROWS, side="right") - 1
-            edges.append(int(min(self.n_frames, max(f1, edges[-1] + 1))))
-        return [(slice(row_of_frame[a], row_of_frame[b]), a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
     def of_markers(self, keep: np.ndarray) -> _Observations:
         """The rows of the markers where ``keep`` (bool over current columns), columns renumbered."""
@@ -197,7 +184,8 @@ def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> 
 
 # the 6 distinct entries (i, j), i <= j, of a symmetric 3x3 block
 _IU = np.triu_indices(3)
-_IU_PAIRS = list(zip(*_IU, strict=True))
+# the Linearization arrays kernels.projection_sums is given when no Jacobian is asked for
+_NO_CELLS6, _NO_CELLS3, _NO_CELLS1 = np.zeros((0, 6)), np.zeros((0, 3)), np.zeros(0)
 
 
 @dataclass
@@ -279,50 +267,20 @@ class _Problem:
         the loss (a safe step when the other is rejected) and is what the marginal covariances use.
         """
         F, M = x.shape[:2]
-        pt = _positions(x)
         total = np.zeros(M)
-        lin = (_Linearization(np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3)), np.zeros(F * M))
-               if jacobian else None)
-        kk = self.k * self.k
-        if closest is not None:
-            closest[:] = 0.0
-        for rows, f0, f1 in obs.blocks:  # sums over each block's (frame, marker) cells
-            inv_depth = None if closest is None else []
-            r0, r1, Jw0, Jw1 = obs.block_residuals(pt, rows, jacobian, inv_depth)
-            if closest is not None:
-                np.maximum.at(closest, obs.m[rows], inv_depth[0])
-            d2 = r0 * r0 + r1 * r1
-            rho, w = robust_loss(d2, self.robust, self.k)
-            total += np.bincount(obs.m[rows], weights=rho, minlength=M)
-            if not jacobian:
-                continue
-            cells = slice(f0 * M, f1 * M)
-            local, n_local = obs.cell[rows] - f0 * M, (f1 - f0) * M
-            Jr = Jw0 * r0 + Jw1 * r1  # Jw^T r, (3, k)
-            for i in range(3):
-                lin.g[cells, i] = np.bincount(local, weights=w * Jr[i], minlength=n_local)
-            lin.rr[cells] = np.bincount(local, weights=w * d2, minlength=n_local)
-            for s, (i, j) in enumerate(_IU_PAIRS):
-                lin.Hw[cells, s] = np.bincount(local, weights=w * (Jw0[i] * Jw0[j] + Jw1[i] * Jw1[j]),
-                                               minlength=n_local)
-            if self.robust == "none":
-                continue
-            bent = np.flatnonzero(d2 > kk) if self.robust == "huber" else np.flatnonzero(d2 > 0)
-            if len(bent) == 0:
-                continue
-            a = 1.0 if self.robust == "huber" else np.minimum(1.0, 2 * d2[bent] / (kk + d2[bent]))
-            wa = w[bent] * a / d2[bent]
-            Jr_b = Jr[:, bent]
-            for s, (i, j) in enumerate(_IU_PAIRS):
-                lin.Hc[cells, s] = np.bincount(local[bent], weights=wa * Jr_b[i] * Jr_b[j], minlength=n_local)
+        near = np.zeros(M) if closest is None else closest
+        near[:] = 0.0
+        Hw, Hc, g, rr = (np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3)), np.zeros(F * M)) if jacobian \
+            else (_NO_CELLS6, _NO_CELLS6, _NO_CELLS3, _NO_CELLS1)
+        kernels.projection_sums(_positions(x), obs.cell, obs.m, obs.cam, obs.P, obs.uv, obs.Linv, obs.behind_px,
+                                kernels.ROBUST_CODE[self.robust], float(self.k), jacobian, total, near, Hw, Hc, g, rr)
+        lin = _Linearization(Hw.reshape(F, M, 6), Hc.reshape(F, M, 6), g.reshape(F, M, 3), rr.reshape(F, M)) \
+            if jacobian else None
         e = x[1:] - x[:-1] @ self.A.T
         total += 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
         e0 = x[0] - mu0
         total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
         total = np.where(np.isnan(total), np.inf, total)
-        if jacobian:
-            lin = _Linearization(lin.Hw.reshape(F, M, 6), lin.Hc.reshape(F, M, 6), lin.g.reshape(F, M, 3),
-                                 lin.rr.reshape(F, M))
         return total, lin
 
     def system(self, x: np.ndarray, mu0: np.ndarray, lin: _Linearization,
@@ -388,45 +346,28 @@ def _T(a: np.ndarray) -> np.ndarray:
     return np.swapaxes(a, -1, -2)
 
 
+def _per_marker_B(B: np.ndarray, M: int) -> np.ndarray:
+    """The sub-diagonal block as (M, d, d) contiguous from (d, d) or (M, d, d)."""
+    return np.ascontiguousarray(np.broadcast_to(B, (M,) + B.shape[-2:]))
+
+
 def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant over frames).
 
     D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d), or (F, M, d, r)
     for r right-hand sides at once. Returns dx of rhs's shape.
     One sweep over frames eliminates and substitutes forwards (S_k = D_k - L_k B^T with L_k = B S_{k-1}^-1,
-    y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes; each step is vectorised over markers.
+    y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes (compiled: kernels.tridiagonal_solve).
     """
-    F = len(D)
-    BT = _T(B)
-    Sinv = np.empty_like(D)
     many = rhs.ndim == D.ndim
-    y = rhs.copy() if many else rhs[..., None].copy()  # (F, M, d, r)
-    Sinv[0] = np.linalg.inv(D[0])
-    for k in range(1, F):
-        L = B @ Sinv[k - 1]
-        Sinv[k] = np.linalg.inv(D[k] - L @ BT)
-        y[k] -= L @ y[k - 1]
-    dx = np.empty_like(y)
-    dx[-1] = Sinv[-1] @ y[-1]
-    for k in range(F - 2, -1, -1):
-        dx[k] = Sinv[k] @ (y[k] - BT @ dx[k + 1])
+    dx = kernels.tridiagonal_solve(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]),
+                                   np.ascontiguousarray(rhs if many else rhs[..., None]))
     return dx if many else dx[..., 0]
-
-
-def _forward(D: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Block elimination over frames: S_k^-1 (F, M, d, d) with S_0 = D_0, S_k = D_k - B S_{k-1}^-1 B^T."""
-    Sinv = np.empty_like(D)
-    Sinv[0] = np.linalg.inv(D[0])
-    BT = _T(B)
-    for k in range(1, len(D)):
-        Sinv[k] = np.linalg.inv(D[k] - B @ Sinv[k - 1] @ BT)
-    return Sinv
 
 
 def logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
     """log det H (M,) of block-tridiagonal H (see :func:`marginals`): sum_k log det S_k, forward sweep only."""
-    _, logdet_inv = np.linalg.slogdet(_forward(D, B))  # S_k^-1 is SPD: the sign is +1
-    return -logdet_inv.sum(axis=0)
+    return kernels.tridiagonal_logdet(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]))
 
 
 def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -436,19 +377,10 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     or per marker (M, d, d).
     Returns Sigma (F, M, d, d) and logdet (M,). With S_k the forward Schur complements,
     Sigma_{F-1} = S_{F-1}^-1 and Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T, G_k = S_k^-1 B^T
-    (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k. The gains of every
-    frame come from one batched product; the sweep itself is two products per frame.
+    (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k (compiled:
+    kernels.tridiagonal_marginals).
     """
-    Sinv = _forward(D, B)
-    _, logdet_inv = np.linalg.slogdet(Sinv)  # Sinv is SPD: the sign is +1
-    G = Sinv @ _T(B)  # (F, M, d, d)
-    GT = _T(G)
-    Sigma = np.empty_like(D)
-    Sigma[-1] = Sinv[-1]
-    for k in range(len(D) - 2, -1, -1):
-        Sigma[k] = Sinv[k] + G[k] @ Sigma[k + 1] @ GT[k]
-    Sigma = 0.5 * (Sigma + _T(Sigma))
-    return Sigma, -logdet_inv.sum(axis=0)
+    return kernels.tridiagonal_marginals(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]))
 
 
 @_one_thread

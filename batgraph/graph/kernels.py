@@ -1,0 +1,253 @@
+"""Compiled inner loops of the fast smoother (numba): the projection factors' sums and block-tridiagonal solves.
+
+Why compiled code and not numpy: both loops are small dense work repeated many times. In numpy, the
+projection sums make ~20 temporary arrays of the observation rows per evaluation, and the
+block-tridiagonal recursion is a Python loop over frames of batched 6 x 6 inverses, which is overhead-bound
+when few markers share a frame (issue "Speed a user feels": 5 x 24 x 160 is 2.5 ms per evaluation and 6 ms
+per solve in numpy, 0.3 ms and 3 ms here). The arithmetic is the numpy version's, in the same order where
+it matters (the sums over a cell's rows run in row order, as ``np.bincount`` does), so the answers agree to
+rounding; tests/test_kernels.py checks them against plain numpy on random systems.
+
+Compiled on first use and cached on disk (``cache=True``: ``__pycache__`` beside this file, or numba's
+user-wide cache when that is not writable), so only the first run after an install pays the ~5 s compile.
+Every kernel runs on one thread; the caller decides about parallelism (batgraph.batch runs sessions in
+parallel processes). This module imports only numpy and numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+ROBUST_CODE = {"none": 0, "huber": 1, "cauchy": 2}  # the ``robust`` argument of :func:`projection_sums`
+
+
+@njit(cache=True, nogil=True)
+def projection_sums(pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian, total, closest,
+                    Hw, Hc, g, rr):  # pragma: no cover  (compiled; tested through batgraph.graph.fast)
+    """Add every observation row's robust cost and Gauss-Newton terms into its (frame, marker) cell, in place.
+
+    pt (3, n_cells) positions [m]; per row (n,): cell (int, f * M' + m), col (int, marker column m), cam
+    (int), uv (2, n) ideal pixels, Linv (3, n) the whitening (a, b, c) of L^-1 = [[a, 0], [b, c]]; P (12, C)
+    projection matrices row-major; behind_px (C,) the residual [px] of a point behind its camera (zero
+    Jacobian; GTSAM's cheirality exception); robust ROBUST_CODE; k the loss's threshold [sigmas].
+    Outputs (added to): total (M',) robust cost per marker; closest (M',) largest inverse depth [1/m]
+    (max); and if ``jacobian``: Hw, Hc (n_cells, 6) upper-triangle entries of sum w Jw^T Jw and of the
+    robust-curvature correction sum w a (Jw^T r)(Jw^T r)^T / |r|^2, g (n_cells, 3) sum w Jw^T r, rr
+    (n_cells,) sum w |r|^2 (batgraph.graph.fast._Problem.evaluate defines each).
+    """
+    kk = k * k
+    for i in range(cell.shape[0]):
+        c, cm, mk = cell[i], cam[i], col[i]
+        x, y, z = pt[0, c], pt[1, c], pt[2, c]
+        depth = P[8, cm] * x + P[9, cm] * y + P[10, cm] * z + P[11, cm]
+        inv = 1.0 / depth if depth != 0.0 else np.inf
+        front = inv > 0.0 and inv < np.inf
+        u = v = 0.0
+        if front:
+            u = (P[0, cm] * x + P[1, cm] * y + P[2, cm] * z + P[3, cm]) * inv
+            v = (P[4, cm] * x + P[5, cm] * y + P[6, cm] * z + P[7, cm]) * inv
+            e0, e1 = u - uv[0, i], v - uv[1, i]
+        else:
+            inv = 0.0
+            e0 = e1 = behind_px[cm]
+        if inv > closest[mk]:
+            closest[mk] = inv
+        a, b, cc = Linv[0, i], Linv[1, i], Linv[2, i]
+        r0, r1 = a * e0, b * e0 + cc * e1
+        d2 = r0 * r0 + r1 * r1
+        if robust == 0:
+            rho, w = 0.5 * d2, 1.0
+        elif robust == 1:
+            rn = np.sqrt(d2)
+            if rn <= k:
+                rho, w = 0.5 * d2, 1.0
+            else:
+                rho, w = k * rn - 0.5 * kk, k / rn
+        else:
+            rho, w = 0.5 * kk * np.log1p(d2 / kk), kk / (kk + d2)
+        total[mk] += rho
+        if not jacobian:
+            continue
+        J00 = J01 = J02 = J10 = J11 = J12 = 0.0
+        if front:
+            J00, J01, J02 = (P[0, cm] - u * P[8, cm]) * inv, (P[1, cm] - u * P[9, cm]) * inv, (P[2, cm] - u * P[10, cm]) * inv
+            J10, J11, J12 = (P[4, cm] - v * P[8, cm]) * inv, (P[5, cm] - v * P[9, cm]) * inv, (P[6, cm] - v * P[10, cm]) * inv
+        W00, W01, W02 = a * J00, a * J01, a * J02
+        W10, W11, W12 = b * J00 + cc * J10, b * J01 + cc * J11, b * J02 + cc * J12
+        jr0, jr1, jr2 = W00 * r0 + W10 * r1, W01 * r0 + W11 * r1, W02 * r0 + W12 * r1
+        g[c, 0] += w * jr0
+        g[c, 1] += w * jr1
+        g[c, 2] += w * jr2
+        rr[c] += w * d2
+        Hw[c, 0] += w * (W00 * W00 + W10 * W10)
+        Hw[c, 1] += w * (W00 * W01 + W10 * W11)
+        Hw[c, 2] += w * (W00 * W02 + W10 * W12)
+        Hw[c, 3] += w * (W01 * W01 + W11 * W11)
+        Hw[c, 4] += w * (W01 * W02 + W11 * W12)
+        Hw[c, 5] += w * (W02 * W02 + W12 * W12)
+        if robust == 0 or d2 <= 0.0 or (robust == 1 and d2 <= kk):
+            continue
+        wa = w * (1.0 if robust == 1 else min(1.0, 2 * d2 / (kk + d2))) / d2
+        Hc[c, 0] += wa * jr0 * jr0
+        Hc[c, 1] += wa * jr0 * jr1
+        Hc[c, 2] += wa * jr0 * jr2
+        Hc[c, 3] += wa * jr1 * jr1
+        Hc[c, 4] += wa * jr1 * jr2
+        Hc[c, 5] += wa * jr2 * jr2
+
+
+# Blocks up to this size are multiplied and inverted by plain loops (a BLAS / LAPACK call costs more than
+# a 6 x 6 product); larger ones (segment groups: 6 x members) go to BLAS and LAPACK through numba.
+SMALL_BLOCK = 12
+
+
+@njit(cache=True, nogil=True)
+def _inverse(A, out, work):  # pragma: no cover  (compiled)
+    """out = A^-1 (d, d) by Gauss-Jordan elimination with partial pivoting (LAPACK getri's answer to
+    rounding); returns log |det A| (-inf for a singular A, whose out is then inf / NaN). work: (d, d)."""
+    d = A.shape[0]
+    if d > SMALL_BLOCK:
+        out[:] = np.linalg.inv(A)
+        return np.linalg.slogdet(A)[1]
+    for i in range(d):
+        for j in range(d):
+            work[i, j] = A[i, j]
+            out[i, j] = 1.0 if i == j else 0.0
+    logdet = 0.0
+    for c in range(d):
+        p, big = c, abs(work[c, c])
+        for r in range(c + 1, d):
+            if abs(work[r, c]) > big:
+                p, big = r, abs(work[r, c])
+        if p != c:
+            for j in range(d):
+                work[c, j], work[p, j] = work[p, j], work[c, j]
+                out[c, j], out[p, j] = out[p, j], out[c, j]
+        piv = work[c, c]
+        logdet += np.log(abs(piv))
+        inv_piv = 1.0 / piv
+        for j in range(d):
+            work[c, j] *= inv_piv
+            out[c, j] *= inv_piv
+        for r in range(d):
+            if r == c:
+                continue
+            f = work[r, c]
+            if f == 0.0:
+                continue
+            for j in range(d):
+                work[r, j] -= f * work[c, j]
+                out[r, j] -= f * out[c, j]
+    return logdet
+
+
+@njit(cache=True, nogil=True)
+def _matmul(A, B, out):  # pragma: no cover  (compiled)
+    """out = A @ B for (a, q) and (q, b) arrays (either may be a transposed view)."""
+    a, q = A.shape
+    b = B.shape[1]
+    if q > SMALL_BLOCK:
+        out[:] = np.dot(A, B)
+        return
+    for i in range(a):
+        for j in range(b):
+            t = 0.0
+            for l in range(q):
+                t += A[i, l] * B[l, j]
+            out[i, j] = t
+
+
+@njit(cache=True, nogil=True)
+def _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly):  # pragma: no cover  (compiled)
+    """The forward sweep of marker m: Sinv[k] = S_k^-1 (F, d, d) with S_0 = D_0, S_k = D_k - L_k B^T,
+    L_k = B S_{k-1}^-1; and when rhs (F, M, d, r) has frames, y[k] = rhs_k - L_k y_{k-1} (F, d, r).
+    Returns sum_k log |det S_k|. L, S, work: (d, d) scratch; Ly (d, r) scratch."""
+    F, d = D.shape[0], D.shape[2]
+    with_rhs = rhs.shape[0] > 0
+    Bm = B[m]
+    logdet = _inverse(D[0, m], Sinv[0], work)
+    if with_rhs:
+        y[0] = rhs[0, m]
+    for k in range(1, F):
+        _matmul(Bm, Sinv[k - 1], L)
+        _matmul(L, Bm.T, S)
+        for i in range(d):
+            for j in range(d):
+                S[i, j] = D[k, m, i, j] - S[i, j]
+        logdet += _inverse(S, Sinv[k], work)
+        if with_rhs:
+            _matmul(L, y[k - 1], Ly)
+            for i in range(d):
+                for c in range(y.shape[2]):
+                    y[k, i, c] = rhs[k, m, i, c] - Ly[i, c]
+    return logdet
+
+
+_NO_RHS = np.empty((0, 1, 1, 1))  # the rhs argument of _forward_sweep when there is none
+
+
+@njit(cache=True, nogil=True)
+def tridiagonal_solve(D, B, rhs):  # pragma: no cover  (compiled)
+    """dx (F, M, d, r) solving H dx = rhs for every marker's block-tridiagonal H (batgraph.graph.fast._solve).
+
+    D (F, M, d, d) diagonal blocks; B (M, d, d) the sub-diagonal block H[k+1, k] of each marker, constant
+    over frames; rhs (F, M, d, r). Forward: S_k and y_k = rhs_k - B S_{k-1}^-1 y_{k-1}; back:
+    dx_{F-1} = S^-1 y, dx_k = S_k^-1 (y_k - B^T dx_{k+1}).
+    """
+    F, M, d, r = rhs.shape
+    out = np.empty_like(rhs)
+    Sinv = np.empty((F, d, d))
+    y = np.empty((F, d, r))
+    L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    Ly, t_ = np.empty((d, r)), np.empty((d, r))
+    for m in range(M):
+        _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly)
+        _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
+        for k in range(F - 2, -1, -1):
+            _matmul(B[m].T, out[k + 1, m], Ly)
+            for i in range(d):
+                for c in range(r):
+                    t_[i, c] = y[k, i, c] - Ly[i, c]
+            _matmul(Sinv[k], t_, out[k, m])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def tridiagonal_logdet(D, B):  # pragma: no cover  (compiled)
+    """log det H (M,) of every marker's block-tridiagonal H (D (F, M, d, d), B (M, d, d)): sum_k log det S_k."""
+    F, M, d = D.shape[0], D.shape[1], D.shape[2]
+    out = np.empty(M)
+    Sinv = np.empty((F, d, d))
+    L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    for m in range(M):
+        out[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def tridiagonal_marginals(D, B):  # pragma: no cover  (compiled)
+    """Diagonal blocks Sigma (F, M, d, d) of H^-1 and log det H (M,) (batgraph.graph.fast.marginals):
+    Sigma_{F-1} = S_{F-1}^-1, Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T with G_k = S_k^-1 B^T, symmetrised."""
+    F, M, d = D.shape[0], D.shape[1], D.shape[2]
+    Sigma = np.empty((F, M, d, d))
+    ld = np.empty(M)
+    Sinv = np.empty((F, d, d))
+    L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    G, GS = np.empty((d, d)), np.empty((d, d))
+    for m in range(M):
+        ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
+        Sigma[F - 1, m] = Sinv[F - 1]
+        for k in range(F - 2, -1, -1):
+            _matmul(Sinv[k], B[m].T, G)
+            _matmul(G, Sigma[k + 1, m], GS)
+            _matmul(GS, G.T, S)
+            for i in range(d):
+                for j in range(d):
+                    Sigma[k, m, i, j] = Sinv[k, i, j] + S[i, j]
+        for k in range(F):
+            for i in range(d):
+                for j in range(i + 1, d):
+                    s = 0.5 * (Sigma[k, m, i, j] + Sigma[k, m, j, i])
+                    Sigma[k, m, i, j] = Sigma[k, m, j, i] = s
+    return Sigma, ld

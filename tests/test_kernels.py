@@ -1,0 +1,102 @@
+"""The compiled kernels (batgraph.graph.kernels) against plain numpy on random systems and observations."""
+
+import numpy as np
+import pytest
+
+from batgraph.graph import kernels
+from batgraph.graph.cost import robust_loss
+
+
+def _tridiagonal(rng, F, M, d):
+    """Random SPD block-tridiagonal systems: D (F, M, d, d), B (M, d, d), and the dense H (M, F d, F d)."""
+    B = rng.normal(size=(M, d, d))
+    X = rng.normal(size=(F, M, d, d))
+    D = X @ np.swapaxes(X, -1, -2) + 2 * d * np.eye(d) + 2 * np.abs(B).sum(axis=(1, 2))[None, :, None, None] * np.eye(d)
+    H = np.zeros((M, F * d, F * d))
+    for k in range(F):
+        H[:, k * d:(k + 1) * d, k * d:(k + 1) * d] = D[k]
+        if k + 1 < F:
+            H[:, (k + 1) * d:(k + 2) * d, k * d:(k + 1) * d] = B
+            H[:, k * d:(k + 1) * d, (k + 1) * d:(k + 2) * d] = np.swapaxes(B, -1, -2)
+    return D, B, H
+
+
+@pytest.mark.parametrize("d", [3, 6, 9, 18])  # 18 > SMALL_BLOCK: the BLAS / LAPACK branch
+def test_tridiagonal_kernels_equal_dense_linear_algebra(d):
+    rng = np.random.default_rng(d)
+    F, M, r = 7, 4, 3
+    D, B, H = _tridiagonal(rng, F, M, d)
+    rhs = rng.normal(size=(F, M, d, r))
+    dx = kernels.tridiagonal_solve(D, B, rhs)
+    Hinv = np.linalg.inv(H)
+    for m in range(M):
+        want = np.linalg.solve(H[m], rhs[:, m].reshape(F * d, r))
+        np.testing.assert_allclose(dx[:, m].reshape(F * d, r), want, rtol=1e-10, atol=1e-12)
+    ld_want = np.linalg.slogdet(H)[1]
+    np.testing.assert_allclose(kernels.tridiagonal_logdet(D, B), ld_want, rtol=1e-12)
+    Sigma, ld = kernels.tridiagonal_marginals(D, B)
+    np.testing.assert_allclose(ld, ld_want, rtol=1e-12)
+    for k in range(F):
+        np.testing.assert_allclose(Sigma[k], Hinv[:, k * d:(k + 1) * d, k * d:(k + 1) * d], rtol=1e-9, atol=1e-13)
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
+def test_projection_sums_equal_numpy(robust):
+    """Cost, curvature, gradient and closest inverse depth per cell against a numpy evaluation of the same
+    rows, including rows behind their camera (residual 2 fx, zero Jacobian)."""
+    rng = np.random.default_rng(7)
+    n_cells, M, C, n = 12, 3, 4, 200
+    k = 2.0
+    pt = rng.normal(size=(3, n_cells)) * 0.3
+    cell = np.sort(rng.integers(0, n_cells, n))
+    col = cell % M
+    cam = rng.integers(0, C, n)
+    P = np.zeros((12, C))
+    for c in range(C):
+        Pc = np.hstack([800 * np.eye(3), rng.normal(size=(3, 1))])
+        Pc[2, 3] = 2.0 if c else -0.1  # camera 0 sees some points behind it
+        Pc[:2, 2] = 320.0, 240.0
+        P[:, c] = Pc.ravel()
+    uv = rng.normal(size=(2, n)) * 30 + np.array([[320.0], [240.0]])
+    Linv = np.stack([np.full(n, 1.0), rng.normal(size=n) * 0.1, np.full(n, 0.9)])
+    behind = np.full(C, 1600.0)
+    out = [np.zeros(M), np.zeros(M), np.zeros((n_cells, 6)), np.zeros((n_cells, 6)), np.zeros((n_cells, 3)),
+           np.zeros(n_cells)]
+    kernels.projection_sums(pt, cell, col, cam, P, uv, Linv, behind, kernels.ROBUST_CODE[robust], k, True, *out)
+    total, closest, Hw, Hc, g, rr = out
+    # numpy, row by row
+    p = pt[:, cell]
+    Pr = P[:, cam].T.reshape(n, 3, 4)
+    h = np.einsum("nij,jn->ni", Pr[:, :, :3], p) + Pr[:, :, 3]
+    front = h[:, 2] > 0
+    assert 0 < front.sum() < n
+    uvp = h[:, :2] / h[:, 2:]
+    e = np.where(front[:, None], uvp - uv.T, behind[cam][:, None])
+    Lm = np.zeros((n, 2, 2))
+    Lm[:, 0, 0], Lm[:, 1, 0], Lm[:, 1, 1] = Linv
+    r = np.einsum("nij,nj->ni", Lm, e)
+    J = (Pr[:, :2, :3] - uvp[:, :, None] * Pr[:, 2:, :3]) / h[:, 2, None, None]
+    J[~front] = 0.0
+    Jw = Lm @ J
+    d2 = (r**2).sum(1)
+    rho, w = robust_loss(d2, robust, k)
+    np.testing.assert_allclose(total, np.bincount(col, rho, M), rtol=1e-12)
+    np.testing.assert_allclose(closest, np.maximum(0, [max([0.0] + list(1 / h[(col == m) & front, 2]))
+                                                       for m in range(M)]), rtol=1e-12)
+    Jr = np.einsum("nij,ni->nj", Jw, r)
+    np.testing.assert_allclose(g, np.stack([np.bincount(cell, w * Jr[:, i], n_cells) for i in range(3)], 1),
+                               rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(rr, np.bincount(cell, w * d2, n_cells), rtol=1e-12)
+    iu = np.triu_indices(3)
+    JJ = np.einsum("nki,nkj->nij", Jw, Jw)[:, iu[0], iu[1]]
+    np.testing.assert_allclose(Hw, np.stack([np.bincount(cell, w * JJ[:, s], n_cells) for s in range(6)], 1),
+                               rtol=1e-10, atol=1e-12)
+    if robust == "none":
+        a = np.zeros(n)
+    elif robust == "huber":
+        a = (d2 > k * k).astype(float)
+    else:
+        a = np.minimum(1.0, 2 * d2 / (k * k + d2))
+    RR = np.einsum("ni,nj->nij", Jr, Jr)[:, iu[0], iu[1]] * (w * a / d2)[:, None]
+    np.testing.assert_allclose(Hc, np.stack([np.bincount(cell, RR[:, s], n_cells) for s in range(6)], 1),
+                               rtol=1e-10, atol=1e-12)
