@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from . import atomic
 from . import methods as methods_registry
 from .errors import InputError
+from .formats.csv_text import csv_text
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
 
@@ -312,7 +313,7 @@ def batch_table(items: list[BatchItem]) -> pd.DataFrame:
 
 def write_batch_summary(items: list[BatchItem], path: Path) -> Path:
     """Write batch_summary.csv atomically; returns its path."""
-    atomic.write_text(path, batch_table(items).to_csv(index=False, float_format="%.9g"))
+    atomic.write_text(path, csv_text(batch_table(items), "%.9g"))
     return path
 
 

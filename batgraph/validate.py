@@ -410,5 +410,6 @@ def format_table(table: pd.DataFrame) -> list[str]:
 def write_csv(table: pd.DataFrame, path) -> None:
     """validation.csv (COLUMNS), atomically."""
     from . import atomic
+    from .formats.csv_text import csv_text
 
-    atomic.write_text(path, table[COLUMNS].to_csv(index=False, float_format="%.4f"))
+    atomic.write_text(path, csv_text(table[COLUMNS], "%.4f"))

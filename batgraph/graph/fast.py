@@ -270,7 +270,8 @@ class _Problem:
         total = np.zeros(M)
         near = np.zeros(M) if closest is None else closest
         near[:] = 0.0
-        Hw, Hc, g, rr = (np.zeros((F * M, 6)), np.zeros((F * M, 6)), np.zeros((F * M, 3)), np.zeros(F * M)) if jacobian \
+        n = F * M
+        Hw, Hc, g, rr = (np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 3)), np.zeros(n)) if jacobian \
             else (_NO_CELLS6, _NO_CELLS6, _NO_CELLS3, _NO_CELLS1)
         kernels.projection_sums(_positions(x), obs.cell, obs.m, obs.cam, obs.P, obs.uv, obs.Linv, obs.behind_px,
                                 kernels.ROBUST_CODE[self.robust], float(self.k), jacobian, total, near, Hw, Hc, g, rr)

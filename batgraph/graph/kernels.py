@@ -71,8 +71,9 @@ def projection_sums(pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacob
             continue
         J00 = J01 = J02 = J10 = J11 = J12 = 0.0
         if front:
-            J00, J01, J02 = (P[0, cm] - u * P[8, cm]) * inv, (P[1, cm] - u * P[9, cm]) * inv, (P[2, cm] - u * P[10, cm]) * inv
-            J10, J11, J12 = (P[4, cm] - v * P[8, cm]) * inv, (P[5, cm] - v * P[9, cm]) * inv, (P[6, cm] - v * P[10, cm]) * inv
+            J00, J01 = (P[0, cm] - u * P[8, cm]) * inv, (P[1, cm] - u * P[9, cm]) * inv
+            J02, J10 = (P[2, cm] - u * P[10, cm]) * inv, (P[4, cm] - v * P[8, cm]) * inv
+            J11, J12 = (P[5, cm] - v * P[9, cm]) * inv, (P[6, cm] - v * P[10, cm]) * inv
         W00, W01, W02 = a * J00, a * J01, a * J02
         W10, W11, W12 = b * J00 + cc * J10, b * J01 + cc * J11, b * J02 + cc * J12
         jr0, jr1, jr2 = W00 * r0 + W10 * r1, W01 * r0 + W11 * r1, W02 * r0 + W12 * r1
