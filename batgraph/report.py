@@ -39,6 +39,9 @@ CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square, 2 DOF (reprojec
 
 MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs small and fast
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
+# Per-camera figures draw at most this many panels (evenly spaced over the rig; the per-camera table lists
+# every camera): drawing is per axis, so 30 panels per figure made a 30-camera report ~4 s slower.
+MAX_CAMERA_PANELS = 10
 DPI = 100
 MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretched so that it stays readable
 
@@ -59,6 +62,17 @@ def _style(methods: list[str]) -> dict[str, tuple[str, str]]:
 def _selected_markers(markers: list[str], n_max: int = 7) -> list[str]:
     named = [m for m in PAPER_MARKERS if m in markers]
     return named if named else list(markers[:min(n_max, 6)])
+
+
+def _panel_cameras(cameras: list[str]) -> tuple[list[str], str]:
+    """The cameras the per-camera figures draw (at most MAX_CAMERA_PANELS, evenly spaced over the rig's
+    order) and a caption note saying so ("" when every camera is drawn)."""
+    if len(cameras) <= MAX_CAMERA_PANELS:
+        return list(cameras), ""
+    pick = np.unique(np.linspace(0, len(cameras) - 1, MAX_CAMERA_PANELS).round().astype(int))
+    return [cameras[i] for i in pick], (f" {len(pick)} of the {len(cameras)} cameras are drawn (evenly spaced "
+                                         "over the rig: cameras " + ", ".join(html.escape(cameras[i]) for i in pick) +
+                                         "); the per-camera table lists every camera.")
 
 
 def _png(fig: Figure) -> str:
@@ -743,6 +757,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     plotted = [m for m in methods if m in estimated]  # a method without a single estimate has nothing to draw
     fps = float(session.fps)
     cameras = session.rig.names
+    panel_cameras, panel_note = _panel_cameras(cameras)
     markers = list(session.markers)
     markers += [m for m in pd.unique(trajectories["marker"].astype(str)) if m not in markers]
     # the result's frame axis: every frame of every take, none between (batgraph.session.frame_axis)
@@ -827,12 +842,12 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
 
     # --- reprojection ellipses (Fig. 5 b-f)
     rep_mm = evaluate.reprojection_in_mm(reprojection, trajectories, session.rig) if len(reprojection) else None
-    fig = _fig_reprojection_ellipses(rep_mm, methods, style, cameras, rng) if rep_mm is not None else None
+    fig = _fig_reprojection_ellipses(rep_mm, methods, style, panel_cameras, rng) if rep_mm is not None else None
     sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", _figure_html(
         fig, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "
         "the marker's depth in that camera (residual × depth / f). Ellipses: 95 % ellipse of each method's "
         "residuals (mean ± χ²₂ 95 % of their covariance); line styles and colours as everywhere in batgraph "
-        "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image.",
+        "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image." + panel_note,
         "reprojection error ellipses per camera")))
 
     # --- reprojection over image features (Fig. 6)
@@ -840,14 +855,14 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     reproj_tracks = {}
     for m in plotted:
         cube = session.rig.to_user(_trajectory_cube(trajectories, m, frames, markers)[:, sel_idx])
-        reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig}
-    fig = _fig_reprojection_image(session, reproj_tracks, plotted, style, cameras, selected, frames) \
+        reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig if c.name in panel_cameras}
+    fig = _fig_reprojection_image(session, reproj_tracks, plotted, style, panel_cameras, selected, frames) \
         if plotted else None
     sections.append(("features", "Reprojections over the 2D features (paper Fig. 6)", _figure_html(
         fig, f"Image features (open circles, colour = marker) of the markers {', '.join(selected)} and "
         "each method's 3D estimate projected back into the raw (distorted) image over every frame "
         "(lines, method style), so the lines also run through occlusion gaps. Pixels: OpenCV convention, "
-        "v downward; each panel is zoomed to the features.",
+        "v downward; each panel is zoomed to the features." + panel_note,
         "reprojections over image features")))
 
     # --- coordinates over time

@@ -349,3 +349,15 @@ def test_degenerate_inputs_still_render(tmp_path):
     assert len(p.imgs) == 1  # the marker x frame map: where the data are, even without an estimate
     assert text.count("No data to draw") == 4
     assert "No reprojection errors." in text
+
+
+def test_per_camera_figures_draw_at_most_ten_panels_and_say_which():
+    """A 30-camera rig: the two per-camera figures draw 10 evenly spaced cameras (first and last included) and
+    their captions name them; every camera keeps its row in the per-camera table."""
+    from batgraph.report import MAX_CAMERA_PANELS, _panel_cameras
+
+    names = [f"cam{i}" for i in range(1, 31)]
+    drawn, note = _panel_cameras(names)
+    assert len(drawn) == MAX_CAMERA_PANELS == 10 and drawn[0] == "cam1" and drawn[-1] == "cam30"
+    assert len(set(drawn)) == 10 and "10 of the 30 cameras" in note and "cam30" in note
+    assert _panel_cameras(names[:10]) == (names[:10], "")
