@@ -100,3 +100,36 @@ def test_projection_sums_equal_numpy(robust):
     RR = np.einsum("ni,nj->nij", Jr, Jr)[:, iu[0], iu[1]] * (w * a / d2)[:, None]
     np.testing.assert_allclose(Hc, np.stack([np.bincount(cell, RR[:, s], n_cells) for s in range(6)], 1),
                                rtol=1e-10, atol=1e-12)
+
+
+def test_weighted_triangulation_recovers_points_and_their_information():
+    """Noisy pixels of 3 cameras: the kernel's points are the weighted least-squares optimum (gradient J^T W r
+    ~ 0, from numpy's pinhole Jacobians) and its Sigma is the inverse of sum J^T W J there; points behind every
+    camera or with NaN starts are left alone."""
+    from batgraph.geometry import pinhole
+
+    rng = np.random.default_rng(3)
+    C, F, M = 3, 4, 2
+    P = np.zeros((C, 3, 4))
+    for c in range(C):
+        ang = 2 * np.pi * c / C
+        R = np.array([[np.cos(ang), 0, -np.sin(ang)], [0, 1, 0], [np.sin(ang), 0, np.cos(ang)]])
+        K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+        P[c] = pinhole.projection_matrix(K, R, np.array([0, 0, 3.0]))
+    truth = rng.normal(size=(F, M, 3)) * 0.2
+    uv = np.stack([pinhole.project_ideal(P[c], truth) for c in range(C)]) + rng.normal(size=(C, F, M, 2))
+    W = np.broadcast_to(np.diag([1.0, 0.5]), (C, F, M, 2, 2)).copy()
+    use = np.ones((C, F, M), bool)
+    xyz = truth + 0.01
+    xyz[0, 0] = np.nan
+    r, A, Sigma = np.zeros((C, F, M, 2)), np.zeros((C, F, M, 3, 3)), np.full((F, M, 3, 3), np.nan)
+    kernels.weighted_triangulation(P, uv, W, use, xyz, 5, r, A, Sigma)
+    assert np.isnan(xyz[0, 0]).all() and np.isnan(Sigma[0, 0]).all() and (A[:, 0, 0] == 0).all()
+    for f, m in [(f, m) for f in range(F) for m in range(M) if (f, m) != (0, 0)]:
+        J = np.stack([pinhole.point_jacobian(P[c], xyz[f, m]) for c in range(C)])  # (C, 2, 3)
+        res = uv[:, f, m] - np.stack([pinhole.project_ideal(P[c], xyz[f, m]) for c in range(C)])
+        np.testing.assert_allclose(r[:, f, m], res, atol=1e-9)
+        JW = np.einsum("cki,ckl->cil", J, W[:, f, m])
+        np.testing.assert_allclose(A[:, f, m], JW @ J, rtol=1e-10)
+        assert np.abs(np.einsum("cil,cl->i", JW, res)).max() < 1e-6 * np.abs(JW).max()
+        np.testing.assert_allclose(Sigma[f, m], np.linalg.inv((JW @ J).sum(0)), rtol=1e-9)

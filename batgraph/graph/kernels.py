@@ -252,3 +252,84 @@ def tridiagonal_marginals(D, B):  # pragma: no cover  (compiled)
                     s = 0.5 * (Sigma[k, m, i, j] + Sigma[k, m, j, i])
                     Sigma[k, m, i, j] = Sigma[k, m, j, i] = s
     return Sigma, ld
+
+
+@njit(cache=True, nogil=True)
+def _observe(P, c, x, y, z, u_obs, v_obs, J):  # pragma: no cover  (compiled)
+    """Residual (u_obs - u, v_obs - v) [px] of camera c (P (C, 3, 4)) at (x, y, z) [m] and J = d(u, v)/dp
+    (2, 3) into J; (0, 0) and J = 0 for a point within 1e-9 m of the camera plane or behind it."""
+    depth = P[c, 2, 0] * x + P[c, 2, 1] * y + P[c, 2, 2] * z + P[c, 2, 3]
+    if not depth > 1e-9:
+        J[:] = 0.0
+        return 0.0, 0.0
+    inv = 1.0 / depth
+    u = (P[c, 0, 0] * x + P[c, 0, 1] * y + P[c, 0, 2] * z + P[c, 0, 3]) * inv
+    v = (P[c, 1, 0] * x + P[c, 1, 1] * y + P[c, 1, 2] * z + P[c, 1, 3]) * inv
+    for j in range(3):
+        J[0, j] = (P[c, 0, j] - u * P[c, 2, j]) * inv
+        J[1, j] = (P[c, 1, j] - v * P[c, 2, j]) * inv
+    return u_obs - u, v_obs - v
+
+
+@njit(cache=True, nogil=True)
+def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, A_out, Sigma):  # pragma: no cover  (compiled)
+    """Weighted Gauss-Newton triangulation of every (frame, marker) point (batgraph.pixel_noise._gauss_newton).
+
+    P (C, 3, 4) projection matrices to ideal pixels; uv (C, F, M, 2) ideal pixels; W (C, F, M, 2, 2) each
+    observation's information [1/px^2]; use (C, F, M) bool; xyz (F, M, 3) [m], refined in place where
+    finite (``iters`` steps, each kept only where it lowers the point's cost sum r^T W r; a point whose
+    residuals all vanish, i.e. behind every camera, keeps its start). Writes r_out (C, F, M, 2) = uv - pi(p)
+    and A_out (C, F, M, 3, 3) = J^T W J at the final points (zero where not used or behind the camera) and
+    Sigma (F, M, 3, 3) = (sum_c J^T W J)^-1 where it is invertible (left as given elsewhere).
+    """
+    C, F, M = use.shape
+    J = np.empty((2, 3))
+    H, Hr, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    g, step, trial = np.empty(3), np.empty(3), np.empty(3)
+    for f in range(F):
+        for m in range(M):
+            if not (np.isfinite(xyz[f, m, 0]) and np.isfinite(xyz[f, m, 1]) and np.isfinite(xyz[f, m, 2])):
+                continue
+            for it in range(iters + 1):
+                H[:] = 0.0
+                g[:] = 0.0
+                cost = 0.0
+                for c in range(C):
+                    if not use[c, f, m]:
+                        continue
+                    r0, r1 = _observe(P, c, xyz[f, m, 0], xyz[f, m, 1], xyz[f, m, 2], uv[c, f, m, 0], uv[c, f, m, 1], J)
+                    w00, w01, w11 = W[c, f, m, 0, 0], W[c, f, m, 0, 1], W[c, f, m, 1, 1]
+                    cost += w00 * r0 * r0 + 2 * w01 * r0 * r1 + w11 * r1 * r1
+                    for i in range(3):
+                        a0 = w00 * J[0, i] + w01 * J[1, i]  # (W J)^T row i
+                        a1 = w01 * J[0, i] + w11 * J[1, i]
+                        g[i] += a0 * r0 + a1 * r1
+                        for j in range(3):
+                            H[i, j] += a0 * J[0, j] + a1 * J[1, j]
+                    if it == iters:  # the final point: per-observation outputs
+                        r_out[c, f, m, 0], r_out[c, f, m, 1] = r0, r1
+                        for i in range(3):
+                            a0 = w00 * J[0, i] + w01 * J[1, i]
+                            a1 = w01 * J[0, i] + w11 * J[1, i]
+                            for j in range(3):
+                                A_out[c, f, m, i, j] = a0 * J[0, j] + a1 * J[1, j]
+                if it == iters:
+                    if abs(np.linalg.det(H)) > 0:
+                        _inverse(H, Sigma[f, m], work)
+                    break
+                for i in range(3):
+                    for j in range(3):
+                        Hr[i, j] = H[i, j] + (1e-12 if i == j else 0.0)
+                _inverse(Hr, work, H)  # H is free now: used as scratch
+                for i in range(3):
+                    step[i] = work[i, 0] * g[0] + work[i, 1] * g[1] + work[i, 2] * g[2]
+                    trial[i] = xyz[f, m, i] + step[i]
+                new_cost, nonzero = 0.0, False
+                for c in range(C):
+                    if not use[c, f, m]:
+                        continue
+                    r0, r1 = _observe(P, c, trial[0], trial[1], trial[2], uv[c, f, m, 0], uv[c, f, m, 1], J)
+                    nonzero = nonzero or r0 != 0.0 or r1 != 0.0
+                    new_cost += W[c, f, m, 0, 0] * r0 * r0 + 2 * W[c, f, m, 0, 1] * r0 * r1 + W[c, f, m, 1, 1] * r1 * r1
+                if new_cost < cost and nonzero:
+                    xyz[f, m] = trial
