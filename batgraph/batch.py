@@ -22,10 +22,9 @@ from pathlib import Path
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import atomic
 from . import methods as methods_registry
 from .errors import InputError
-from .formats.csv_text import csv_text
+from .formats.csv_text import write_csv
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
 
@@ -313,7 +312,7 @@ def batch_table(items: list[BatchItem]) -> pd.DataFrame:
 
 def write_batch_summary(items: list[BatchItem], path: Path) -> Path:
     """Write batch_summary.csv atomically; returns its path."""
-    atomic.write_text(path, csv_text(batch_table(items), "%.9g"))
+    write_csv(path, batch_table(items), "%.9g")
     return path
 
 

@@ -22,7 +22,7 @@ from . import atomic, checks, evaluate, inputs
 from . import methods as methods_registry
 from . import summary as summary_mod
 from .errors import InputError
-from .formats.csv_text import csv_text
+from .formats.csv_text import write_csv
 from .measurement import IdealObservations, ideal_observations
 from .result import Estimate, Options
 from .session import DenseObservations, Session, dense_observations, read_session
@@ -175,8 +175,8 @@ def _write_files(result: Result, out_dir: Path, viewer: str = "save", options: O
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
     files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
-    atomic.write_text(files[0], csv_text(result.trajectories, "%.9g"))
-    atomic.write_text(files[1], csv_text(result.reprojection, "%.6f"))
+    write_csv(files[0], result.trajectories, "%.9g")
+    write_csv(files[1], result.reprojection, "%.6f")
     atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
     steps = [("report.html", lambda p: write_report(p, s, result.trajectories, result.reprojection, result.summary))]
     method = export_method(result)

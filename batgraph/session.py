@@ -23,7 +23,7 @@ import tomli_w
 from . import atomic, inputs
 from .camera import Camera, Rig
 from .errors import InputError
-from .formats.csv_text import csv_text
+from .formats.csv_text import write_csv
 from .geometry.dlt import UNITS_M
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
@@ -540,12 +540,11 @@ def write_session(session: Session, folder: str | Path) -> Path:
     atomic.write_text(folder / "calibration.toml", calibration_toml(session.rig))
     obs = session.observations
     cols = OBS_COLUMNS + (["weight"] if "weight" in obs and not np.allclose(obs["weight"], 1.0) else [])
-    atomic.write_text(folder / "observations.csv", csv_text(obs[cols], "%.6f"))
+    write_csv(folder / "observations.csv", obs[cols], "%.6f")
     if session.truth is not None:
-        atomic.write_text(folder / "truth.csv", csv_text(session.truth[TRUTH_COLUMNS], "%.9f"))
+        write_csv(folder / "truth.csv", session.truth[TRUTH_COLUMNS], "%.9f")
     if session.reference is not None:
-        atomic.write_text(folder / "reference_xyz.csv",
-                          csv_text(session.reference[TRUTH_COLUMNS], "%.9f"))
+        write_csv(folder / "reference_xyz.csv", session.reference[TRUTH_COLUMNS], "%.9f")
     if session.true_rig is not None:
         atomic.write_text(folder / "calibration_true.toml", calibration_toml(session.true_rig))
     if session.mislabels is not None:

@@ -409,7 +409,6 @@ def format_table(table: pd.DataFrame) -> list[str]:
 
 def write_csv(table: pd.DataFrame, path) -> None:
     """validation.csv (COLUMNS), atomically."""
-    from . import atomic
-    from .formats.csv_text import csv_text
+    from .formats import csv_text
 
-    atomic.write_text(path, csv_text(table[COLUMNS], "%.4f"))
+    csv_text.write_csv(path, table[COLUMNS], "%.4f")

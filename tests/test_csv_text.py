@@ -51,3 +51,14 @@ def test_the_pipeline_tables_write_as_pandas_would(session_folder, tmp_path):
         assert csv_text(table, fmt) == table.to_csv(index=False, float_format=fmt)
     assert (tmp_path / "out" / "trajectories.csv").read_text() == result.trajectories.to_csv(index=False,
                                                                                              float_format="%.9g")
+
+
+def test_chunked_file_is_the_same_text(tmp_path):
+    """write_csv in chunks (one with NaN, one without) gives one header and pandas' text."""
+    from batgraph.formats.csv_text import write_csv
+
+    table = _table(250)
+    write_csv(tmp_path / "t.csv", table, "%.9g", chunk_rows=37)
+    assert (tmp_path / "t.csv").read_text() == table.to_csv(index=False, float_format="%.9g")
+    write_csv(tmp_path / "e.csv", table.iloc[:0], "%.9g")
+    assert (tmp_path / "e.csv").read_text() == table.iloc[:0].to_csv(index=False, float_format="%.9g")

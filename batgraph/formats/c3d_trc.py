@@ -75,7 +75,7 @@ import pandas as pd
 from ..atomic import atomic_path, write_text
 from ..errors import InputError
 from ..evaluate import dense_from_table
-from .csv_text import csv_text
+from .csv_text import write_csv
 
 RANGES = ("span", "observed", "all")
 """Values of ``keep`` / ``--range``; the first is the default."""
@@ -387,7 +387,7 @@ def write_table(path: str | Path, trajectories: pd.DataFrame, units: str = "m", 
         with atomic_path(path) as tmp:
             table.to_parquet(tmp, index=False)
     elif path.suffix == ".csv":
-        write_text(path, csv_text(table, "%.9g"))
+        write_csv(path, table, "%.9g")
     else:
         raise ValueError(f"{path}: the suffix must be .csv or .parquet")
     return path
