@@ -38,7 +38,7 @@ def _gauss_newton(rig: Rig, ideal: IdealObservations, w_scale: np.ndarray, xyz: 
     Returns xyz, residuals r (C, F, M, 2) [ideal px], unit information Wu (C, F, M, 2, 2), each
     observation's J^T W J (C, F, M, 3, 3) (zero where not used) and the posterior covariance Sigma
     (F, M, 3, 3) for the weights w_scale (NaN where not triangulated). The per-point loop is compiled
-    (batgraph.graph.kernels.weighted_triangulation: 4.1 -> ~0.5 s of preflight at 30 x 180 x 160).
+    (batgraph.graph.kernels.weighted_triangulation: 2.5 -> 0.57 s at 30 x 180 x 160).
     """
     from .graph import kernels  # numba: imported when the pixel noise is measured
 

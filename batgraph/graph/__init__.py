@@ -4,7 +4,8 @@ Modules, imports flowing one way (cost -> noise -> fast -> fast_filter; factors 
 :mod:`.cost` (the cost's constants, motion parameters, robust losses, residuals and rejection rule, in
 numpy), :mod:`.noise` (motion noise: given, the filter's causal q, the marginal-likelihood formulas),
 :mod:`.fast` (the numpy smoother for a fixed rig, and the per-marker q search), :mod:`.fast_filter`
-(the numpy filter); the GTSAM reference: :mod:`.factors` (keys, projection / motion / prior factors,
+(the numpy filter), :mod:`.kernels` (their compiled inner loops, numba; imports only numpy and numba,
+also used by batgraph.pixel_noise); the GTSAM reference: :mod:`.factors` (keys, projection / motion / prior factors,
 camera variables), :mod:`.smoother` (batch Levenberg-Marquardt + marginals), :mod:`.filter` (iSAM2).
 Only the last three import GTSAM; the fast paths hand over to them (imported then) when the rig has
 camera pose covariances.
