@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .measurement import ideal_observations
+from .measurement import IdealObservations, ideal_observations
 from .motion import noise_from_track
 from .pixel_noise import estimate_pixel_sigma
 from .session import DenseObservations, Session
@@ -45,6 +45,7 @@ class Preflight:
     figures (sigma_px, n_used, n_rejected, pooled) and "source" ("estimated" or "session.toml").
     session: the session with its motion noise filled in when it had no physics.
     warnings: one line each. figures: per camera distance [m] and fraction behind, for summary.json.
+    ideal: the observations undistorted, with the noise ``sigma_px`` (batgraph.measurement).
     """
 
     sigma_px: np.ndarray
@@ -52,6 +53,7 @@ class Preflight:
     session: Session
     warnings: list[str] = field(default_factory=list)
     figures: dict = field(default_factory=dict)
+    ideal: IdealObservations | None = None
 
 
 def _given_sigma(session: Session) -> np.ndarray | None:
@@ -155,4 +157,5 @@ def preflight(session: Session, dense: DenseObservations) -> Preflight:
         motion = dataclasses.replace(motion, sigma_m=motion.sigma_m if motion.sigma_m is not None else sigma_m,
                                      causal_accel_psd_m2_s3=q)
         figures["motion_from_track"] = {"sigma_m": motion.sigma_m, "causal_accel_psd_m2_s3": q}
-    return Preflight(sigma, noise, dataclasses.replace(session, motion=motion), warnings, figures)
+    return Preflight(sigma, noise, dataclasses.replace(session, motion=motion), warnings, figures,
+                     ideal_unit.with_sigma(sigma))

@@ -264,11 +264,11 @@ def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, r
         xyz = rig.to_user(xyz)  # back to the rig's world (the mirror is its own inverse)
     depth = np.full(len(rep), np.nan)
     f = np.full(len(rep), np.nan)
-    cams = rep["camera"].to_numpy()
-    for name in pd.unique(cams):
+    codes, names = pd.factorize(rep["camera"])
+    for k, name in enumerate(names):
         if name not in rig.names:
             continue
-        sel = cams == name
+        sel = codes == k
         depth[sel] = rig[name].to_cam(xyz[sel])[:, 2]
         f[sel] = focal_px(rig[name])
     depth[depth <= 0] = np.nan
@@ -307,6 +307,12 @@ def reprojection_stats(session: Session, rep_mm: pd.DataFrame) -> dict:
     return out
 
 
+def _keys(table: pd.DataFrame) -> pd.MultiIndex:
+    """(frame, camera, marker) of each row, frame as an integer and the labels as text."""
+    return pd.MultiIndex.from_arrays([table["frame"].to_numpy(np.int64), table["camera"].astype(str),
+                                      table["marker"].astype(str)])
+
+
 def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, runtime_s: float | None = None,
                    info: dict | None = None) -> dict:
     """summary.json's entry for one method, from its own rows of the two tables."""
@@ -322,9 +328,7 @@ def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, r
     if session.reference is not None:
         s["reference"] = reference_stats(traj, session.reference)
     if session.mislabels is not None and len(reproj):
-        planted = set(map(tuple, session.mislabels[["frame", "camera", "marker"]].astype(str).to_numpy()))
-        keys = reproj[["frame", "camera", "marker"]].astype(str).to_numpy()
-        is_planted = np.array([tuple(k) in planted for k in keys], dtype=bool)
+        is_planted = _keys(reproj).isin(_keys(session.mislabels))
         flagged = reproj["outlier"].to_numpy(bool)
         s["outlier_detection"] = {"planted": int(is_planted.sum()), "flagged": int(flagged.sum()),
                                   "flagged_planted": int((flagged & is_planted).sum())}

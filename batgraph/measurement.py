@@ -31,6 +31,15 @@ class IdealObservations:
     def seen(self) -> np.ndarray:
         return np.isfinite(self.uv_px[..., 0])
 
+    def with_sigma(self, pixel_sigma_px: float | np.ndarray) -> IdealObservations:
+        """These observations, made with a 1 px raw-pixel noise, at another noise: one value or (C,) [px].
+
+        The same as ``ideal_observations(rig, dense, pixel_sigma_px)`` (the covariance scales with sigma^2)
+        without undistorting again.
+        """
+        sigma = np.broadcast_to(np.asarray(pixel_sigma_px, dtype=float), self.uv_px.shape[:1])
+        return IdealObservations(self.uv_px, self.cov_px2 * (sigma ** 2)[:, None, None, None, None])
+
 
 def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float | np.ndarray) -> IdealObservations:
     """Undistort every observation and map its noise (see module docstring).

@@ -23,7 +23,7 @@ from . import methods as methods_registry
 from . import summary as summary_mod
 from .errors import InputError
 from .formats.csv_text import write_csv
-from .measurement import IdealObservations, ideal_observations
+from .measurement import IdealObservations
 from .result import Estimate, Options
 from .session import DenseObservations, Session, dense_observations, read_session
 
@@ -67,7 +67,7 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
     warnings = list(session.warnings) + pre.warnings + _take_warnings(session, dense)
     session = dataclasses.replace(pre.session, warnings=warnings)
-    ideal = ideal_observations(session.rig, dense, pre.sigma_px)
+    ideal = pre.ideal
     estimates, trajs, reprojs = {}, [], []
     for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
         run = methods_registry.run_function(name, options.solver)

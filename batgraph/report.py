@@ -50,7 +50,7 @@ MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretc
 # helpers
 # ----------------------------------------------------------------------------------------------
 def _methods(trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: dict) -> list[str]:
-    found = set(trajectories["method"].astype(str)) | set(reprojection["method"].astype(str))
+    found = {str(m) for table in (trajectories, reprojection) for m in pd.unique(table["method"])}
     found |= set((summary or {}).get("methods", {}) or {})
     return methods_registry.ordered(found)
 
@@ -841,7 +841,8 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
         "3D trajectories per method")))
 
     # --- reprojection ellipses (Fig. 5 b-f)
-    rep_mm = evaluate.reprojection_in_mm(reprojection, trajectories, session.rig) if len(reprojection) else None
+    drawn = reprojection[reprojection["camera"].isin(panel_cameras)]  # the others are not drawn
+    rep_mm = evaluate.reprojection_in_mm(drawn, trajectories, session.rig) if len(drawn) else None
     fig = _fig_reprojection_ellipses(rep_mm, methods, style, panel_cameras, rng) if rep_mm is not None else None
     sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", _figure_html(
         fig, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "

@@ -121,8 +121,9 @@ class Session:
     @property
     def markers(self) -> list[str]:
         """All marker labels: session.toml's order first, then the others as first seen."""
-        seen = list(dict.fromkeys(self.observations["marker"]))
-        return list(self.marker_names) + [m for m in seen if m not in self.marker_names]
+        named = set(self.marker_names)
+        seen = [str(m) for m in pd.unique(self.observations["marker"])]  # in order of appearance
+        return list(self.marker_names) + [m for m in seen if m not in named]
 
     @property
     def world_mirror(self) -> np.ndarray:

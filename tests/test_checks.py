@@ -72,6 +72,18 @@ def test_pixel_noise_with_two_cameras_counts_the_leverage(tmp_path):
     assert all(s == pytest.approx(1.0, rel=0.10) for s in sigma.values()), sigma
 
 
+def test_preflight_hands_on_the_observations_at_the_noise_it_chose(tmp_path):
+    """The estimators get preflight's undistortion at the measured noise (not 1 px): the same as undistorting
+    again."""
+    s = read_session(_copy(FLIGHT, tmp_path / "s"))
+    d = dense_observations(s)
+    pre = checks.preflight(s, d)
+    assert np.all(np.abs(pre.sigma_px - 1.0) > 1e-3), pre.sigma_px
+    again = ideal_observations(s.rig, d, pre.sigma_px)
+    assert np.array_equal(pre.ideal.uv_px, again.uv_px, equal_nan=True)
+    np.testing.assert_allclose(pre.ideal.cov_px2, again.cov_px2, rtol=1e-13, atol=0)
+
+
 def test_reconstruct_uses_and_reports_the_measured_noise(tmp_path):
     folder = _copy(FLIGHT, tmp_path / "s")
     assert _reconstruct(folder, tmp_path / "o", "--methods", "triangulate") == 0
