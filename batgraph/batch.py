@@ -45,6 +45,7 @@ class BatchItem:
     summary: the session's summary.json content when ok, else None.
     files: the files written when ok.  warnings: the session's input warnings when ok.
     pid: id of the process that ran it (the caller's own for a single session without a cluster).
+    kernel_threads: the threads the compiled kernels had there when ok (batgraph.graph.kernels).
     """
 
     session_dir: Path
@@ -57,6 +58,7 @@ class BatchItem:
     warnings: list[str] = field(default_factory=list)
     traceback: str | None = None
     pid: int | None = None
+    kernel_threads: int | None = None
 
     @property
     def name(self) -> str:
@@ -82,13 +84,19 @@ def _failure_message(e: BaseException) -> str:
 
 
 def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: Options,
-                viewer: str = "save", calibration: Path | None = None, validate: bool = False) -> BatchItem:
+                viewer: str = "save", calibration: Path | None = None, validate: bool = False,
+                kernel_threads: int | None = None) -> BatchItem:
     """One session -> BatchItem; every exception becomes a status (this is the Dask task).
 
     Module-level so that workers import it by name; returns only the small summary, never the
-    arrays, because the result travels back to the client.
+    arrays, because the result travels back to the client. kernel_threads: the threads of the compiled
+    kernels in this process (batgraph.graph.kernels.set_threads; None leaves them as they are).
     """
+    from .graph import kernels
+
     t0 = time.perf_counter()
+    if kernel_threads is not None:
+        kernels.set_threads(kernel_threads)
     try:
         result = reconstruct(session_dir, out_dir, methods, options, viewer=viewer, calibration=calibration,
                              validate=validate)
@@ -98,7 +106,8 @@ def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: O
         return BatchItem(session_dir, out_dir, "failed", _one_line(_failure_message(e)), time.perf_counter() - t0,
                          traceback=traceback.format_exc(), pid=os.getpid())
     return BatchItem(session_dir, out_dir, "ok", "", time.perf_counter() - t0, summary=result.summary,
-                     files=list(result.files), warnings=list(result.session.warnings), pid=os.getpid())
+                     files=list(result.files), warnings=list(result.session.warnings), pid=os.getpid(),
+                     kernel_threads=kernels.threads())
 
 
 def is_batch(session_args: list[str | Path]) -> bool:
@@ -169,12 +178,13 @@ def _local_cores() -> int:
 
 def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], options: Options, viewer: str,
                     calibration: Path | None, progress: bool, max_in_flight: int | None = None,
-                    validate: bool = False) -> list[BatchItem]:
+                    validate: bool = False, kernel_threads: int | None = None) -> list[BatchItem]:
     """One task per session, collected as they finish; a task that dies becomes a "failed" item.
 
     max_in_flight: submit at most this many sessions at once (None: all). With one per worker thread,
     a worker that dies takes down only the session it was running: Dask assigns short task lists to
     workers eagerly, and a dying worker's whole assigned list is counted as suspect.
+    kernel_threads: each worker's share of the cores for the compiled kernels (see :func:`run_session`).
     """
     from distributed import as_completed
 
@@ -189,7 +199,7 @@ def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], o
         # explicit key: two sessions must never be merged into one task by Dask's hashing.
         cal = None if calibration is None else calibration.absolute()
         fut = client.submit(run_session, s.absolute(), o.absolute(), methods, options, viewer, cal, validate,
-                            pure=False, key=f"reconstruct-{i}-{s.name}")
+                            kernel_threads, pure=False, key=f"reconstruct-{i}-{s.name}")
         index[fut] = (i, time.perf_counter())
         return fut
 
@@ -223,8 +233,9 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
     session_dirs: folders and/or glob patterns (see :func:`expand_sessions`).
     out_root: None -> each SESSION/out; else out_root/<session folder name>, plus out_root/batch_summary.csv.
     scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None -> a local cluster of
-      ``n_workers`` single-threaded worker processes (default min(n sessions, cores)) bound to 127.0.0.1,
-      without dashboards. A single session without ``scheduler`` runs in this process (no cluster start-up).
+      ``n_workers`` worker processes (default min(n sessions, cores); one task each, compiled kernels on
+      cores // n threads) bound to 127.0.0.1, without dashboards. A single session without ``scheduler``
+      runs in this process (no cluster start-up).
     progress: a bar over finished sessions; the per-method bars inside workers are always off.
     viewer: "save" (recording.rrd in each output folder) or "none"; "spawn" (a live window) only for a
       single session without a scheduler.
@@ -284,6 +295,9 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
             return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, validate=validate)
 
     n = min(n_workers or _local_cores(), len(jobs))
+    # the cores shared out: each worker's compiled kernels get cores // n threads (a worker of a remote
+    # scheduler keeps its own default, BATGRAPH_THREADS or its machine's cores)
+    threads = max(1, _local_cores() // n)
     # allowed-failures 0: a session that kills its worker (e.g. a native crash) fails once instead of
     # killing three more workers on retries; safe because only one session per worker is in flight.
     # memory_limit 0: a session is one indivisible task, so Dask's spill/pause machinery cannot help it,
@@ -299,7 +313,7 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
                          scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster, \
             Client(cluster, set_as_default=False) as client:
         return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, max_in_flight=n,
-                               validate=validate)
+                               validate=validate, kernel_threads=threads)
 
 
 def batch_table(items: list[BatchItem]) -> pd.DataFrame:

@@ -19,7 +19,7 @@ Definitions (also in the README):
 What is fixed across folds: the pixel noise (the full session's, from ``summary["pixel_sigma_px"]``: the
 folds do not re-estimate it) and every option. What each fold chooses again from its own data: anything a
 method estimates (e.g. the smoother's per-marker q, its outlier set). Folds run in parallel worker
-processes (one per core, "spawn" start method, one BLAS thread each), or serially on one core, inside a
+processes (one per core, "spawn" start method, one BLAS and one kernel thread each), or serially, inside a
 daemonic process (a Dask worker) or when they are quick (:func:`n_workers`); progress bars are off inside
 folds. When the worker processes cannot run
 (they re-import ``__main__``, which fails for a program read from stdin), the folds run serially here. A
@@ -183,10 +183,13 @@ def _expected_s(summary: dict | None, methods: list[str], n_folds: int) -> float
 
 
 def _init_worker() -> None:
-    # One BLAS thread per process: the folds already use every core.
+    # One BLAS thread and one kernel thread per process: the folds already use every core.
     from threadpoolctl import threadpool_limits
 
+    from .graph import kernels
+
     threadpool_limits(1)
+    kernels.set_threads(1)
 
 
 def fold_pixel_sigma(session: Session, summary: dict | None):

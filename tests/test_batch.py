@@ -79,6 +79,9 @@ def test_three_sessions_on_two_worker_cluster(make_session_folder, tmp_path, mon
     assert "\n" not in msg
     assert not (out_root / "flight_b").exists()
 
+    # each worker's compiled kernels had half of the cores
+    cores = len(os.sched_getaffinity(0))
+    assert [it.kernel_threads for it in (items[0], items[2])] == [max(1, cores // 2)] * 2
     # every session ran in a worker process, the two workers shared the work, and none is left running
     pids = {it.pid for it in items}
     assert os.getpid() not in pids and len(pids) == 2

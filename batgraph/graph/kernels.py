@@ -9,35 +9,121 @@ it matters (the sums over a cell's rows run in row order, as ``np.bincount`` doe
 rounding; tests/test_kernels.py checks them against plain numpy on random systems.
 
 Compiled on first use and cached on disk (``cache=True``: ``__pycache__`` beside this file, or numba's
-user-wide cache when that is not writable), so only the first run after an install pays the ~5 s compile.
-Every kernel runs on one thread; the caller decides about parallelism (batgraph.batch runs sessions in
-parallel processes). This module imports only numpy and numba.
+user-wide cache when that is not writable), so only the first run after an install pays the compile.
+
+Threads: each compiled loop releases the GIL (``nogil``) and works on a range of markers, frames or row
+chunks, so the public functions here split their work into :func:`threads` contiguous parts run on a
+thread pool (the calling thread takes the first). Why Python threads and not numba's ``parallel=True``:
+the same speed-up here, and numba's parallel compile made the first run after an install ~45 s longer.
+The parts never change an answer: markers and points are independent, and the projection sums are added
+per chunk of rows whose boundaries depend on the number of rows only, then over chunks in order.
+``BATGRAPH_THREADS`` (environment) or :func:`set_threads` sets the number (default: the cores this
+process may use); batgraph.batch gives each worker process its share of the cores.
+Arithmetic follows numpy's error model (``error_model="numpy"``): a division by zero gives inf or NaN,
+as in the numpy code these loops replace, instead of raising (e.g. a singular 3 x 3 block, whose
+Gauss-Newton step is then rejected). This module imports only numpy and numba.
 """
 
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
 ROBUST_CODE = {"none": 0, "huber": 1, "cauchy": 2}  # the ``robust`` argument of :func:`projection_sums`
 
+# Rows per chunk of the projection sums (at least), and the most chunks: a function of the number of rows
+# only, so that the sums (per chunk, then over chunks in order) do not depend on the number of threads.
+MIN_CHUNK_ROWS = 2048
+MAX_CHUNKS = 64
 
-@njit(cache=True, nogil=True)
+
+def _default_threads() -> int:
+    text = os.environ.get("BATGRAPH_THREADS", "").strip()
+    if text.isdigit() and int(text) > 0:
+        return int(text)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+_threads = _default_threads()
+_pool: ThreadPoolExecutor | None = None
+
+
+def threads() -> int:
+    """How many threads the kernels use (>= 1)."""
+    return _threads
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` (>= 1) threads from now on (e.g. a batch worker's share of the cores)."""
+    global _threads, _pool
+    if n != _threads and _pool is not None:
+        _pool.shutdown()
+        _pool = None
+    _threads = max(1, int(n))
+
+
+def _split(n_items: int, min_part: int, run) -> None:
+    """Call ``run(lo, hi)`` on contiguous parts of range(n_items), at most :func:`threads` of them and none
+    under ``min_part`` items unless there is one part, in parallel (the first on the calling thread)."""
+    global _pool
+    k = max(1, min(_threads, n_items // max(min_part, 1)))
+    if k == 1:
+        run(0, n_items)
+        return
+    if _pool is None:
+        _pool = ThreadPoolExecutor(max_workers=_threads - 1, thread_name_prefix="batgraph-kernel")
+    cuts = [(j * n_items) // k for j in range(k + 1)]
+    futures = [_pool.submit(run, cuts[j], cuts[j + 1]) for j in range(1, k)]
+    run(cuts[0], cuts[1])
+    for f in futures:
+        f.result()
+
+
 def projection_sums(pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian, total, closest,
-                    Hw, Hc, g, rr):  # pragma: no cover  (compiled; tested through batgraph.graph.fast)
+                    Hw, Hc, g, rr) -> None:
     """Add every observation row's robust cost and Gauss-Newton terms into its (frame, marker) cell, in place.
 
-    pt (3, n_cells) positions [m]; per row (n,): cell (int, f * M' + m), col (int, marker column m), cam
-    (int), uv (2, n) ideal pixels, Linv (3, n) the whitening (a, b, c) of L^-1 = [[a, 0], [b, c]]; P (12, C)
-    projection matrices row-major; behind_px (C,) the residual [px] of a point behind its camera (zero
-    Jacobian; GTSAM's cheirality exception); robust ROBUST_CODE; k the loss's threshold [sigmas].
+    pt (3, n_cells) positions [m]; per row (n,): cell (int, f * M' + m, non-decreasing), col (int, marker
+    column m), cam (int), uv (2, n) ideal pixels, Linv (3, n) the whitening (a, b, c) of L^-1 = [[a, 0], [b, c]];
+    P (12, C) projection matrices row-major; behind_px (C,) the residual [px] of a point behind its camera
+    (zero Jacobian; GTSAM's cheirality exception); robust ROBUST_CODE; k the loss's threshold [sigmas].
     Outputs (added to): total (M',) robust cost per marker; closest (M',) largest inverse depth [1/m]
     (max); and if ``jacobian``: Hw, Hc (n_cells, 6) upper-triangle entries of sum w Jw^T Jw and of the
     robust-curvature correction sum w a (Jw^T r)(Jw^T r)^T / |r|^2, g (n_cells, 3) sum w Jw^T r, rr
     (n_cells,) sum w |r|^2 (batgraph.graph.fast._Problem.evaluate defines each).
     """
+    n = len(cell)
+    n_chunks = min(MAX_CHUNKS, max(1, n // MIN_CHUNK_ROWS))
+    bounds = np.empty(n_chunks + 1, np.int64)
+    bounds[0], bounds[-1] = 0, n
+    if n_chunks > 1:  # each cut moved back to the first row of its cell: a cell's rows stay in one chunk
+        bounds[1:-1] = np.searchsorted(cell, cell[(np.arange(1, n_chunks) * n) // n_chunks])
+    part, near = np.zeros((n_chunks, len(total))), np.zeros((n_chunks, len(total)))
+    _split(n_chunks, 1, lambda j0, j1: _projection_chunks(
+        j0, j1, bounds, pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian, part, near, Hw, Hc, g, rr))
+    total += part.sum(axis=0)
+    np.maximum(closest, near.max(axis=0), out=closest)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _projection_chunks(j0, j1, bounds, pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian, part, near,
+                       Hw, Hc, g, rr):  # pragma: no cover  (compiled)
+    """:func:`projection_sums` over the row chunks j0..j1-1 (rows bounds[j]..bounds[j+1]-1), chunk j's cost
+    and closest inverse depth per marker into part[j], near[j] (n_chunks, M')."""
+    for j in range(j0, j1):
+        _projection_rows(bounds[j], bounds[j + 1], pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian,
+                         part[j], near[j], Hw, Hc, g, rr)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _projection_rows(lo, hi, pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacobian, total, closest,
+                     Hw, Hc, g, rr):  # pragma: no cover  (compiled)
+    """:func:`projection_sums` over rows lo..hi-1, into total and closest (M',)."""
     kk = k * k
-    for i in range(cell.shape[0]):
+    for i in range(lo, hi):
         c, cm, mk = cell[i], cam[i], col[i]
         x, y, z = pt[0, c], pt[1, c], pt[2, c]
         depth = P[8, cm] * x + P[9, cm] * y + P[10, cm] * z + P[11, cm]
@@ -103,7 +189,7 @@ def projection_sums(pt, cell, col, cam, P, uv, Linv, behind_px, robust, k, jacob
 SMALL_BLOCK = 12
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _inverse(A, out, work):  # pragma: no cover  (compiled)
     """out = A^-1 (d, d) by Gauss-Jordan elimination with partial pivoting (LAPACK getri's answer to
     rounding); returns log |det A| (-inf for a singular A, whose out is then inf / NaN). work: (d, d)."""
@@ -143,7 +229,7 @@ def _inverse(A, out, work):  # pragma: no cover  (compiled)
     return logdet
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _matmul(A, B, out):  # pragma: no cover  (compiled)
     """out = A @ B for (a, q) and (q, b) arrays (either may be a transposed view)."""
     a, q = A.shape
@@ -159,7 +245,7 @@ def _matmul(A, B, out):  # pragma: no cover  (compiled)
             out[i, j] = t
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly):  # pragma: no cover  (compiled)
     """The forward sweep of marker m: Sinv[k] = S_k^-1 (F, d, d) with S_0 = D_0, S_k = D_k - L_k B^T,
     L_k = B S_{k-1}^-1; and when rhs (F, M, d, r) has frames, y[k] = rhs_k - L_k y_{k-1} (F, d, r).
@@ -188,21 +274,52 @@ def _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly):  # pragma: no cover  
 _NO_RHS = np.empty((0, 1, 1, 1))  # the rhs argument of _forward_sweep when there is none
 
 
-@njit(cache=True, nogil=True)
-def tridiagonal_solve(D, B, rhs):  # pragma: no cover  (compiled)
+# The fewest (frame, marker) blocks of a tridiagonal system worth handing to another thread.
+MIN_PART_BLOCKS = 2048
+
+
+def _markers_split(D: np.ndarray, run) -> None:
+    """run(m0, m1) over contiguous ranges of the markers of D (F, M, d, d), in parallel (see :func:`_split`)."""
+    F, M = D.shape[:2]
+    _split(M, -(-MIN_PART_BLOCKS // max(F, 1)), run)
+
+
+def tridiagonal_solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """dx (F, M, d, r) solving H dx = rhs for every marker's block-tridiagonal H (batgraph.graph.fast._solve).
 
     D (F, M, d, d) diagonal blocks; B (M, d, d) the sub-diagonal block H[k+1, k] of each marker, constant
-    over frames; rhs (F, M, d, r). Forward: S_k and y_k = rhs_k - B S_{k-1}^-1 y_{k-1}; back:
+    over frames; rhs (F, M, d, r); all C-contiguous. Forward: S_k and y_k = rhs_k - B S_{k-1}^-1 y_{k-1}; back:
     dx_{F-1} = S^-1 y, dx_k = S_k^-1 (y_k - B^T dx_{k+1}).
     """
-    F, M, d, r = rhs.shape
     out = np.empty_like(rhs)
+    _markers_split(D, lambda m0, m1: _solve_markers(m0, m1, D, B, rhs, out))
+    return out
+
+
+def tridiagonal_logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """log det H (M,) of every marker's block-tridiagonal H (D (F, M, d, d), B (M, d, d)): sum_k log det S_k."""
+    out = np.empty(D.shape[1])
+    _markers_split(D, lambda m0, m1: _logdet_markers(m0, m1, D, B, out))
+    return out
+
+
+def tridiagonal_marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal blocks Sigma (F, M, d, d) of H^-1 and log det H (M,) (batgraph.graph.fast.marginals):
+    Sigma_{F-1} = S_{F-1}^-1, Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T with G_k = S_k^-1 B^T, symmetrised."""
+    Sigma, ld = np.empty_like(D), np.empty(D.shape[1])
+    _markers_split(D, lambda m0, m1: _marginals_markers(m0, m1, D, B, Sigma, ld))
+    return Sigma, ld
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_markers(m0, m1, D, B, rhs, out):  # pragma: no cover  (compiled)
+    """:func:`tridiagonal_solve` for markers m0..m1-1, into out (F, M, d, r)."""
+    F, M, d, r = rhs.shape
     Sinv = np.empty((F, d, d))
     y = np.empty((F, d, r))
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     Ly, t_ = np.empty((d, r)), np.empty((d, r))
-    for m in range(M):
+    for m in range(m0, m1):
         _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly)
         _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
         for k in range(F - 2, -1, -1):
@@ -211,32 +328,26 @@ def tridiagonal_solve(D, B, rhs):  # pragma: no cover  (compiled)
                 for c in range(r):
                     t_[i, c] = y[k, i, c] - Ly[i, c]
             _matmul(Sinv[k], t_, out[k, m])
-    return out
 
 
-@njit(cache=True, nogil=True)
-def tridiagonal_logdet(D, B):  # pragma: no cover  (compiled)
-    """log det H (M,) of every marker's block-tridiagonal H (D (F, M, d, d), B (M, d, d)): sum_k log det S_k."""
-    F, M, d = D.shape[0], D.shape[1], D.shape[2]
-    out = np.empty(M)
+@njit(cache=True, nogil=True, error_model="numpy")
+def _logdet_markers(m0, m1, D, B, out):  # pragma: no cover  (compiled)
+    """:func:`tridiagonal_logdet` for markers m0..m1-1, into out (M,)."""
+    F, d = D.shape[0], D.shape[2]
     Sinv = np.empty((F, d, d))
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
-    for m in range(M):
+    for m in range(m0, m1):
         out[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
-    return out
 
 
-@njit(cache=True, nogil=True)
-def tridiagonal_marginals(D, B):  # pragma: no cover  (compiled)
-    """Diagonal blocks Sigma (F, M, d, d) of H^-1 and log det H (M,) (batgraph.graph.fast.marginals):
-    Sigma_{F-1} = S_{F-1}^-1, Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T with G_k = S_k^-1 B^T, symmetrised."""
-    F, M, d = D.shape[0], D.shape[1], D.shape[2]
-    Sigma = np.empty((F, M, d, d))
-    ld = np.empty(M)
+@njit(cache=True, nogil=True, error_model="numpy")
+def _marginals_markers(m0, m1, D, B, Sigma, ld):  # pragma: no cover  (compiled)
+    """:func:`tridiagonal_marginals` for markers m0..m1-1, into Sigma (F, M, d, d) and ld (M,)."""
+    F, d = D.shape[0], D.shape[2]
     Sinv = np.empty((F, d, d))
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     G, GS = np.empty((d, d)), np.empty((d, d))
-    for m in range(M):
+    for m in range(m0, m1):
         ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
         Sigma[F - 1, m] = Sinv[F - 1]
         for k in range(F - 2, -1, -1):
@@ -251,10 +362,9 @@ def tridiagonal_marginals(D, B):  # pragma: no cover  (compiled)
                 for j in range(i + 1, d):
                     s = 0.5 * (Sigma[k, m, i, j] + Sigma[k, m, j, i])
                     Sigma[k, m, i, j] = Sigma[k, m, j, i] = s
-    return Sigma, ld
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _observe(P, c, x, y, z, u_obs, v_obs, J):  # pragma: no cover  (compiled)
     """Residual (u_obs - u, v_obs - v) [px] of camera c (P (C, 3, 4)) at (x, y, z) [m] and J = d(u, v)/dp
     (2, 3) into J; (0, 0) and J = 0 for a point within 1e-9 m of the camera plane or behind it."""
@@ -271,8 +381,7 @@ def _observe(P, c, x, y, z, u_obs, v_obs, J):  # pragma: no cover  (compiled)
     return u_obs - u, v_obs - v
 
 
-@njit(cache=True, nogil=True)
-def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, A_out, Sigma):  # pragma: no cover  (compiled)
+def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, A_out, Sigma) -> None:
     """Weighted Gauss-Newton triangulation of every (frame, marker) point (batgraph.pixel_noise._gauss_newton).
 
     P (C, 3, 4) projection matrices to ideal pixels; uv (C, F, M, 2) ideal pixels; W (C, F, M, 2, 2) each
@@ -282,11 +391,19 @@ def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, A_out, Sigma):  # p
     and A_out (C, F, M, 3, 3) = J^T W J at the final points (zero where not used or behind the camera) and
     Sigma (F, M, 3, 3) = (sum_c J^T W J)^-1 where it is invertible (left as given elsewhere).
     """
+    F, M = use.shape[1:]
+    _split(F, -(-MIN_PART_BLOCKS // max(M, 1)),
+           lambda f0, f1: _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, A_out, Sigma))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, A_out, Sigma):  # pragma: no cover  (compiled)
+    """:func:`weighted_triangulation` of frames f0..f1-1."""
     C, F, M = use.shape
     J = np.empty((2, 3))
     H, Hr, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     g, step, trial = np.empty(3), np.empty(3), np.empty(3)
-    for f in range(F):
+    for f in range(f0, f1):
         for m in range(M):
             if not (np.isfinite(xyz[f, m, 0]) and np.isfinite(xyz[f, m, 1]) and np.isfinite(xyz[f, m, 2])):
                 continue
