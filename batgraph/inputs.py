@@ -294,6 +294,12 @@ def row_name(i: int, is_csv: bool) -> str:
 def numeric_column(df: pd.DataFrame, col: str, path, is_csv: bool, allow_missing: bool) -> np.ndarray:
     """Column ``col`` as float (NaN where missing if ``allow_missing``); InputError naming the bad row."""
     raw = df[col]
+    try:  # the common case, every cell a number: one vectorised parse (pyarrow's for text columns)
+        values = raw.astype("float64").to_numpy(dtype=float)
+    except (ValueError, TypeError):
+        values = None
+    if values is not None and not np.isnan(values).any():
+        return _finite(values, raw, col, path, is_csv)
     text = raw.astype(str).str.strip()
     missing = (raw.isna() | text.isin(MISSING)).to_numpy()
     values = pd.to_numeric(raw.where(~missing), errors="coerce").to_numpy(dtype=float)
@@ -301,12 +307,17 @@ def numeric_column(df: pd.DataFrame, col: str, path, is_csv: bool, allow_missing
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(f"{path} {row_name(i, is_csv)}: {col} {cell(raw.iloc[i])} is not a number")
-    if np.isinf(values).any():
-        i = int(np.argmax(np.isinf(values)))
-        raise InputError(f"{path} {row_name(i, is_csv)}: {col} is infinite ({cell(raw.iloc[i])})")
     if not allow_missing and missing.any():
         i = int(np.argmax(missing))
         raise InputError(f"{path} {row_name(i, is_csv)}: {col} is empty")
+    return _finite(values, raw, col, path, is_csv)
+
+
+def _finite(values: np.ndarray, raw: pd.Series, col: str, path, is_csv: bool) -> np.ndarray:
+    """values, unless one is infinite: then InputError naming its row."""
+    if np.isinf(values).any():
+        i = int(np.argmax(np.isinf(values)))
+        raise InputError(f"{path} {row_name(i, is_csv)}: {col} is infinite ({cell(raw.iloc[i])})")
     return values
 
 

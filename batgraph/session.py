@@ -455,7 +455,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     names = [str(n) for n in markers.get("names", [])]
     skeleton = [(str(a), str(b)) for a, b in markers.get("skeleton", [])]
     rigid = list(dict.fromkeys((str(a), str(b)) for a, b in markers.get("rigid", [])))
-    known_markers = set(names) | set(observations["marker"])
+    observed = set(observations["marker"].unique())
+    known_markers = set(names) | observed
     for key, pairs in (("skeleton", skeleton), ("rigid", rigid)):
         for i, edge in enumerate(pairs):
             for e in edge:
@@ -464,7 +465,7 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
                                      f"[markers] names nor observed in {obs_path.name}")
     take_gap_s = float(sess.get("take_gap_s", DEFAULT_TAKE_GAP_S))
     frames, _ = frame_axis(observations["frame"].to_numpy(), gap_frames(take_gap_s, float(sess["fps"])))
-    n_markers = len(set(names) | set(observations["marker"]))
+    n_markers = len(known_markers)
     inputs.check_dense_memory(len(rig), len(frames), n_markers, str(obs_path))
     truth = read_points(folder / "truth.csv") if (folder / "truth.csv").exists() else None
     ref = read_points(folder / "reference_xyz.csv") if (folder / "reference_xyz.csv").exists() else None
