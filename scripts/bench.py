@@ -9,9 +9,11 @@ Prints a table and ratios measured in this run (medians over repeats); nothing h
 (b) the filters' frames per second (iSAM2 and the fast per-marker filter) and their difference;
 (c) per-frame triangulation time;
 (d) how the paper's stacked EKF's time and memory grow with the number of markers;
-(e) whole commands as a user runs them (first, it is quick): ``batgraph reconstruct`` of the bundled
-    5-camera flight with the default methods and with ``--methods triangulate``, and ``batgraph --help``,
-    each a fresh process: wall time, CPU time (user + system) and peak resident memory, medians over
+(e) whole commands as a user runs them (first): ``batgraph reconstruct`` of the bundled 5-camera flight
+    with the default methods and with ``--methods triangulate``, ``batgraph --help``, the default
+    reconstruct of a simulated session of the scene's size (seed 3), and a batch of 16 small simulated
+    sessions (10 cameras x 30 markers x 120 frames) with 1 and with 2 workers; each a fresh process:
+    wall time, CPU time (user + system) and peak resident memory, medians over
     repeats; with ``--baseline-tree DIR`` (an older checkout, e.g. ``git worktree add /tmp/old HEAD~5``)
     the same commands from that tree, run alternately, and the new / old ratios.
 """
@@ -365,6 +367,7 @@ def bench_ekf(args) -> list[tuple[str, str, str]]:
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "samples" / "flight_5cam"
+BATCH_SESSIONS = 16
 
 
 # The command runs in a child that writes its own peak resident memory (VmHWM of /proc/self/status: the
@@ -406,14 +409,25 @@ def bench_commands(args) -> list[tuple[str, str, str]]:
         trees["old"] = Path(args.baseline_tree).resolve()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        big = f"{args.cameras} x {args.markers} x {args.frames}"
+        run_process(["simulate", "flight", f"{tmp}/big", "--cameras", str(args.cameras), "--markers",
+                     str(args.markers), "--frames", str(args.frames), "--seed", "3"], ROOT)
+        for seed in range(BATCH_SESSIONS):  # the issue's batch: small sessions of 10 cameras x 30 markers x 120 frames
+            run_process(["simulate", "flight", f"{tmp}/many/s{seed:02d}", "--cameras", "10", "--markers", "30",
+                         "--frames", "120", "--seed", str(seed)], ROOT)
+        quiet = ["--viewer", "none", "--quiet"]
         commands = {
-            "reconstruct flight_5cam (default methods)": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/a",
-                                                          "--viewer", "none", "--quiet"],
+            "reconstruct flight_5cam (default methods)": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/a", *quiet],
             "reconstruct flight_5cam --methods triangulate": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/b",
-                                                              "--viewer", "none", "--quiet", "--methods",
-                                                              "triangulate"],
+                                                              *quiet, "--methods", "triangulate"],
             "batgraph --help": ["--help"],
+            f"reconstruct {big} (default methods)": ["reconstruct", f"{tmp}/big", "--out", f"{tmp}/c", *quiet],
+            f"reconstruct {BATCH_SESSIONS} sessions --workers 1": ["reconstruct", f"{tmp}/many/*", "--out",
+                                                                   f"{tmp}/d", "--workers", "1", *quiet],
+            f"reconstruct {BATCH_SESSIONS} sessions --workers 2": ["reconstruct", f"{tmp}/many/*", "--out",
+                                                                   f"{tmp}/e", "--workers", "2", *quiet],
         }
+        wall_of: dict[str, dict[str, float]] = {}
         for what, cli in commands.items():
             got: dict[str, list[dict]] = {name: [] for name in trees}
             for _ in range(args.repeats):
@@ -432,6 +446,11 @@ def bench_commands(args) -> list[tuple[str, str, str]]:
                 r = {k: med["new"][k] / med["old"][k] for k in ("wall", "cpu", "rss")}
                 rows.append((f"  ratio new / old: {what}", f"{r['wall']:.2f}",
                              f"wall; CPU {r['cpu']:.2f}; peak RSS {r['rss']:.2f}"))
+            wall_of[what] = {name: m["wall"] for name, m in med.items()}
+        one, two = (wall_of[f"reconstruct {BATCH_SESSIONS} sessions --workers {n}"] for n in (1, 2))
+        for name in trees:
+            rows.append((f"  ratio 2 workers / 1 worker [{name}]", f"{two[name] / one[name]:.2f}",
+                         "wall (issue 12 asks <= 0.6)"))
     return rows
 
 
