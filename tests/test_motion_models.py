@@ -156,7 +156,7 @@ def test_auto_picks_constant_velocity_on_constant_velocity_tracks():
     session = dataclasses.replace(session, motion=MotionConfig(model="auto", **PAPER_PHYSICS))
     est, dense = _auto(session)
     ev = est.info["log_evidence_per_marker"]
-    print({m: {k: round(v, 2) for k, v in e.items()} for m, e in ev.items()})
+    assert all(e["constant_velocity"] > e["constant_acceleration"] for e in ev.values()), ev
     assert est.info["motion_model"] == "auto"
     assert set(est.info["motion_model_per_marker"].values()) == {"constant_velocity"}
     assert set(est.info["accel_psd_m2_s3"]) == set(dense.markers) and est.info["jerk_psd_m2_s5"] == {}
@@ -170,9 +170,8 @@ def test_auto_picks_constant_acceleration_on_wing_like_tracks():
     session, truth = wing_scene()
     est, dense = _auto(session)
     ev = est.info["log_evidence_per_marker"]
-    print({m: {k: round(v, 2) for k, v in e.items()} for m, e in ev.items()})
+    assert all(e["constant_acceleration"] > e["constant_velocity"] for e in ev.values()), ev
     assert set(est.info["motion_model_per_marker"].values()) == {"constant_acceleration"}
-    j = np.array([est.info["jerk_psd_m2_s5"][m] for m in dense.markers])
     ca_session = dataclasses.replace(session, motion=MotionConfig("constant_acceleration", **PAPER_PHYSICS))
     ca = schedule.run_smoother_fast(ca_session, dense, ideal_observations(session.rig, dense, 0.5),
                                     Options(progress=False))
@@ -181,7 +180,6 @@ def test_auto_picks_constant_acceleration_on_wing_like_tracks():
     cv = schedule.run_smoother_fast(session, dense, ideal_observations(session.rig, dense, 0.5),
                                 Options(motion_model="constant_velocity", progress=False))
     rmse = {k: float(np.sqrt(np.mean((e.xyz_m - truth) ** 2))) for k, e in (("auto", est), ("cv", cv))}
-    print("jerk PSD", j, "RMSE", rmse)
     assert rmse["auto"] < rmse["cv"]
 
 
