@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import atomic, checks, evaluate, inputs
+from . import atomic, checks, evaluate, forked, inputs
 from . import methods as methods_registry
 from . import summary as summary_mod
 from .errors import InputError
@@ -151,7 +151,9 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     validation.csv (batgraph.validate). Every file is written into a staging folder beside ``out_dir``
     that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash or kill leaves the previous
     complete result or the new one, never a mix; files in ``out_dir`` that are not in :data:`OUTPUT_FILES`
-    are carried over. Returns the paths written (under ``out_dir``).
+    are carried over. report.html is drawn in a forked child while this process writes the other files
+    (batgraph.forked.start; here where no child can be made), and waited for before the swap.
+    Returns the paths written (under ``out_dir``).
     """
     out_dir = Path(out_dir)
     session_dir = result.session.path
@@ -170,28 +172,40 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
 def _write_files(result: Result, out_dir: Path, viewer: str = "save", options: Options | None = None) -> list[Path]:
     """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``."""
     from .formats.c3d_trc import write_c3d, write_trc
-    from .report import write_report
 
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
-    files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
-    write_csv(files[0], result.trajectories, "%.9g")
-    write_csv(files[1], result.reprojection, "%.6f")
-    atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
-    steps = [("report.html", lambda p: write_report(p, s, result.trajectories, result.reprojection, result.summary))]
-    method = export_method(result)
-    one = result.trajectories[result.trajectories["method"] == method]
-    steps += [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers, keep="span",
-                                                       reprojection=result.reprojection, cameras=s.rig.names)),
-              ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers, keep="span"))]
-    if viewer != "none":
-        from .viewer import RECORDING_NAME, write_recording
-        steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
-                                                                result.reprojection)))
-    progress = options.progress if options else False
-    for name, write in tqdm(steps, desc=f"{s.name}: writing", disable=not progress, leave=False):
-        write(out_dir / name)
-        files.append(out_dir / name)
+    # the report (the slowest output) is drawn in a forked child while this process writes the others
+    report = out_dir / "report.html"
+
+    def draw_report():
+        from .report import write_report  # matplotlib: imported in the child
+
+        write_report(report, s, result.trajectories, result.reprojection, result.summary)
+
+    pending = forked.start(draw_report, "report")
+    try:
+        files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
+        write_csv(files[0], result.trajectories, "%.9g")
+        write_csv(files[1], result.reprojection, "%.6f")
+        atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
+        method = export_method(result)
+        one = result.trajectories[result.trajectories["method"] == method]
+        steps = [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers, keep="span",
+                                                          reprojection=result.reprojection, cameras=s.rig.names)),
+                 ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers, keep="span"))]
+        if viewer != "none":
+            from .viewer import RECORDING_NAME, write_recording
+            steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
+                                                                    result.reprojection)))
+        progress = options.progress if options else False
+        for name, write in tqdm(steps, desc=f"{s.name}: writing", disable=not progress, leave=False):
+            write(out_dir / name)
+            files.append(out_dir / name)
+        pending.wait()
+    finally:
+        pending.cancel()  # the parent failed: the child must not write into a staging folder being removed
+    files.insert(3, report)
     return files
 
 

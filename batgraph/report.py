@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-from . import atomic, evaluate
+from . import atomic, evaluate, forked
 from . import methods as methods_registry
 from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
 
@@ -552,6 +552,36 @@ def _figure_html(fig: Figure | None, caption: str, alt: str) -> str:
             f"<figcaption>{caption}</figcaption></figure>")
 
 
+class _Figures:
+    """The report's figures, drawn after the text, over the cores (batgraph.forked.map_jobs): each
+    :meth:`add` gives a placeholder for the text, :meth:`fill` puts every figure's HTML in its place.
+    A figure is built inside its job, so the work of making it is shared out too."""
+
+    def __init__(self):
+        self._jobs: list[tuple[object, str, str]] = []
+        self._cost: list[float] = []
+
+    def add(self, build, caption: str, alt: str, cost: float = 1.0) -> str:
+        """``build()`` gives the Figure (or None: no data); returns the placeholder for its HTML. ``cost``:
+        its relative drawing time (the costly figures are handed out first, so that none is left for last)."""
+        self._jobs.append((build, caption, alt))
+        self._cost.append(cost)
+        return f"\x00figure {len(self._jobs) - 1}\x00"
+
+    def fill(self, text: str) -> str:
+        """``text`` with every placeholder replaced by its figure's HTML."""
+        order = sorted(range(len(self._jobs)), key=lambda i: -self._cost[i])
+
+        def draw(k: int) -> str:
+            build, caption, alt = self._jobs[order[k]]
+            return _figure_html(build(), caption, alt)
+
+        drawn = forked.map_jobs(draw, len(order))
+        for k, i in enumerate(order):
+            text = text.replace(f"\x00figure {i}\x00", drawn[k])
+        return text
+
+
 def _paper_table(experiment: str) -> str:
     rows = [
         ["ear (2 cameras, 250 fps)", "EKF, UKF vs stereo triangulation", "within 1 mm"],
@@ -765,7 +795,6 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     n_takes = int(evaluate.take_of(frames).max()) + 1 if len(frames) else 0
     selected = _selected_markers(markers)
     experiment = summary.get("paper_experiment")
-    rng = np.random.default_rng(0)  # only for thinning scatter plots; fixed so reports are reproducible
     truth = session.truth if session.truth is not None and len(session.truth) else None
     reference = session.reference if session.reference is not None and len(session.reference) else None
     verdict = Summary.from_json(summary).verdict
@@ -778,6 +807,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
                      for mk in selected}
 
     sections: list[tuple[str, str, str]] = []  # (anchor, title, body html)
+    figures = _Figures()  # drawn at the end, over the cores
 
     # --- the verdict: which result, how good, what to look at, where the gaps are
     warnings = summary.get("warnings") or []
@@ -785,18 +815,21 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
                  "model's outlier counts):</p><ul>"
                  + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
     use = verdict.use if verdict else (plotted[0] if plotted else None)
-    map_fig = _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
+
+    def data_map():
+        return _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
+
     verdict_html = (
         (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '
          f"result: {html.escape(verdict.why)}.</p><p class=\"verdict\"><b>How good:</b> "
          f"{html.escape(verdict.headline)}.</p>" if verdict else "")
         + warn_html
         + _comparison_table(summary, style)
-        + _figure_html(map_fig, "Where the data are, per marker and frame: seen by two or more cameras (green), "
-                       "by one (orange) or none (red) inside the marker's track, and the track ends before its "
-                       "first and after its last frame seen twice (grey), where every method extrapolates. "
-                       "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
-                       "track ends out by default.", "where the data are")
+        + figures.add(data_map, "Where the data are, per marker and frame: seen by two or more cameras (green), "
+                      "by one (orange) or none (red) inside the marker's track, and the track ends before its "
+                      "first and after its last frame seen twice (grey), where every method extrapolates. "
+                      "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
+                      "track ends out by default.", "where the data are", cost=0.1)
     )
     sections.append(("verdict", "Verdict", verdict_html))
 
@@ -830,54 +863,65 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     sections.append(("overview", "Session and runs", overview))
 
     # --- 3D trajectories
-    truth_all = _points_cube(truth, frames, markers)
-    fig = _fig_trajectories(trajectories, plotted, style, frames, markers, session.skeleton, truth_all) \
-        if plotted else None
-    sections.append(("trajectories", "3D trajectories", _figure_html(
-        fig, "Every marker's path (colour = marker) for each method, in the world frame [m], on common "
+    def paths():
+        return _fig_trajectories(trajectories, plotted, style, frames, markers, session.skeleton,
+                                 _points_cube(truth, frames, markers)) if plotted else None
+
+    sections.append(("trajectories", "3D trajectories", figures.add(
+        paths, "Every marker's path (colour = marker) for each method, in the world frame [m], on common "
         "axes (1st–99th percentile of all estimates), equally scaled unless one range is under a quarter of "
         "the longest (then that axis is stretched). Blue segments: the skeleton at five evenly spaced "
         "frames (the paper's Fig. 5a draws the wing the same way). Thin black: truth, when known.",
-        "3D trajectories per method")))
+        "3D trajectories per method", cost=0.15)))
 
     # --- reprojection ellipses (Fig. 5 b-f)
-    drawn = reprojection[reprojection["camera"].isin(panel_cameras)]  # the others are not drawn
-    rep_mm = evaluate.reprojection_in_mm(drawn, trajectories, session.rig) if len(drawn) else None
-    fig = _fig_reprojection_ellipses(rep_mm, methods, style, panel_cameras, rng) if rep_mm is not None else None
-    sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", _figure_html(
-        fig, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "
+    def ellipses():
+        drawn = reprojection[reprojection["camera"].isin(panel_cameras)]  # the others are not drawn
+        if not len(drawn):
+            return None
+        rep_mm = evaluate.reprojection_in_mm(drawn, trajectories, session.rig)
+        rng = np.random.default_rng(0)  # only for thinning the scatter; fixed so reports are reproducible
+        return _fig_reprojection_ellipses(rep_mm, methods, style, panel_cameras, rng)
+
+    sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", figures.add(
+        ellipses, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "
         "the marker's depth in that camera (residual × depth / f). Ellipses: 95 % ellipse of each method's "
         "residuals (mean ± χ²₂ 95 % of their covariance); line styles and colours as everywhere in batgraph "
         "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image." + panel_note,
-        "reprojection error ellipses per camera")))
+        "reprojection error ellipses per camera", cost=0.2)))
 
     # --- reprojection over image features (Fig. 6)
-    sel_idx = [markers.index(m) for m in selected]
-    reproj_tracks = {}
-    for m in plotted:
-        cube = session.rig.to_user(_trajectory_cube(trajectories, m, frames, markers)[:, sel_idx])
-        reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig if c.name in panel_cameras}
-    fig = _fig_reprojection_image(session, reproj_tracks, plotted, style, panel_cameras, selected, frames) \
-        if plotted else None
-    sections.append(("features", "Reprojections over the 2D features (paper Fig. 6)", _figure_html(
-        fig, f"Image features (open circles, colour = marker) of the markers {', '.join(selected)} and "
+    def features():
+        if not plotted:
+            return None
+        sel_idx = [markers.index(m) for m in selected]
+        reproj_tracks = {}
+        for m in plotted:
+            cube = session.rig.to_user(_trajectory_cube(trajectories, m, frames, markers)[:, sel_idx])
+            reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig
+                                if c.name in panel_cameras}
+        return _fig_reprojection_image(session, reproj_tracks, plotted, style, panel_cameras, selected, frames)
+
+    sections.append(("features", "Reprojections over the 2D features (paper Fig. 6)", figures.add(
+        features, f"Image features (open circles, colour = marker) of the markers {', '.join(selected)} and "
         "each method's 3D estimate projected back into the raw (distorted) image over every frame "
         "(lines, method style), so the lines also run through occlusion gaps. Pixels: OpenCV convention, "
         "v downward; each panel is zoomed to the features." + panel_note,
-        "reprojections over image features")))
+        "reprojections over image features", cost=0.25)))
 
     # --- coordinates over time
-    ref_sel = _points_cube(reference, frames, selected)
-    truth_sel = _points_cube(truth, frames, selected)
-    fig = _fig_coordinates(trajectories, plotted, style, frames, fps, selected, status_fm, truth_sel, ref_sel) \
-        if plotted else None
-    sections.append(("coordinates", "Marker coordinates over time", _figure_html(
-        fig, "World x, y, z [m] of the selected markers for each method, with 95 % bands (± 1.96 σ per axis "
+    def coordinates():
+        return _fig_coordinates(trajectories, plotted, style, frames, fps, selected, status_fm,
+                                _points_cube(truth, frames, selected),
+                                _points_cube(reference, frames, selected)) if plotted else None
+
+    sections.append(("coordinates", "Marker coordinates over time", figures.add(
+        coordinates, "World x, y, z [m] of the selected markers for each method, with 95 % bands (± 1.96 σ per axis "
         f"from the marginal covariance). Shaded: frames where the marker was seen by one camera only "
         f"(orange) or by none (red), from the status column of {html.escape(plotted[0]) if plotted else '–'}."
         + (" Dotted black: truth." if truth is not None else "")
         + (" Purple dots: reference reconstruction." if reference is not None else ""),
-        "marker coordinates over time")))
+        "marker coordinates over time", cost=0.6)))
 
     # --- per-camera table
     table = _camera_table(summary, methods, cameras, experiment)
@@ -896,7 +940,6 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     # --- truth
     if truth is not None and plotted:
         errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], truth)
-        fig = _fig_truth(summary, errors, plotted, style, fps) if len(errors) else None
         sections.append(("truth", "Errors against truth", (
             '<p class="note">Each method\'s own estimates against truth.csv, per kind of point: seen by ≥ 2 '
             "cameras, gaps inside a track seen by one camera or none, and the track ends (before a marker's first "
@@ -905,22 +948,23 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
             "fraction of truth points inside their estimate's 95 % ellipsoid (squared Mahalanobis distance "
             "≤ 7.815, χ²₃ 95 %): an honest covariance gives about 95 %.</p>"
             + _group_table(summary, plotted, "truth")
-            + _figure_html(fig, "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
-                           "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
-                           "errors against truth"))))
+            + figures.add(lambda: _fig_truth(summary, errors, plotted, style, fps) if len(errors) else None,
+                          "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
+                          "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
+                          "errors against truth", cost=0.15))))
 
     # --- reference
     if reference is not None and plotted:
-        errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], reference)
-        fig = _fig_reference(errors, plotted, style, fps) if len(errors) else None
+        ref_errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], reference)
         sections.append(("reference", "Differences to the reference reconstruction", (
             '<p class="note">Distance between each method\'s estimate and the reference 3D points '
             "(reference_xyz.csv, e.g. DLTdv's xyzpts from an import) on the frames both have. Paper (ear "
             "data): EKF and UKF within 1 mm of stereo triangulation.</p>"
-            + (_group_table(summary, plotted, "reference") if len(errors)
+            + (_group_table(summary, plotted, "reference") if len(ref_errors)
                else '<p class="note">No common (frame, marker) pairs.</p>')
-            + _figure_html(fig, "Median over markers of the distance to the reference on each frame [mm, "
-                           "log]; dashed: the paper's 1 mm.", "differences to the reference"))))
+            + figures.add(lambda: _fig_reference(ref_errors, plotted, style, fps) if len(ref_errors) else None,
+                          "Median over markers of the distance to the reference on each frame [mm, "
+                          "log]; dashed: the paper's 1 mm.", "differences to the reference", cost=0.1))))
 
     validation = _validation_section(summary)
     if validation is not None:
@@ -929,7 +973,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
     nav = " ".join(f'<a href="#{a}">{html.escape(t)}</a>' for a, t, _ in sections)
     body = "\n".join(f'<section id="{a}"><h2>{html.escape(t)}</h2>\n{b}\n</section>' for a, t, b in sections)
     title = f"batgraph report: {html.escape(str(session.name))}"
-    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
+    return figures.fill(f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
             f"<style>{CSS}</style></head><body>\n<h1>{title}</h1>\n<nav>{nav}</nav>\n{body}\n"
             '<p class="note">Written by batgraph. Self-contained: every figure is embedded.</p>'
             "</body></html>\n")

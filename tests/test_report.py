@@ -259,6 +259,7 @@ def test_figures_fit_their_canvas_and_are_drawn_once(monkeypatch):
     session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
     session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
     saved = []
+    monkeypatch.setenv("BATGRAPH_FORK", "0")  # drawn here, so that the patch below sees every figure
     monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: saved.append(self))
     p = parse(render_report(session, traj, rep, None))
     assert len(p.imgs) == 7 and saved == []

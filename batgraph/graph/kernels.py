@@ -51,6 +51,16 @@ _threads = _default_threads()
 _pool: ThreadPoolExecutor | None = None
 
 
+def _forget_pool() -> None:
+    """In a forked child the pool's threads do not exist (fork copies only the calling thread): start afresh."""
+    global _pool
+    _pool = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def threads() -> int:
     """How many threads the kernels use (>= 1)."""
     return _threads

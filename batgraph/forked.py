@@ -1,0 +1,169 @@
+"""Work in forked child processes: one piece beside this process's own (the report beside the other outputs),
+or a list of pieces shared over the cores (the report's figures).
+
+``reconstruct`` writes its outputs one after the other, and the HTML report (matplotlib: tick and text
+layout, PNG encoding) is the slowest of them, while a second core sits idle. :func:`start` runs a
+function in a child made by ``fork`` (it sees this process's memory as it is, so nothing is pickled on
+the way in) and returns at once; :meth:`Pending.wait` waits for it and raises what the function raised.
+The child leaves with ``os._exit`` (as multiprocessing's fork children do): the figures' ~130k garbage
+objects are never collected (~0.2 s on the bundled sample that the parent no longer pays).
+
+:func:`map_jobs` computes ``fn(0) .. fn(n - 1)`` in this process and up to cores - 1 forked children,
+each taking the next undone index (the costly jobs first, where the caller orders them so): the report's
+figures, each a matplotlib figure built and encoded to PNG, are independent, and matplotlib holds the GIL,
+so processes (not threads) are what spreads them over the cores.
+
+The work runs in this process instead, before :func:`start` returns, where a child would not help or
+cannot be made: no ``fork`` start method (Windows), a daemonic process (a Dask worker: it may not have
+children, and a batch already uses the cores), one usable core, or ``BATGRAPH_FORK=0``.
+
+Why not concurrent.futures.ProcessPoolExecutor: it pickles the function and its arguments (here the
+whole result, with its tables) and keeps a pool alive; one fork per call is all this needs.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import traceback
+from collections.abc import Callable
+
+ENV = "BATGRAPH_FORK"  # "0": never fork (run the work in this process)
+
+
+def _usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def can_fork() -> bool:
+    """Whether :func:`start` runs its work in a child: fork exists, this process may have children, it has
+    >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
+    return (os.environ.get(ENV, "").strip() != "0" and "fork" in multiprocessing.get_all_start_methods()
+            and not multiprocessing.current_process().daemon and _usable_cores() >= 2)
+
+
+class Pending:
+    """Work started by :func:`start`: :meth:`wait` for it, or :meth:`cancel` it."""
+
+    def __init__(self, process=None, conn=None, what: str = ""):
+        self._process, self._conn, self.what = process, conn, what
+
+    @property
+    def forked(self) -> bool:
+        """Whether the work runs in a child process (False: it already ran in this one)."""
+        return self._process is not None
+
+    def wait(self) -> None:
+        """Wait for the child; raise the exception the work raised (the child's traceback in its notes), or
+        RuntimeError when the child died without a word (e.g. killed for memory)."""
+        if self._process is not None:
+            self._recv()
+
+    def _recv(self):
+        """The child's one message, after which it is joined: its payload, or the error raised."""
+        try:
+            msg = self._conn.recv()
+        except EOFError:
+            msg = None
+        finally:
+            self._conn.close()
+            self._process.join()
+        code, self._process = self._process.exitcode, None
+        if msg is None:
+            raise RuntimeError(f"{self.what}: its process ended without a result (exit code {code})")
+        if msg[0] == "error":
+            exc, tb = msg[1], msg[2]
+            exc.add_note(f"(raised in the {self.what} process)\n{tb}")
+            raise exc
+        return msg[1] if len(msg) > 1 else None
+
+    def cancel(self) -> None:
+        """Stop the child if it still runs (the parent failed; its staging folder is about to go)."""
+        if self._process is not None:
+            self._process.terminate()
+            self._process.join()
+            self._conn.close()
+            self._process = None
+
+
+def _child(work: Callable[[], None], conn, reply: bool = True) -> None:
+    """The child's body: run ``work``; send ("ok",) (if ``reply``; else ``work`` sends its own) or
+    ("error", exception, traceback text)."""
+    try:
+        work()
+    except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
+        tb = traceback.format_exc()
+        try:
+            pickle.dumps(e)
+        except Exception:  # noqa: BLE001 - an exception that cannot travel goes back as its text
+            e = RuntimeError(f"{type(e).__name__}: {e}")
+        conn.send(("error", e, tb))
+    else:
+        if reply:
+            conn.send(("ok",))
+    finally:
+        conn.close()
+
+
+def start(work: Callable[[], None], what: str) -> Pending:
+    """Run ``work()`` in a forked child (see :func:`can_fork`) or, where none can be made, here and now.
+    ``what`` names the work in errors. Returns its :class:`Pending`; call ``wait()`` before using what it
+    wrote, ``cancel()`` when giving up."""
+    if not can_fork():
+        work()
+        return Pending(what=what)
+    ctx = multiprocessing.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    # not daemonic: the work may fork children of its own (map_jobs); it is always waited for or cancelled
+    process = ctx.Process(target=_child, args=(work, send), name=f"batgraph {what}", daemon=False)
+    process.start()
+    send.close()
+    return Pending(process, recv, what)
+
+
+def _next(counter) -> int:
+    with counter.get_lock():
+        i = counter.value
+        counter.value += 1
+    return i
+
+
+def _take(fn: Callable[[int], object], n: int, counter) -> list[tuple[int, object]]:
+    out = []
+    while (i := _next(counter)) < n:
+        out.append((i, fn(i)))
+    return out
+
+
+def _take_child(fn: Callable[[int], object], n: int, counter, conn) -> None:
+    _child(lambda: conn.send(("ok", _take(fn, n, counter))), conn, reply=False)
+
+
+def map_jobs(fn: Callable[[int], object], n: int, workers: int | None = None) -> list:
+    """``[fn(0), ..., fn(n - 1)]``, computed by this process and up to ``workers`` - 1 forked children (default:
+    the usable cores; no children where :func:`can_fork` says no), each taking the next index not yet taken.
+    Results travel back pickled. The first exception raised (here or in a child) is raised once every child
+    has stopped."""
+    workers = min(n, workers or _usable_cores())
+    if workers < 2 or not can_fork():
+        return [fn(i) for i in range(n)]
+    ctx = multiprocessing.get_context("fork")
+    counter = ctx.Value("q", 0)
+    children = []
+    try:
+        for _ in range(workers - 1):
+            recv, send = ctx.Pipe(duplex=False)
+            process = ctx.Process(target=_take_child, args=(fn, n, counter, send), name="batgraph worker",
+                                  daemon=True)
+            process.start()
+            send.close()
+            children.append(Pending(process, recv, "worker"))
+        results = dict(_take(fn, n, counter))
+        for child in children:
+            msg = child._recv()
+            results.update(msg)
+    finally:
+        for child in children:
+            child.cancel()
+    return [results[i] for i in range(n)]

@@ -1,0 +1,125 @@
+"""Tests of batgraph.forked: work in forked children gives what the same work gives here, errors come back, a
+child that dies is an error, and the report drawn over several processes is the report drawn in one."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from batgraph import forked
+
+needs_fork = pytest.mark.skipif(not forked.can_fork(), reason="no fork here (one core, daemonic or no fork)")
+
+
+def test_map_jobs_is_the_list_comprehension_and_uses_children():
+    def job(i):
+        time.sleep(0.05)  # long enough that the children take some of the jobs
+        return i * i, os.getpid()
+
+    out = forked.map_jobs(job, 12)
+    assert [v for v, _ in out] == [i * i for i in range(12)]
+    if forked.can_fork():
+        assert len({pid for _, pid in out}) >= 2  # not all here: the children took some
+    assert forked.map_jobs(job, 0) == []
+
+
+@needs_fork
+def test_map_jobs_raises_what_a_child_raised():
+    parent = os.getpid()
+
+    def job(i):
+        time.sleep(0.02)
+        if os.getpid() != parent:
+            raise ValueError(f"bad job {i}")
+        return i
+
+    with pytest.raises(ValueError, match="bad job") as info:
+        forked.map_jobs(job, 8, workers=2)
+    assert any("raised in the worker process" in n for n in info.value.__notes__)
+
+
+def test_map_jobs_raises_what_this_process_raised():
+    def job(i):
+        if i == 0:
+            raise KeyError("first")
+        time.sleep(0.02)
+        return i
+
+    with pytest.raises(KeyError, match="first"):
+        forked.map_jobs(job, 6, workers=2)
+
+
+@needs_fork
+def test_start_runs_in_a_child_and_wait_returns_after_it(tmp_path):
+    target = tmp_path / "out.txt"
+
+    def work():
+        time.sleep(0.1)
+        target.write_text(str(os.getpid()))
+
+    pending = forked.start(work, "test")
+    assert pending.forked
+    pending.wait()
+    assert int(target.read_text()) != os.getpid()
+
+
+@needs_fork
+def test_start_error_and_death_reach_the_parent():
+    def bad():
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left") as info:
+        forked.start(bad, "report").wait()
+    assert info.value.errno == 28
+
+    class Unpicklable(Exception):
+        def __reduce__(self):
+            raise TypeError("no")
+
+    def odd():
+        raise Unpicklable("odd failure")
+
+    with pytest.raises(RuntimeError, match="Unpicklable: odd failure"):
+        forked.start(odd, "report").wait()
+    with pytest.raises(RuntimeError, match="ended without a result"):
+        forked.start(lambda: os._exit(3), "report").wait()
+
+
+@needs_fork
+def test_cancel_stops_a_running_child(tmp_path):
+    target = tmp_path / "late.txt"
+
+    def slow():
+        time.sleep(5)
+        target.write_text("too late")
+
+    pending = forked.start(slow, "report")
+    t0 = time.perf_counter()
+    pending.cancel()
+    assert time.perf_counter() - t0 < 2 and not target.exists()
+    pending.wait()  # nothing left to wait for
+
+
+def test_switched_off_runs_here(monkeypatch, tmp_path):
+    monkeypatch.setenv(forked.ENV, "0")
+    assert not forked.can_fork()
+    pids = []
+    pending = forked.start(lambda: pids.append(os.getpid()), "report")
+    assert not pending.forked and pids == [os.getpid()]
+    assert forked.map_jobs(lambda i: os.getpid(), 3) == [os.getpid()] * 3
+
+
+def test_report_over_processes_is_the_report_drawn_here(monkeypatch):
+    from test_report import make_scene
+
+    from batgraph.report import render_report
+
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "triangulate"))
+    session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
+    monkeypatch.setenv(forked.ENV, "1")
+    spread = render_report(session, traj, rep, None)
+    monkeypatch.setenv(forked.ENV, "0")
+    here = render_report(session, traj, rep, None)
+    assert spread == here and "\x00" not in here and here.count("<img ") == 7
