@@ -14,8 +14,9 @@ figures, each a matplotlib figure built and encoded to PNG, are independent, and
 so processes (not threads) are what spreads them over the cores.
 
 The work runs in this process instead, before :func:`start` returns, where a child would not help or
-cannot be made: no ``fork`` start method (Windows), a daemonic process (a Dask worker: it may not have
-children, and a batch already uses the cores), one usable core, or ``BATGRAPH_FORK=0``.
+cannot be made: not Linux (no ``fork`` on Windows; on macOS it is unsafe), a daemonic process (a Dask
+worker: it may not have children, and a batch already uses the cores), one usable core, or
+``BATGRAPH_FORK=0``.
 
 Why not concurrent.futures.ProcessPoolExecutor: it pickles the function and its arguments (here the
 whole result, with its tables) and keeps a pool alive; one fork per call is all this needs.
@@ -26,6 +27,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import sys
 import traceback
 from collections.abc import Callable
 
@@ -37,9 +39,10 @@ def _usable_cores() -> int:
 
 
 def can_fork() -> bool:
-    """Whether :func:`start` runs its work in a child: fork exists, this process may have children, it has
+    """Whether :func:`start` runs its work in a child: on Linux (macOS's system libraries are not safe to use
+    after a fork, which is why Python's default there is spawn), this process may have children, it has
     >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
-    return (os.environ.get(ENV, "").strip() != "0" and "fork" in multiprocessing.get_all_start_methods()
+    return (os.environ.get(ENV, "").strip() != "0" and sys.platform.startswith("linux")
             and not multiprocessing.current_process().daemon and _usable_cores() >= 2)
 
 
