@@ -27,6 +27,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import struct
 import sys
 import traceback
 from collections.abc import Callable
@@ -125,48 +126,57 @@ def start(work: Callable[[], None], what: str) -> Pending:
     return Pending(process, recv, what)
 
 
-def _next(counter) -> int:
-    with counter.get_lock():
-        i = counter.value
-        counter.value += 1
-    return i
+_INDEX = struct.Struct("=i")  # one job index in the dispenser pipe
+MAX_JOBS = 16384  # every index is written before any is read: 4 bytes each must fit the 64 KiB pipe buffer
 
 
-def _take(fn: Callable[[int], object], n: int, counter) -> list[tuple[int, object]]:
+def _take(fn: Callable[[int], object], tickets: int) -> list[tuple[int, object]]:
+    """Run ``fn`` on each index read from the pipe ``tickets`` until it is empty: (index, result) pairs. The
+    pipe holds every index, written at once and closed for writing, so a 4-byte read takes one whole index
+    (Linux serialises readers of a pipe) and no two processes take the same one."""
     out = []
-    while (i := _next(counter)) < n:
+    while len(b := os.read(tickets, _INDEX.size)) == _INDEX.size:
+        i = _INDEX.unpack(b)[0]
         out.append((i, fn(i)))
     return out
 
 
-def _take_child(fn: Callable[[int], object], n: int, counter, conn) -> None:
-    _child(lambda: conn.send(("ok", _take(fn, n, counter))), conn, reply=False)
+def _take_child(fn: Callable[[int], object], tickets: int, conn) -> None:
+    _child(lambda: conn.send(("ok", _take(fn, tickets))), conn, reply=False)
 
 
 def map_jobs(fn: Callable[[int], object], n: int, workers: int | None = None) -> list:
     """``[fn(0), ..., fn(n - 1)]``, computed by this process and up to ``workers`` - 1 forked children (default:
-    the usable cores; no children where :func:`can_fork` says no), each taking the next index not yet taken.
+    the usable cores; no children where :func:`can_fork` says no), each taking the next index not yet taken
+    from a pipe that holds them all (no semaphore, hence no multiprocessing resource tracker process).
     Results travel back pickled. The first exception raised (here or in a child) is raised once every child
     has stopped."""
+    if n > MAX_JOBS:
+        raise ValueError(f"map_jobs takes at most {MAX_JOBS} jobs, got {n}")
     workers = min(n, workers or _usable_cores())
     if workers < 2 or not can_fork():
         return [fn(i) for i in range(n)]
     ctx = multiprocessing.get_context("fork")
-    counter = ctx.Value("q", 0)
+    tickets, fill = os.pipe()
+    os.write(fill, b"".join(_INDEX.pack(i) for i in range(n)))
+    os.close(fill)
     children = []
     try:
         for _ in range(workers - 1):
             recv, send = ctx.Pipe(duplex=False)
-            process = ctx.Process(target=_take_child, args=(fn, n, counter, send), name="batgraph worker",
+            process = ctx.Process(target=_take_child, args=(fn, tickets, send), name="batgraph worker",
                                   daemon=True)
             process.start()
             send.close()
             children.append(Pending(process, recv, "worker"))
-        results = dict(_take(fn, n, counter))
+        pairs = _take(fn, tickets)
         for child in children:
-            msg = child._recv()
-            results.update(msg)
+            pairs += child._recv()
     finally:
         for child in children:
             child.cancel()
+        os.close(tickets)
+    results = dict(pairs)
+    if len(pairs) != n or len(results) != n:  # each index taken exactly once
+        raise RuntimeError(f"map_jobs: {len(pairs)} results for {len(results)} of {n} jobs")
     return [results[i] for i in range(n)]

@@ -3,7 +3,9 @@
 It reads finished tables (trajectories, reprojection, summary) and draws them; it estimates nothing
 and writes nothing but the one HTML file. Figures are matplotlib ``Figure`` objects rendered to
 PNG in memory (no pyplot, so no global backend state) and embedded as base64 ``data:`` URIs, so
-the file opens anywhere, offline, with no external ``src`` or ``href``.
+the file opens anywhere, offline, with no external ``src`` or ``href``. The figures are drawn after the
+text, shared over the cores by forked processes (:class:`_Figures`, batgraph.forked.map_jobs); the HTML is
+the same as when one process draws them all.
 
 Sections: overview, 3D trajectories, reprojection error per camera with 95 % ellipses in mm at the
 marker's depth (the paper's Fig. 5 b-f), reprojections over the 2D features (Fig. 6), marker

@@ -123,3 +123,9 @@ def test_report_over_processes_is_the_report_drawn_here(monkeypatch):
     monkeypatch.setenv(forked.ENV, "0")
     here = render_report(session, traj, rep, None)
     assert spread == here and "\x00" not in here and here.count("<img ") == 7
+
+
+def test_map_jobs_says_when_there_are_too_many_jobs():
+    with pytest.raises(ValueError, match="at most 16384"):
+        forked.map_jobs(lambda i: i, forked.MAX_JOBS + 1)
+    assert forked.map_jobs(lambda i: i, 3000) == list(range(3000))  # many small jobs, each taken exactly once
