@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from . import methods as methods_registry
 from .errors import InputError
+from .forked import usable_cores
 from .formats.csv_text import write_csv
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
@@ -171,11 +172,6 @@ def _check_methods(methods: list[str]) -> list[str]:
     return list(methods)
 
 
-def _local_cores() -> int:
-    # Cores this process may use (respects taskset / container CPU sets where the OS reports them).
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], options: Options, viewer: str,
                     calibration: Path | None, progress: bool, max_in_flight: int | None = None,
                     validate: bool = False, kernel_threads: int | None = None) -> list[BatchItem]:
@@ -294,10 +290,10 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
         with client:
             return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, validate=validate)
 
-    n = min(n_workers or _local_cores(), len(jobs))
+    n = min(n_workers or usable_cores(), len(jobs))
     # the cores shared out: each worker's compiled kernels get cores // n threads (a worker of a remote
     # scheduler keeps its own default, BATGRAPH_THREADS or its machine's cores)
-    threads = max(1, _local_cores() // n)
+    threads = max(1, usable_cores() // n)
     # allowed-failures 0: a session that kills its worker (e.g. a native crash) fails once instead of
     # killing three more workers on retries; safe because only one session per worker is in flight.
     # memory_limit 0: a session is one indivisible task, so Dask's spill/pause machinery cannot help it,

@@ -35,7 +35,8 @@ from collections.abc import Callable
 ENV = "BATGRAPH_FORK"  # "0": never fork (run the work in this process)
 
 
-def _usable_cores() -> int:
+def usable_cores() -> int:
+    """The cores this process may use (respects taskset / container CPU sets where the OS reports them)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
@@ -44,7 +45,7 @@ def can_fork() -> bool:
     after a fork, which is why Python's default there is spawn), this process may have children, it has
     >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
     return (os.environ.get(ENV, "").strip() != "0" and sys.platform.startswith("linux")
-            and not multiprocessing.current_process().daemon and _usable_cores() >= 2)
+            and not multiprocessing.current_process().daemon and usable_cores() >= 2)
 
 
 class Pending:
@@ -153,7 +154,7 @@ def map_jobs(fn: Callable[[int], object], n: int, workers: int | None = None) ->
     has stopped."""
     if n > MAX_JOBS:
         raise ValueError(f"map_jobs takes at most {MAX_JOBS} jobs, got {n}")
-    workers = min(n, workers or _usable_cores())
+    workers = min(n, workers or usable_cores())
     if workers < 2 or not can_fork():
         return [fn(i) for i in range(n)]
     ctx = multiprocessing.get_context("fork")

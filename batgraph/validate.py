@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
-import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -43,6 +42,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from .evaluate import STATUSES, status_of
+from .forked import usable_cores
 from .result import Options
 from .session import Session
 
@@ -152,10 +152,6 @@ def run_fold(session: Session, camera: str, methods: list[str], options: Options
 # ----------------------------------------------------------------------------------------------
 # all folds
 # ----------------------------------------------------------------------------------------------
-def _local_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 SERIAL_BELOW_S = 5.0
 """Automatic worker count: folds expected to take less than this in all [s] run serially, because starting
 worker processes (a fresh interpreter importing numpy, pandas, GTSAM: ~1-2 s each) would cost more."""
@@ -171,7 +167,7 @@ def n_workers(n_folds: int, workers: int | None = None, expected_s: float | None
         return 1
     if expected_s is not None and expected_s < SERIAL_BELOW_S:
         return 1
-    return max(1, min(_local_cores(), n_folds))
+    return max(1, min(usable_cores(), n_folds))
 
 
 def _expected_s(summary: dict | None, methods: list[str], n_folds: int) -> float | None:

@@ -32,6 +32,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
+from ..forked import usable_cores
+
 ROBUST_CODE = {"none": 0, "huber": 1, "cauchy": 2}  # the ``robust`` argument of :func:`projection_sums`
 
 # Rows per chunk of the projection sums (at least), and the most chunks: a function of the number of rows
@@ -44,7 +46,7 @@ def _default_threads() -> int:
     text = os.environ.get("BATGRAPH_THREADS", "").strip()
     if text.isdigit() and int(text) > 0:
         return int(text)
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return usable_cores()
 
 
 _threads = _default_threads()
