@@ -7,6 +7,7 @@ User errors (:class:`batgraph.errors.InputError`) print one line and exit with c
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from pathlib import Path
 
@@ -701,14 +702,29 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         return 130
 
 
+def entry() -> int:
+    """The ``batgraph`` console script: :func:`main`, then no garbage collection on the way out.
+
+    Python's shutdown runs full collections over every object alive, and after a run that is ~1,300
+    modules' worth (numba, llvmlite, pandas, scipy): 0.35-0.4 s of a 2-3 s command on the bundled sample.
+    ``gc.freeze()`` moves them out of the collector's sight; reference counting still frees what it frees,
+    and atexit handlers (Rerun's flush) still run. Not in :func:`main`, which tests call many times in one
+    process."""
+    code = main()
+    gc.freeze()
+    return code
+
+
 def _one_line(text: str) -> str:
     return " / ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
 def run_script(command: str) -> None:
     """Entry for ``scripts/<command>.py``: same as ``batgraph <command> ...``."""
-    sys.exit(main([command, *sys.argv[1:]]))
+    code = main([command, *sys.argv[1:]])
+    gc.freeze()  # as entry()
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

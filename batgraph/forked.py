@@ -114,17 +114,70 @@ def _child(work: Callable[[], None], conn, reply: bool = True) -> None:
 def start(work: Callable[[], None], what: str) -> Pending:
     """Run ``work()`` in a forked child (see :func:`can_fork`) or, where none can be made, here and now.
     ``what`` names the work in errors. Returns its :class:`Pending`; call ``wait()`` before using what it
-    wrote, ``cancel()`` when giving up."""
-    if not can_fork():
-        work()
-        return Pending(what=what)
-    ctx = multiprocessing.get_context("fork")
-    recv, send = ctx.Pipe(duplex=False)
-    # not daemonic: the work may fork children of its own (map_jobs); it is always waited for or cancelled
-    process = ctx.Process(target=_child, args=(work, send), name=f"batgraph {what}", daemon=False)
-    process.start()
-    send.close()
-    return Pending(process, recv, what)
+    wrote, ``cancel()`` when giving up. The child sees this process's memory as it is: nothing is pickled."""
+    return Standby(lambda: work, what).run()
+
+
+class Standby:
+    """A child forked early that prepares (imports) while this process works on, then runs one call.
+
+    ``prepare()`` runs in the child at once and returns the function to call; :meth:`run` sends that
+    function's arguments (pickled, through a pipe) and returns the :class:`Pending` call. Used for the report:
+    its child imports matplotlib (~0.5 s) while the estimators run, instead of after them. Where no child
+    can be made (:func:`can_fork`), ``prepare()`` runs in :meth:`run`, here, and the call with it.
+    """
+
+    def __init__(self, prepare: Callable[[], Callable[..., None]], what: str):
+        self._prepare, self.what = prepare, what
+        self._pending, self._args = None, None
+        if can_fork():
+            ctx = multiprocessing.get_context("fork")
+            args_recv, self._args = ctx.Pipe(duplex=False)
+            recv, send = ctx.Pipe(duplex=False)
+            # not daemonic: the call may fork children of its own (map_jobs); it is always waited for or cancelled
+            process = ctx.Process(target=_standby_child, args=(prepare, args_recv, send),
+                                  name=f"batgraph {what}", daemon=False)
+            process.start()
+            send.close()
+            args_recv.close()
+            self._pending = Pending(process, recv, what)
+
+    def run(self, *args) -> Pending:
+        """Call the prepared function with ``args`` (in the child, or here where there is none)."""
+        if self._pending is None:
+            self._prepare()(*args)
+            return Pending(what=self.what)
+        try:
+            self._args.send(args)
+        except (BrokenPipeError, ConnectionResetError):  # the child is gone: wait() says how
+            pass
+        finally:
+            self._args.close()
+        return self._pending
+
+    def cancel(self) -> None:
+        """Stop the child (the call was not wanted, or the caller failed); nothing once the call is done."""
+        if self._pending is not None:
+            self._args.close()
+            self._pending.cancel()
+
+    def __enter__(self) -> Standby:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.cancel()
+
+
+def _standby_child(prepare: Callable[[], Callable[..., None]], args_recv, conn) -> None:
+    def work():
+        call = prepare()
+        try:
+            args = args_recv.recv()
+        except EOFError:  # the parent gave up (it failed, or wanted no call): nothing to do
+            return
+        call(*args)
+
+    _child(work, conn)
 
 
 _INDEX = struct.Struct("=i")  # one job index in the dispenser pipe

@@ -144,15 +144,16 @@ OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.
 
 
 def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
-                  validation_table: pd.DataFrame | None = None) -> list[Path]:
+                  validation_table: pd.DataFrame | None = None, report: forked.Standby | None = None) -> list[Path]:
     """Write the whole output set of CONTRACT.md section 3 into ``out_dir`` as one atomic replacement.
 
     viewer: "save" or "spawn" write recording.rrd; "none" skips it. validation_table: also write
     validation.csv (batgraph.validate). Every file is written into a staging folder beside ``out_dir``
     that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash or kill leaves the previous
     complete result or the new one, never a mix; files in ``out_dir`` that are not in :data:`OUTPUT_FILES`
-    are carried over. report.html is drawn in a forked child while this process writes the other files
-    (batgraph.forked.start; here where no child can be made), and waited for before the swap.
+    are carried over. report.html is drawn in a child process while this process writes the other files,
+    and waited for before the swap: ``report``, a :func:`report_standby` made earlier (it has imported
+    matplotlib meanwhile), or one forked here (here, in this process, where no child can be made).
     Returns the paths written (under ``out_dir``).
     """
     out_dir = Path(out_dir)
@@ -161,7 +162,7 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     in_place = session_dir is not None and Path(os.path.realpath(out_dir)) in (
         Path(os.path.realpath(session_dir)), *Path(os.path.realpath(session_dir)).parents)
     with atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place) as stage:
-        files = _write_files(result, stage, viewer, options)
+        files = _write_files(result, stage, viewer, options, report or report_standby())
         if validation_table is not None:
             from .validate import CSV_NAME, write_csv
             write_csv(validation_table, stage / CSV_NAME)
@@ -169,22 +170,30 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     return [out_dir / p.name for p in files]
 
 
-def _write_files(result: Result, out_dir: Path, viewer: str = "save", options: Options | None = None) -> list[Path]:
-    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``."""
+def _report_writer():
+    """The report child's preparation: import the report (and matplotlib); returns its writer."""
+    from .report import write_report
+
+    return write_report
+
+
+def report_standby() -> forked.Standby:
+    """A child process that imports the report's modules now and draws report.html when
+    :func:`write_outputs` hands it the result (batgraph.forked.Standby). Cancel it if it is not used."""
+    return forked.Standby(_report_writer, "report")
+
+
+def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | None,
+                 report: forked.Standby) -> list[Path]:
+    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``; report.html by
+    ``report`` (the slowest output), beside this process's writing of the others."""
     from .formats.c3d_trc import write_c3d, write_trc
 
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
-    # the report (the slowest output) is drawn in a forked child while this process writes the others
-    report = out_dir / "report.html"
-
-    def draw_report():
-        from .report import write_report  # matplotlib: imported in the child
-
-        write_report(report, s, result.trajectories, result.reprojection, result.summary)
-
-    pending = forked.start(draw_report, "report")
+    report_path = out_dir / "report.html"
     try:
+        pending = report.run(report_path, s, result.trajectories, result.reprojection, result.summary)
         files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
         write_csv(files[0], result.trajectories, "%.9g")
         write_csv(files[1], result.reprojection, "%.6f")
@@ -204,8 +213,8 @@ def _write_files(result: Result, out_dir: Path, viewer: str = "save", options: O
             files.append(out_dir / name)
         pending.wait()
     finally:
-        pending.cancel()  # the parent failed: the child must not write into a staging folder being removed
-    files.insert(3, report)
+        report.cancel()  # the parent failed: the child must not write into a staging folder being removed
+    files.insert(3, report_path)
     return files
 
 
@@ -224,26 +233,28 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     options = options or Options()
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
-    session = read_session(session_dir, calibration)
-    methods = list(methods or DEFAULT_METHODS)
-    if viewer == "spawn":
-        from .viewer import LiveViewer
-        with LiveViewer(session, dense_observations(session), method="filter") as live:
-            result = run_methods(session, methods, options, live=live)
-    else:
-        result = run_methods(session, methods, options)
-    result.out_dir = out
-    validation = None
-    if validate:
-        from .validate import validate_session
-        validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
-        result.summary["validation"] = validation.to_summary()
-        summary_mod.refresh_verdict(result.summary)
-    # one atomic replacement of the whole folder; without --validate a previous validation.csv is not kept
-    # (it would be read as this result's)
-    result.files = write_outputs(result, out, viewer, options,
-                                 validation_table=None if validation is None else validation.table)
-    return result
+    # the report's child imports matplotlib while this process reads and estimates; cancelled on failure
+    with report_standby() as report:
+        session = read_session(session_dir, calibration)
+        methods = list(methods or DEFAULT_METHODS)
+        if viewer == "spawn":
+            from .viewer import LiveViewer
+            with LiveViewer(session, dense_observations(session), method="filter") as live:
+                result = run_methods(session, methods, options, live=live)
+        else:
+            result = run_methods(session, methods, options)
+        result.out_dir = out
+        validation = None
+        if validate:
+            from .validate import validate_session
+            validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
+            result.summary["validation"] = validation.to_summary()
+            summary_mod.refresh_verdict(result.summary)
+        # one atomic replacement of the whole folder; without --validate a previous validation.csv is not kept
+        # (it would be read as this result's)
+        result.files = write_outputs(result, out, viewer, options,
+                                     validation_table=None if validation is None else validation.table, report=report)
+        return result
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

@@ -129,3 +129,53 @@ def test_map_jobs_says_when_there_are_too_many_jobs():
     with pytest.raises(ValueError, match="at most 16384"):
         forked.map_jobs(lambda i: i, forked.MAX_JOBS + 1)
     assert forked.map_jobs(lambda i: i, 3000) == list(range(3000))  # many small jobs, each taken exactly once
+
+
+def _prepare_writer(log):
+    """A Standby preparation: records which process prepared, returns a writer of its arguments."""
+    def prepare():
+        log.write_text(f"{os.getpid()}\n")
+
+        def write(path, payload):
+            path.write_text(f"{payload['n']} {os.getpid()}")
+        return write
+    return prepare
+
+
+@needs_fork
+def test_standby_prepares_in_its_child_before_it_is_given_work(tmp_path):
+    log, target = tmp_path / "prepared.txt", tmp_path / "out.txt"
+    standby = forked.Standby(_prepare_writer(log), "test")
+    deadline = time.time() + 10
+    while not log.exists() and time.time() < deadline:  # prepared with no arguments sent yet
+        time.sleep(0.01)
+    assert log.exists() and int(log.read_text()) != os.getpid()
+    pending = standby.run(target, {"n": 7, "big": list(range(200_000))})  # larger than a pipe's buffer
+    pending.wait()
+    n, pid = target.read_text().split()
+    assert n == "7" and int(pid) == int(log.read_text())
+    standby.cancel()  # after the call: nothing to stop
+
+
+@needs_fork
+def test_standby_cancelled_or_failing(tmp_path):
+    target = tmp_path / "never.txt"
+    with forked.Standby(_prepare_writer(tmp_path / "log.txt"), "test") as standby:
+        pass  # the caller failed before run(): the child goes, nothing is written
+    assert not standby._pending.forked and not target.exists()
+
+    def broken():
+        raise ImportError("no matplotlib here")
+
+    with pytest.raises(ImportError, match="no matplotlib"), forked.Standby(broken, "report") as standby:
+        time.sleep(0.2)  # the child has failed before it is given work: run() still returns, wait() raises
+        standby.run(target, {"n": 1}).wait()
+
+
+def test_standby_switched_off_prepares_at_run(monkeypatch, tmp_path):
+    monkeypatch.setenv(forked.ENV, "0")
+    log, target = tmp_path / "prepared.txt", tmp_path / "out.txt"
+    standby = forked.Standby(_prepare_writer(log), "test")
+    assert not log.exists()  # nothing prepared until there is work
+    pending = standby.run(target, {"n": 3})
+    assert not pending.forked and target.read_text() == f"3 {os.getpid()}" and log.exists()
