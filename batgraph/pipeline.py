@@ -62,22 +62,33 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     """Run ``methods`` on a loaded session; returns tables and summary (nothing written).
 
     live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes.
+    The methods are independent: with the fast solver and no live viewer they run side by side in forked
+    processes (batgraph.forked.map_jobs; the first method here or in a child, its estimate pickled back),
+    the first listed (the costliest of the defaults, the smoother) showing its progress.
     """
     dense = dense_observations(session)
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
     warnings = list(session.warnings) + pre.warnings + _take_warnings(session, dense)
     session = dataclasses.replace(pre.session, warnings=warnings)
     ideal = pre.ideal
-    estimates, trajs, reprojs = {}, [], []
-    for name in tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress, leave=False):
-        run = methods_registry.run_function(name, options.solver)
+
+    def estimate(i: int, on_frame=None, progress: bool = False) -> Estimate:
+        run = methods_registry.run_function(methods[i], options.solver)
         t0 = time.perf_counter()
-        est = run_by_take(run, session, dense, ideal, options,
-                          live.update if (live is not None and name == "filter") else None)
+        est = run_by_take(run, session, dense, ideal, dataclasses.replace(options, progress=progress), on_frame)
         est.runtime_s = est.runtime_s or time.perf_counter() - t0
-        estimates[name] = est
-        trajs.append(evaluate.trajectories_table(session, dense, est))
-        reprojs.append(evaluate.reprojection_table(session, dense, est))
+        return est
+
+    # GTSAM's own threads (TBB) are not known to survive a fork: its solvers run one after the other
+    if live is None and options.solver == "fast" and len(methods) > 1:
+        ests = forked.map_jobs(lambda i: estimate(i, progress=options.progress and i == 0), len(methods))
+    else:
+        ests = [estimate(i, live.update if (live is not None and name == "filter") else None, options.progress)
+                for i, name in enumerate(tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress,
+                                              leave=False))]
+    estimates = dict(zip(methods, ests, strict=True))
+    trajs = [evaluate.trajectories_table(session, dense, est) for est in ests]
+    reprojs = [evaluate.reprojection_table(session, dense, est) for est in ests]
     traj_all, reproj_all = pd.concat(trajs, ignore_index=True), pd.concat(reprojs, ignore_index=True)
     summary = summary_mod.summarize(
         session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},

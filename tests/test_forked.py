@@ -179,3 +179,26 @@ def test_standby_switched_off_prepares_at_run(monkeypatch, tmp_path):
     assert not log.exists()  # nothing prepared until there is work
     pending = standby.run(target, {"n": 3})
     assert not pending.forked and target.read_text() == f"3 {os.getpid()}" and log.exists()
+
+
+def test_methods_side_by_side_give_what_they_give_one_after_the_other(monkeypatch):
+    """run_methods forks the methods out (map_jobs): every estimate and table is the one-process one."""
+    import numpy as np
+
+    from batgraph.pipeline import run_methods
+    from batgraph.result import Options
+    from batgraph.simulate import simulate_flight
+
+    session = simulate_flight(np.random.default_rng(3), n_cameras=4, n_frames=40)
+    methods = ["smoother", "filter", "triangulate"]
+    monkeypatch.setenv(forked.ENV, "1")
+    side = run_methods(session, methods, Options(progress=False))
+    monkeypatch.setenv(forked.ENV, "0")
+    here = run_methods(session, methods, Options(progress=False))
+    assert list(side.estimates) == methods
+    for m in methods:
+        a, b = side.estimates[m], here.estimates[m]
+        np.testing.assert_array_equal(a.xyz_m, b.xyz_m)
+        np.testing.assert_array_equal(a.cov_m2, b.cov_m2)
+        np.testing.assert_array_equal(a.outlier, b.outlier)
+    assert side.trajectories.equals(here.trajectories) and side.reprojection.equals(here.reprojection)
