@@ -285,16 +285,22 @@ def reprojection_stats(session: Session, rep_mm: pd.DataFrame) -> dict:
     error [px], mean/median/p95 error in mm at the marker's depth (see :func:`reprojection_in_mm`); plus
     n_outliers (observations the method flagged, left out of every figure) and outlier_fraction."""
     out = {}
+    # the columns once, then each camera's rows by index (a boolean filter of the whole table per camera
+    # took 0.12 s per method at 30 cameras x 1M rows)
+    codes, names = pd.factorize(rep_mm["camera"].astype(str))
+    rows_of = dict(zip(names, np.split(np.argsort(codes, kind="stable"), np.cumsum(np.bincount(codes))[:-1]),
+                       strict=True)) if len(codes) else {}
+    flagged_all = rep_mm["outlier"].fillna(False).astype(bool).to_numpy()
+    e_all, mm_all = rep_mm["err_px"].to_numpy(float), rep_mm["err_mm"].to_numpy(float)
     for cam in session.rig:
-        r = rep_mm[rep_mm["camera"] == cam.name]
-        flagged = r["outlier"].fillna(False).astype(bool).to_numpy()
-        e = r["err_px"].to_numpy(float)
+        rows = rows_of.get(cam.name, np.zeros(0, np.int64))
+        flagged, e = flagged_all[rows], e_all[rows]
         ok = np.isfinite(e) & ~flagged
         n_out = int(flagged.sum())
         if not ok.any():
             out[cam.name] = {"n": 0, "n_outliers": n_out}
             continue
-        mm = r["err_mm"].to_numpy(float)[ok]
+        mm = mm_all[rows][ok]
         mm = mm[np.isfinite(mm)]
         out[cam.name] = {
             "n": int(ok.sum()), "n_outliers": n_out, "outlier_fraction": n_out / (int(ok.sum()) + n_out),

@@ -122,24 +122,25 @@ class Standby:
     """A child forked early that prepares (imports) while this process works on, then runs one call.
 
     ``prepare()`` runs in the child at once and returns the function to call; :meth:`run` sends that
-    function's arguments (pickled, through a pipe) and returns the :class:`Pending` call. Used for the report:
-    its child imports matplotlib (~0.5 s) while the estimators run, instead of after them. Where no child
-    can be made (:func:`can_fork`), ``prepare()`` runs in :meth:`run`, here, and the call with it.
+    function's arguments (pickled straight into a pipe, so no second copy of them is held here) and returns
+    the :class:`Pending` call. Used for the report: its child imports matplotlib (~0.5 s) while the
+    estimators run, instead of after them. Where no child can be made (:func:`can_fork`), ``prepare()`` runs
+    in :meth:`run`, here, and the call with it.
     """
 
     def __init__(self, prepare: Callable[[], Callable[..., None]], what: str):
         self._prepare, self.what = prepare, what
-        self._pending, self._args = None, None
+        self._pending, self._args_fd = None, None
         if can_fork():
             ctx = multiprocessing.get_context("fork")
-            args_recv, self._args = ctx.Pipe(duplex=False)
+            args_in, self._args_fd = os.pipe()
             recv, send = ctx.Pipe(duplex=False)
             # not daemonic: the call may fork children of its own (map_jobs); it is always waited for or cancelled
-            process = ctx.Process(target=_standby_child, args=(prepare, args_recv, send),
+            process = ctx.Process(target=_standby_child, args=(prepare, args_in, self._args_fd, send),
                                   name=f"batgraph {what}", daemon=False)
             process.start()
             send.close()
-            args_recv.close()
+            os.close(args_in)
             self._pending = Pending(process, recv, what)
 
     def run(self, *args) -> Pending:
@@ -147,18 +148,20 @@ class Standby:
         if self._pending is None:
             self._prepare()(*args)
             return Pending(what=self.what)
+        fd, self._args_fd = self._args_fd, None
         try:
-            self._args.send(args)
-        except (BrokenPipeError, ConnectionResetError):  # the child is gone: wait() says how
+            with open(fd, "wb") as out:
+                pickle.dump(args, out, protocol=pickle.HIGHEST_PROTOCOL)
+        except BrokenPipeError:  # the child is gone (it failed to prepare): wait() says how
             pass
-        finally:
-            self._args.close()
         return self._pending
 
     def cancel(self) -> None:
         """Stop the child (the call was not wanted, or the caller failed); nothing once the call is done."""
         if self._pending is not None:
-            self._args.close()
+            if self._args_fd is not None:
+                os.close(self._args_fd)
+                self._args_fd = None
             self._pending.cancel()
 
     def __enter__(self) -> Standby:
@@ -168,13 +171,16 @@ class Standby:
         self.cancel()
 
 
-def _standby_child(prepare: Callable[[], Callable[..., None]], args_recv, conn) -> None:
+def _standby_child(prepare: Callable[[], Callable[..., None]], args_in: int, args_out: int, conn) -> None:
+    os.close(args_out)  # the parent's end: the pipe ends (EOF) when the parent closes it without a call
+
     def work():
         call = prepare()
-        try:
-            args = args_recv.recv()
-        except EOFError:  # the parent gave up (it failed, or wanted no call): nothing to do
-            return
+        with open(args_in, "rb") as source:
+            try:
+                args = pickle.load(source)
+            except EOFError:  # the parent gave up (it failed, or wanted no call): nothing to do
+                return
         call(*args)
 
     _child(work, conn)

@@ -62,3 +62,39 @@ def test_chunked_file_is_the_same_text(tmp_path):
     assert (tmp_path / "t.csv").read_text() == table.to_csv(index=False, float_format="%.9g")
     write_csv(tmp_path / "e.csv", table.iloc[:0], "%.9g")
     assert (tmp_path / "e.csv").read_text() == table.iloc[:0].to_csv(index=False, float_format="%.9g")
+
+
+def test_fixed_point_bytes_are_pythons_text_at_ties_and_edges():
+    """fixed_csv_bytes (numpy-built fields) gives pandas' characters, also where rounding is delicate: exact
+    ties (odd multiples of 1/128 at "%.6f"), the nearest floats either side of them, -0.0 and negatives
+    that round to zero, carries into the integer part, values too large for its integer path, inf, NaN."""
+    from batgraph.formats.csv_text import fixed_csv_bytes
+
+    rng = np.random.default_rng(7)
+    ties = (2 * rng.integers(0, 2**20, 300) + 1) / 128.0
+    edges = np.array([0.0, -0.0, -1e-9, 1e-9, 0.9999996, 0.9999995, -0.9999996, 2.5e-7, 5e-7, 1.5e-6, 4e9,
+                      9.2e12, -3.3e15, 1e300, -1e300, np.inf, -np.inf, np.nan, 123456.0000005])
+    x = np.concatenate([ties, np.nextafter(ties, 0), np.nextafter(ties, 1e9), edges,
+                        rng.normal(size=3000) * 10.0 ** rng.integers(-8, 11, 3000)])
+    x = np.concatenate([x, -x])
+    table = pd.DataFrame({
+        "marker": rng.choice(["wrist_r", "élbow", "digit 3"], len(x)),
+        "frame": rng.integers(-5, 10**12, len(x)),
+        "u": x,
+        "v": rng.permutation(x),
+        "outlier": rng.random(len(x)) < 0.5,
+        "status": pd.Categorical(rng.choice(["observed", "single_view"], len(x))),
+    })
+    for fmt in ("%.6f", "%.0f", "%.3f", "%.9f"):
+        assert fixed_csv_bytes(table, fmt).decode() == table.to_csv(index=False, float_format=fmt), fmt
+    assert fixed_csv_bytes(table, "%.9g") is None  # not fixed-point: csv_text's path
+    quoted = table.assign(marker="a, b")
+    assert fixed_csv_bytes(quoted, "%.6f") is None
+
+
+def test_fixed_point_file_in_chunks_is_pandas_text(tmp_path):
+    from batgraph.formats.csv_text import write_csv
+
+    table = _table(250)
+    write_csv(tmp_path / "t.csv", table, "%.6f", chunk_rows=37)
+    assert (tmp_path / "t.csv").read_text() == table.to_csv(index=False, float_format="%.6f")
