@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import multiprocessing
+import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -179,13 +180,16 @@ def _expected_s(summary: dict | None, methods: list[str], n_folds: int) -> float
 
 
 def _init_worker() -> None:
-    # One BLAS thread and one kernel thread per process: the folds already use every core.
+    # One BLAS thread, one kernel thread and no forked children (batgraph.forked) per process: the folds
+    # already use every core.
     from threadpoolctl import threadpool_limits
 
+    from . import forked
     from .graph import kernels
 
     threadpool_limits(1)
     kernels.set_threads(1)
+    os.environ[forked.ENV] = "0"
 
 
 def fold_pixel_sigma(session: Session, summary: dict | None):

@@ -402,8 +402,9 @@ def run_process(cli: list[str], cwd: Path) -> dict:
     return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss": peak_kib / 1024}
 
 
-def bench_commands(args) -> list[tuple[str, str, str]]:
-    """(e): whole commands, fresh processes, medians; against ``--baseline-tree`` when given (alternating)."""
+def bench_commands(args, batch: bool = True) -> list[tuple[str, str, str]]:
+    """(e): whole commands, fresh processes, medians; against ``--baseline-tree`` when given (alternating);
+    ``batch``: also the 16-session batch with 1 and 2 workers."""
     trees = {"new": ROOT}
     if args.baseline_tree:
         trees["old"] = Path(args.baseline_tree).resolve()
@@ -412,7 +413,8 @@ def bench_commands(args) -> list[tuple[str, str, str]]:
         big = f"{args.cameras} x {args.markers} x {args.frames}"
         run_process(["simulate", "flight", f"{tmp}/big", "--cameras", str(args.cameras), "--markers",
                      str(args.markers), "--frames", str(args.frames), "--seed", "3"], ROOT)
-        for seed in range(BATCH_SESSIONS):  # the issue's batch: small sessions of 10 cameras x 30 markers x 120 frames
+        # the issue's batch: small sessions of 10 cameras x 30 markers x 120 frames
+        for seed in range(BATCH_SESSIONS if batch else 0):
             run_process(["simulate", "flight", f"{tmp}/many/s{seed:02d}", "--cameras", "10", "--markers", "30",
                          "--frames", "120", "--seed", str(seed)], ROOT)
         quiet = ["--viewer", "none", "--quiet"]
@@ -422,11 +424,10 @@ def bench_commands(args) -> list[tuple[str, str, str]]:
                                                               *quiet, "--methods", "triangulate"],
             "batgraph --help": ["--help"],
             f"reconstruct {big} (default methods)": ["reconstruct", f"{tmp}/big", "--out", f"{tmp}/c", *quiet],
-            f"reconstruct {BATCH_SESSIONS} sessions --workers 1": ["reconstruct", f"{tmp}/many/*", "--out",
-                                                                   f"{tmp}/d", "--workers", "1", *quiet],
-            f"reconstruct {BATCH_SESSIONS} sessions --workers 2": ["reconstruct", f"{tmp}/many/*", "--out",
-                                                                   f"{tmp}/e", "--workers", "2", *quiet],
         }
+        if batch:
+            commands.update({f"reconstruct {BATCH_SESSIONS} sessions --workers {n}": [
+                "reconstruct", f"{tmp}/many/*", "--out", f"{tmp}/w{n}", "--workers", str(n), *quiet] for n in (1, 2)})
         wall_of: dict[str, dict[str, float]] = {}
         for what, cli in commands.items():
             got: dict[str, list[dict]] = {name: [] for name in trees}
@@ -447,6 +448,8 @@ def bench_commands(args) -> list[tuple[str, str, str]]:
                 rows.append((f"  ratio new / old: {what}", f"{r['wall']:.2f}",
                              f"wall; CPU {r['cpu']:.2f}; peak RSS {r['rss']:.2f}"))
             wall_of[what] = {name: m["wall"] for name, m in med.items()}
+        if not batch:
+            return rows
         one, two = (wall_of[f"reconstruct {BATCH_SESSIONS} sessions --workers {n}"] for n in (1, 2))
         for name in trees:
             rows.append((f"  ratio 2 workers / 1 worker [{name}]", f"{two[name] / one[name]:.2f}",
@@ -465,7 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ekf-frames", type=int, default=12, help="frames per EKF run in section (d)")
     ap.add_argument("--ekf-limit-s", type=float, default=20.0, help="stop (d) when one frame takes longer")
     ap.add_argument("--skip", default="",
-                    help="comma list of sections to skip: commands,smoother,filter,triangulate,ekf")
+                    help="comma list of sections to skip: commands,smoother,filter,triangulate,ekf; batch skips "
+                         "only the 16-session batch of (e)")
     ap.add_argument("--baseline-tree", default=None,
                     help="(e): also run the commands from this older source tree and print new / old ratios")
     args = ap.parse_args(argv)
@@ -475,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
           f"Python {info['python']}, numpy {info['numpy']}")
     rows = []
     if "commands" not in skip:
-        rows += bench_commands(args)
+        rows += bench_commands(args, batch="batch" not in skip)
     t0 = time.perf_counter()
     session = simulate_flight(np.random.default_rng(0), n_cameras=args.cameras, n_markers=args.markers,
                               n_frames=args.frames)
