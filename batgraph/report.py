@@ -410,6 +410,9 @@ def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status
                 ax.set_ylabel(mk, fontsize=9)
             ax.tick_params(labelsize=7)
             ax.margins(x=0)
+            # few ticks on these small panels: matplotlib builds an object per tick, ~40 % of this figure's time
+            ax.yaxis.set_major_locator(MaxNLocator(3))
+            ax.xaxis.set_major_locator(MaxNLocator(4))
     for a in range(3):
         axes[-1, a].set_xlabel("time [s]", fontsize=8)
     from matplotlib.patches import Patch
