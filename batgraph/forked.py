@@ -1,25 +1,26 @@
-"""Work in forked child processes: one piece beside this process's own (the report beside the other outputs),
-or a list of pieces shared over the cores (the report's figures).
+"""Work in forked child processes: one call beside this process's own work (the report, while the estimators
+run and the other outputs are written), or a list of jobs shared over the cores (the methods; the
+report's figures).
 
-``reconstruct`` writes its outputs one after the other, and the HTML report (matplotlib: tick and text
-layout, PNG encoding) is the slowest of them, while a second core sits idle. :func:`start` runs a
-function in a child made by ``fork`` (it sees this process's memory as it is, so nothing is pickled on
-the way in) and returns at once; :meth:`Pending.wait` waits for it and raises what the function raised.
-The child leaves with ``os._exit`` (as multiprocessing's fork children do): the figures' ~130k garbage
-objects are never collected (~0.2 s on the bundled sample that the parent no longer pays).
+:class:`Standby` forks a child at once that prepares (imports matplotlib and the report, ~0.5 s) while
+this process goes on, then waits for the arguments of its one call; :meth:`Standby.run` pickles them
+straight into a pipe and returns a :class:`Pending`, whose :meth:`Pending.wait` waits for the call and
+raises what it raised. A child leaves with ``os._exit`` (as multiprocessing's fork children do): the
+figures' ~130k garbage objects are never collected (~0.2 s on the bundled sample that no one pays).
 
 :func:`map_jobs` computes ``fn(0) .. fn(n - 1)`` in this process and up to cores - 1 forked children,
-each taking the next undone index (the costly jobs first, where the caller orders them so): the report's
-figures, each a matplotlib figure built and encoded to PNG, are independent, and matplotlib holds the GIL,
-so processes (not threads) are what spreads them over the cores.
+each taking the next undone index (the costly jobs first, where the caller orders them so): the methods,
+and the report's figures (each a matplotlib figure built and encoded to PNG; matplotlib holds the GIL, so
+processes, not threads, are what spreads them over the cores). A child sees this process's memory as it
+was at the fork, so nothing is pickled on the way in; results come back pickled.
 
-The work runs in this process instead, before :func:`start` returns, where a child would not help or
-cannot be made: not Linux (no ``fork`` on Windows; on macOS it is unsafe), a daemonic process (a Dask
-worker: it may not have children, and a batch already uses the cores), one usable core, or
-``BATGRAPH_FORK=0``.
+The work runs in this process instead where a child would not help or cannot be made: not Linux (no
+``fork`` on Windows; on macOS it is unsafe), a daemonic process (a Dask worker: it may not have children,
+and a batch already uses the cores), one usable core, or ``BATGRAPH_FORK=0`` (validation's fold workers
+set it).
 
-Why not concurrent.futures.ProcessPoolExecutor: it pickles the function and its arguments (here the
-whole result, with its tables) and keeps a pool alive; one fork per call is all this needs.
+Why not concurrent.futures.ProcessPoolExecutor: it pickles the function and its arguments and keeps a pool
+alive; one fork per call is all this needs.
 """
 
 from __future__ import annotations
@@ -41,15 +42,15 @@ def usable_cores() -> int:
 
 
 def can_fork() -> bool:
-    """Whether :func:`start` runs its work in a child: on Linux (macOS's system libraries are not safe to use
-    after a fork, which is why Python's default there is spawn), this process may have children, it has
-    >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
+    """Whether work runs in forked children (:class:`Standby`, :func:`map_jobs`): on Linux (macOS's system
+    libraries are not safe to use after a fork, which is why Python's default there is spawn), this process
+    may have children, it has >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
     return (os.environ.get(ENV, "").strip() != "0" and sys.platform.startswith("linux")
             and not multiprocessing.current_process().daemon and usable_cores() >= 2)
 
 
 class Pending:
-    """Work started by :func:`start`: :meth:`wait` for it, or :meth:`cancel` it."""
+    """A call started by :meth:`Standby.run` (or a map_jobs worker): :meth:`wait` for it, or :meth:`cancel` it."""
 
     def __init__(self, process=None, conn=None, what: str = ""):
         self._process, self._conn, self.what = process, conn, what
@@ -109,13 +110,6 @@ def _child(work: Callable[[], None], conn, reply: bool = True) -> None:
             conn.send(("ok",))
     finally:
         conn.close()
-
-
-def start(work: Callable[[], None], what: str) -> Pending:
-    """Run ``work()`` in a forked child (see :func:`can_fork`) or, where none can be made, here and now.
-    ``what`` names the work in errors. Returns its :class:`Pending`; call ``wait()`` before using what it
-    wrote, ``cancel()`` when giving up. The child sees this process's memory as it is: nothing is pickled."""
-    return Standby(lambda: work, what).run()
 
 
 class Standby:

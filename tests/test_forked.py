@@ -13,6 +13,11 @@ from batgraph import forked
 needs_fork = pytest.mark.skipif(not forked.can_fork(), reason="no fork here (one core, daemonic or no fork)")
 
 
+def start(work, what: str) -> forked.Pending:
+    """``work()`` in a child forked now (a Standby with nothing to prepare and no arguments)."""
+    return forked.Standby(lambda: work, what).run()
+
+
 def test_map_jobs_is_the_list_comprehension_and_uses_children():
     def job(i):
         time.sleep(0.05)  # long enough that the children take some of the jobs
@@ -52,26 +57,26 @@ def test_map_jobs_raises_what_this_process_raised():
 
 
 @needs_fork
-def test_start_runs_in_a_child_and_wait_returns_after_it(tmp_path):
+def test_a_call_runs_in_a_child_and_wait_returns_after_it(tmp_path):
     target = tmp_path / "out.txt"
 
     def work():
         time.sleep(0.1)
         target.write_text(str(os.getpid()))
 
-    pending = forked.start(work, "test")
+    pending = start(work, "test")
     assert pending.forked
     pending.wait()
     assert int(target.read_text()) != os.getpid()
 
 
 @needs_fork
-def test_start_error_and_death_reach_the_parent():
+def test_a_calls_error_and_death_reach_the_parent():
     def bad():
         raise OSError(28, "No space left on device")
 
     with pytest.raises(OSError, match="No space left") as info:
-        forked.start(bad, "report").wait()
+        start(bad, "report").wait()
     assert info.value.errno == 28
 
     class Unpicklable(Exception):
@@ -82,9 +87,9 @@ def test_start_error_and_death_reach_the_parent():
         raise Unpicklable("odd failure")
 
     with pytest.raises(RuntimeError, match="Unpicklable: odd failure"):
-        forked.start(odd, "report").wait()
+        start(odd, "report").wait()
     with pytest.raises(RuntimeError, match="ended without a result"):
-        forked.start(lambda: os._exit(3), "report").wait()
+        start(lambda: os._exit(3), "report").wait()
 
 
 @needs_fork
@@ -95,7 +100,7 @@ def test_cancel_stops_a_running_child(tmp_path):
         time.sleep(5)
         target.write_text("too late")
 
-    pending = forked.start(slow, "report")
+    pending = start(slow, "report")
     t0 = time.perf_counter()
     pending.cancel()
     assert time.perf_counter() - t0 < 2 and not target.exists()
@@ -106,7 +111,7 @@ def test_switched_off_runs_here(monkeypatch, tmp_path):
     monkeypatch.setenv(forked.ENV, "0")
     assert not forked.can_fork()
     pids = []
-    pending = forked.start(lambda: pids.append(os.getpid()), "report")
+    pending = start(lambda: pids.append(os.getpid()), "report")
     assert not pending.forked and pids == [os.getpid()]
     assert forked.map_jobs(lambda i: os.getpid(), 3) == [os.getpid()] * 3
 
