@@ -118,8 +118,8 @@ class Standby:
     ``prepare()`` runs in the child at once and returns the function to call; :meth:`run` sends that
     function's arguments (pickled straight into a pipe, so no second copy of them is held here) and returns
     the :class:`Pending` call. Used for the report: its child imports matplotlib (~0.5 s) while the
-    estimators run, instead of after them. Where no child can be made (:func:`can_fork`), ``prepare()`` runs
-    in :meth:`run`, here, and the call with it.
+    estimators run, instead of after them. Where no child can be made (:func:`can_fork`), or an argument
+    cannot be pickled, ``prepare()`` runs in :meth:`run`, here, and the call with it.
     """
 
     def __init__(self, prepare: Callable[[], Callable[..., None]], what: str):
@@ -148,6 +148,10 @@ class Standby:
                 pickle.dump(args, out, protocol=pickle.HIGHEST_PROTOCOL)
         except BrokenPipeError:  # the child is gone (it failed to prepare): wait() says how
             pass
+        except (pickle.PicklingError, TypeError, AttributeError):  # an argument cannot travel: call it here
+            self._pending.cancel()
+            self._prepare()(*args)
+            return Pending(what=self.what)
         return self._pending
 
     def cancel(self) -> None:

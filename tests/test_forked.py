@@ -207,3 +207,13 @@ def test_methods_side_by_side_give_what_they_give_one_after_the_other(monkeypatc
         np.testing.assert_array_equal(a.cov_m2, b.cov_m2)
         np.testing.assert_array_equal(a.outlier, b.outlier)
     assert side.trajectories.equals(here.trajectories) and side.reprojection.equals(here.reprojection)
+
+
+@needs_fork
+def test_standby_calls_here_what_cannot_be_pickled(tmp_path):
+    """An argument that cannot travel to the child (a lambda) is not an error: the call runs here."""
+    log, target = tmp_path / "prepared.txt", tmp_path / "out.txt"
+    standby = forked.Standby(_prepare_writer(log), "test")
+    pending = standby.run(target, {"n": 5, "odd": lambda: None})
+    pending.wait()
+    assert not pending.forked and target.read_text() == f"5 {os.getpid()}"
