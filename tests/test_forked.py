@@ -196,8 +196,16 @@ def test_methods_side_by_side_give_what_they_give_one_after_the_other(monkeypatc
 
     session = simulate_flight(np.random.default_rng(3), n_cameras=4, n_frames=40)
     methods = ["smoother", "filter", "triangulate"]
+    calls, map_jobs = [], forked.map_jobs
+
+    def spy(fn, n, workers=None):
+        calls.append(n)
+        return map_jobs(fn, n, workers)
+
+    monkeypatch.setattr(forked, "map_jobs", spy)
     monkeypatch.setenv(forked.ENV, "1")
     side = run_methods(session, methods, Options(progress=False))
+    assert calls == [len(methods)]  # the methods went through map_jobs (which forks where it can)
     monkeypatch.setenv(forked.ENV, "0")
     here = run_methods(session, methods, Options(progress=False))
     assert list(side.estimates) == methods
