@@ -40,6 +40,30 @@ def test_tridiagonal_kernels_equal_dense_linear_algebra(d):
         np.testing.assert_allclose(Sigma[k], Hinv[:, k * d:(k + 1) * d, k * d:(k + 1) * d], rtol=1e-9, atol=1e-13)
 
 
+@pytest.mark.parametrize("g, b", [(2, 3), (3, 6), (14, 18)])  # d = 6 (loops), 18 and 252 (BLAS / LAPACK)
+def test_block_diagonal_B_equals_the_dense_one(g, b):
+    """A segment group's B, block-diagonal (its members' motions are independent), given as its blocks
+    (M, g, b, b): the same solves, log det and marginals as the dense B = diag(blocks) (to rounding)."""
+    rng = np.random.default_rng(g)
+    F, M, d = 5, 1, g * b
+    blocks = rng.normal(size=(M, g, b, b))
+    dense_B = np.zeros((M, d, d))
+    for m in range(M):
+        for j in range(g):
+            dense_B[m, j * b:(j + 1) * b, j * b:(j + 1) * b] = blocks[m, j]
+    X = rng.normal(size=(F, M, d, d))
+    D = (X @ np.swapaxes(X, -1, -2) + 2 * d * np.eye(d)
+         + 2 * np.abs(dense_B).sum(axis=(1, 2))[None, :, None, None] * np.eye(d))
+    rhs = rng.normal(size=(F, M, d, 2))
+    np.testing.assert_allclose(kernels.tridiagonal_solve(D, blocks, rhs), kernels.tridiagonal_solve(D, dense_B, rhs),
+                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(kernels.tridiagonal_logdet(D, blocks), kernels.tridiagonal_logdet(D, dense_B),
+                               rtol=1e-12)
+    (S1, l1), (S2, l2) = kernels.tridiagonal_marginals(D, blocks), kernels.tridiagonal_marginals(D, dense_B)
+    np.testing.assert_allclose(l1, l2, rtol=1e-12)
+    np.testing.assert_allclose(S1, S2, rtol=1e-9, atol=1e-13)
+
+
 @pytest.mark.parametrize("robust, n_cells, n", [("none", 12, 200), ("huber", 12, 200), ("cauchy", 12, 200),
                                                ("huber", 600, 20_000), ("cauchy", 5, 9_000)])
 def test_projection_sums_equal_numpy(robust, n_cells, n):

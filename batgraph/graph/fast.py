@@ -351,15 +351,19 @@ def _T(a: np.ndarray) -> np.ndarray:
 
 
 def _per_marker_B(B: np.ndarray, M: int) -> np.ndarray:
-    """The sub-diagonal block as (M, d, d) contiguous from (d, d) or (M, d, d)."""
+    """The sub-diagonal block as (M, d, d) contiguous from (d, d) or (M, d, d); a block-diagonal one given as
+    its blocks (M, g, b, b) (a segment group, batgraph.graph.rigid) as it is."""
+    if B.ndim == 4:
+        return np.ascontiguousarray(B)
     return np.ascontiguousarray(np.broadcast_to(B, (M,) + B.shape[-2:]))
 
 
 def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve the block-tridiagonal systems H dx = rhs of all markers (H[k+1, k] = B, constant over frames).
 
-    D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d); rhs (F, M, d), or (F, M, d, r)
-    for r right-hand sides at once. Returns dx of rhs's shape.
+    D: diagonal blocks (F, M, d, d); B (d, d) or per marker (M, d, d), or a block-diagonal one per marker as
+    its blocks (M, g, b, b) (d = g b); rhs (F, M, d), or (F, M, d, r) for r right-hand sides at once.
+    Returns dx of rhs's shape.
     One sweep over frames eliminates and substitutes forwards (S_k = D_k - L_k B^T with L_k = B S_{k-1}^-1,
     y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes (compiled: kernels.tridiagonal_solve).
     """

@@ -202,13 +202,14 @@ SMALL_BLOCK = 12
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _inverse(A, out, work):  # pragma: no cover  (compiled)
+def _inverse(A, out, work, want_logdet=True):  # pragma: no cover  (compiled)
     """out = A^-1 (d, d) by Gauss-Jordan elimination with partial pivoting (LAPACK getri's answer to
-    rounding); returns log |det A| (-inf for a singular A, whose out is then inf / NaN). work: (d, d)."""
+    rounding); returns log |det A| (-inf for a singular A, whose out is then inf / NaN). work: (d, d).
+    A large block's log det is a second LAPACK factorisation: skipped (0 returned) unless ``want_logdet``."""
     d = A.shape[0]
     if d > SMALL_BLOCK:
         out[:] = np.linalg.inv(A)
-        return np.linalg.slogdet(A)[1]
+        return np.linalg.slogdet(A)[1] if want_logdet else 0.0
     for i in range(d):
         for j in range(d):
             work[i, j] = A[i, j]
@@ -258,23 +259,45 @@ def _matmul(A, B, out):  # pragma: no cover  (compiled)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly):  # pragma: no cover  (compiled)
+def _left(Bb, X, out, transpose):  # pragma: no cover  (compiled)
+    """out = B X (or B^T X) for the block-diagonal B = diag(Bb[0], ..., Bb[g-1]) (Bb (g, b, b)) and X (g b, r)."""
+    g, b = Bb.shape[0], Bb.shape[1]
+    for j in range(g):
+        _matmul(Bb[j].T if transpose else Bb[j], X[j * b:(j + 1) * b], out[j * b:(j + 1) * b])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly, want_logdet):  # pragma: no cover  (compiled)
     """The forward sweep of marker m: Sinv[k] = S_k^-1 (F, d, d) with S_0 = D_0, S_k = D_k - L_k B^T,
     L_k = B S_{k-1}^-1; and when rhs (F, M, d, r) has frames, y[k] = rhs_k - L_k y_{k-1} (F, d, r).
-    Returns sum_k log |det S_k|. L, S, work: (d, d) scratch; Ly (d, r) scratch."""
+    B (M, g, b, b): each marker's sub-diagonal block, block-diagonal with g blocks of b x b (d = g b; g > 1 for
+    a segment group, whose members' motions are independent): products with it cost g b^2 d, not d^3, and
+    S_k = (B L_k^T)^T (S_{k-1}^-1 is symmetric). Returns sum_k log |det S_k| (0 for large blocks unless
+    ``want_logdet``). L, S, work: (d, d) scratch; Ly (d, r) scratch."""
     F, d = D.shape[0], D.shape[2]
     with_rhs = rhs.shape[0] > 0
     Bm = B[m]
-    logdet = _inverse(D[0, m], Sinv[0], work)
+    g = Bm.shape[0]
+    logdet = _inverse(D[0, m], Sinv[0], work, want_logdet)
     if with_rhs:
         y[0] = rhs[0, m]
     for k in range(1, F):
-        _matmul(Bm, Sinv[k - 1], L)
-        _matmul(L, Bm.T, S)
-        for i in range(d):
-            for j in range(d):
-                S[i, j] = D[k, m, i, j] - S[i, j]
-        logdet += _inverse(S, Sinv[k], work)
+        _left(Bm, Sinv[k - 1], L, False)
+        if g == 1:
+            _matmul(L, Bm[0].T, S)
+            for i in range(d):
+                for j in range(d):
+                    S[i, j] = D[k, m, i, j] - S[i, j]
+            logdet += _inverse(S, Sinv[k], work, want_logdet)
+        else:
+            for i in range(d):
+                for j in range(d):
+                    work[i, j] = L[j, i]
+            _left(Bm, work, S, False)  # B L^T = (L B^T)^T
+            for i in range(d):
+                for j in range(d):
+                    work[i, j] = D[k, m, i, j] - S[j, i]
+            logdet += _inverse(work, Sinv[k], S, want_logdet)
         if with_rhs:
             _matmul(L, y[k - 1], Ly)
             for i in range(d):
@@ -296,21 +319,31 @@ def _markers_split(D: np.ndarray, run) -> None:
     _split(M, -(-MIN_PART_BLOCKS // max(F, 1)), run)
 
 
+def _blocks(B: np.ndarray) -> np.ndarray:
+    """The sub-diagonal blocks as (M, g, b, b) C-contiguous: (M, d, d) is one block (g = 1); (M, g, b, b) is a
+    block-diagonal B of g blocks (a segment group's members, batgraph.graph.rigid)."""
+    return np.ascontiguousarray(B[:, None] if B.ndim == 3 else B)
+
+
 def tridiagonal_solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """dx (F, M, d, r) solving H dx = rhs for every marker's block-tridiagonal H (batgraph.graph.fast._solve).
 
     D (F, M, d, d) diagonal blocks; B (M, d, d) the sub-diagonal block H[k+1, k] of each marker, constant
-    over frames; rhs (F, M, d, r); all C-contiguous. Forward: S_k and y_k = rhs_k - B S_{k-1}^-1 y_{k-1}; back:
+    over frames, or (M, g, b, b) the blocks of a block-diagonal one (d = g b); rhs (F, M, d, r); D and rhs
+    C-contiguous. Forward: S_k and y_k = rhs_k - B S_{k-1}^-1 y_{k-1}; back:
     dx_{F-1} = S^-1 y, dx_k = S_k^-1 (y_k - B^T dx_{k+1}).
     """
     out = np.empty_like(rhs)
+    B = _blocks(B)
     _markers_split(D, lambda m0, m1: _solve_markers(m0, m1, D, B, rhs, out))
     return out
 
 
 def tridiagonal_logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """log det H (M,) of every marker's block-tridiagonal H (D (F, M, d, d), B (M, d, d)): sum_k log det S_k."""
+    """log det H (M,) of every marker's block-tridiagonal H (D (F, M, d, d), B as tridiagonal_solve's): sum_k
+    log det S_k."""
     out = np.empty(D.shape[1])
+    B = _blocks(B)
     _markers_split(D, lambda m0, m1: _logdet_markers(m0, m1, D, B, out))
     return out
 
@@ -319,6 +352,7 @@ def tridiagonal_marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.
     """Diagonal blocks Sigma (F, M, d, d) of H^-1 and log det H (M,) (batgraph.graph.fast.marginals):
     Sigma_{F-1} = S_{F-1}^-1, Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T with G_k = S_k^-1 B^T, symmetrised."""
     Sigma, ld = np.empty_like(D), np.empty(D.shape[1])
+    B = _blocks(B)
     _markers_split(D, lambda m0, m1: _marginals_markers(m0, m1, D, B, Sigma, ld))
     return Sigma, ld
 
@@ -332,10 +366,10 @@ def _solve_markers(m0, m1, D, B, rhs, out):  # pragma: no cover  (compiled)
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     Ly, t_ = np.empty((d, r)), np.empty((d, r))
     for m in range(m0, m1):
-        _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly)
+        _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly, False)
         _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
         for k in range(F - 2, -1, -1):
-            _matmul(B[m].T, out[k + 1, m], Ly)
+            _left(B[m], out[k + 1, m], Ly, True)
             for i in range(d):
                 for c in range(r):
                     t_[i, c] = y[k, i, c] - Ly[i, c]
@@ -349,7 +383,7 @@ def _logdet_markers(m0, m1, D, B, out):  # pragma: no cover  (compiled)
     Sinv = np.empty((F, d, d))
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     for m in range(m0, m1):
-        out[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
+        out[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L, True)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -360,10 +394,16 @@ def _marginals_markers(m0, m1, D, B, Sigma, ld):  # pragma: no cover  (compiled)
     L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     G, GS = np.empty((d, d)), np.empty((d, d))
     for m in range(m0, m1):
-        ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L)
+        ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L, True)
         Sigma[F - 1, m] = Sinv[F - 1]
         for k in range(F - 2, -1, -1):
-            _matmul(Sinv[k], B[m].T, G)
+            if B.shape[1] == 1:
+                _matmul(Sinv[k], B[m, 0].T, G)
+            else:  # G = S_k^-1 B^T = (B S_k^-1)^T
+                _left(B[m], Sinv[k], GS, False)
+                for i in range(d):
+                    for j in range(d):
+                        G[i, j] = GS[j, i]
             _matmul(G, Sigma[k + 1, m], GS)
             _matmul(GS, G.T, S)
             for i in range(d):

@@ -32,7 +32,6 @@ rules are fast.solve_fast's, with the group as one column.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -128,8 +127,9 @@ class _Segments:
 
 
 def _block_diag(B: np.ndarray, g: int) -> np.ndarray:
-    """The group's sub-diagonal block (n, n) from its members' B: one (d, d) for all, or (g, d, d)."""
-    return scipy.linalg.block_diag(*(B if B.ndim == 3 else [B] * g))
+    """The group's sub-diagonal block as the kernels take a block-diagonal one, (1, g, d, d), from its
+    members' B: one (d, d) for all, or (g, d, d) (fast._solve and kernels.tridiagonal_solve)."""
+    return np.ascontiguousarray(np.broadcast_to(B, (g,) + B.shape[-2:]))[None]
 
 
 def _bordered_solve(T, BG, C, E, rx, rL) -> tuple[np.ndarray, np.ndarray]:
