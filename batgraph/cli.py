@@ -56,10 +56,12 @@ def _add_reconstruct(sub):
                         "recording); the session folders are not modified")
     p.add_argument("--methods", help=methods_help())
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
-    p.add_argument("--motion", choices=["constant_velocity", "random_walk", "constant_acceleration", "auto"],
+    p.add_argument("--motion",
+                   choices=["constant_velocity", "random_walk", "constant_acceleration", "auto", "wingbeat"],
                    help="motion model (default: session.toml [motion] model, else constant_velocity); auto: the "
-                        "smoother picks constant velocity or acceleration per marker (slower; the filters use "
-                        "constant velocity for auto and constant_acceleration)")
+                        "smoother picks constant velocity or acceleration per marker; wingbeat: constant velocity "
+                        "or constant velocity plus an oscillation at the wingbeat frequency per marker (both "
+                        "slower; the filters use constant velocity for auto, wingbeat and constant_acceleration)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
     p.add_argument("--noise-rule", choices=["evidence", "loo"],
@@ -189,7 +191,8 @@ def _add_validate(sub):
     p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
                                      "(default smoother,filter,triangulate)")
     p.add_argument("--compare", action="store_true", help="add every other method")
-    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
+    p.add_argument("--motion",
+                   choices=["auto", "wingbeat", "constant_velocity", "constant_acceleration", "random_walk"],
                    help="motion model (as reconstruct)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity PSD [m^2/s^3] (as reconstruct)")

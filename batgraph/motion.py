@@ -113,3 +113,45 @@ def noise_from_track(xyz_m: np.ndarray, cov_m2: np.ndarray, fps: float) -> tuple
         if np.nanmean(e) >= TRACK_SNR * np.nanmean(noise):
             break
     return max(sigma_m, 1e-6), max(a2 * dt / 3.0, 0.01)
+
+
+WINGBEAT_BAND_HZ = (2.0, 40.0)  # the bats' (and birds') wingbeat frequencies batgraph looks for [Hz]
+WINGBEAT_MIN_CYCLES = 2.0  # a frequency is measured only if the take holds this many of its cycles
+WINGBEAT_OVERSAMPLE = 16  # the spectrum is sampled this many times finer than 1 / (take length)
+WINGBEAT_MIN_FRAMES = 8  # a track with fewer triangulated frames is left out
+
+
+def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
+    """The wingbeat frequency [Hz] measured from tracks: the peak of their summed periodogram.
+
+    xyz_m: positions (F, M, 3) [m], NaN where not triangulated (a marker hidden behind a wing for half of
+    every stroke leaves gaps, so the spectrum is scipy.signal.lombscargle's, which takes the triangulated
+    frames as they are: interpolating across the gaps put the peak at the band's edge on one hold-out scene).
+    Each marker's axis with at least WINGBEAT_MIN_FRAMES frames is detrended by a quadratic in time (a
+    flight's path and its turn are not the wingbeat); the periodograms, summed over markers and axes (the
+    wing markers, which move most, dominate), are maximised over WINGBEAT_BAND_HZ cut to frequencies below
+    fps / 4 and of at least WINGBEAT_MIN_CYCLES cycles in the take, sampled WINGBEAT_OVERSAMPLE times finer
+    than 1 / (take length). Returns None when that band is empty or no track is long enough.
+    It is the frequency of the largest periodic motion, whether or not the animal flaps: the smoother's
+    per-marker model choice (evidence) decides whether an oscillation at it helps.
+    """
+    from scipy.signal import lombscargle
+
+    F = len(xyz_m)
+    lo = max(WINGBEAT_BAND_HZ[0], WINGBEAT_MIN_CYCLES * fps / max(F, 1))
+    hi = min(WINGBEAT_BAND_HZ[1], fps / 4.0)
+    if lo >= hi:
+        return None
+    hz = np.arange(lo, hi, fps / F / WINGBEAT_OVERSAMPLE)
+    t = np.arange(F) / fps
+    power = np.zeros(len(hz))
+    used = False
+    for track in np.moveaxis(np.asarray(xyz_m, float), 0, -1).reshape(-1, F):  # (M * 3, F)
+        ok = np.isfinite(track)
+        if ok.sum() < WINGBEAT_MIN_FRAMES:
+            continue
+        tt = t[ok] - t[ok].mean()
+        y = track[ok] - np.polyval(np.polyfit(tt, track[ok], 2), tt)
+        power += lombscargle(tt, y, 2 * np.pi * hz)
+        used = True
+    return float(hz[np.argmax(power)]) if used else None

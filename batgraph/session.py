@@ -28,7 +28,7 @@ from .geometry.dlt import UNITS_M
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
-MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto")
+MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto", "wingbeat")
 NOISE_RULES = ("evidence", "loo")  # [motion] noise_rule (batgraph.graph.noise)
 
 
@@ -66,7 +66,7 @@ class MotionConfig:
         log predictive density); see batgraph.graph.noise and docs/accuracy.md for what each gives.
     """
 
-    model: str = "constant_velocity"  # or random_walk, constant_acceleration, auto (batgraph.graph.noise)
+    model: str = "constant_velocity"  # or random_walk, constant_acceleration, auto, wingbeat (batgraph.graph.noise)
     flight_speed_mps: float | None = None
     span_m: float | None = None
     flap_hz: float | None = None

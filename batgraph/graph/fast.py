@@ -48,7 +48,7 @@ from . import cost as spec
 from . import kernels, noise
 from .cost import robust_loss  # noqa: F401  (re-exported: fast_filter and tests use it from here)
 
-MODELS = spec.MOTION_MODELS
+MODELS = (*spec.MOTION_MODELS, spec.OSCILLATING)
 ROBUST = spec.ROBUST_LOSSES
 PRIOR_SIGMA_P_M = spec.PRIOR_POSITION_SIGMA_M  # weak gauge prior on p[m, 0] [m] (cost spec, factor 3)
 PRIOR_SIGMA_V_MPS = spec.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m, 0] [m/s]
@@ -235,16 +235,23 @@ class _Problem:
     weight wq = 1 / noise_scale, shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d).
     """
 
-    def __init__(self, model: str, noise: float | np.ndarray, fps: float, robust: str, robust_k: float):
+    def __init__(self, model: str, noise: float | np.ndarray, fps: float, robust: str, robust_k: float,
+                 oscillation: spec.Oscillation | None = None):
         self.robust, self.k = robust, robust_k
         self.model = model
         self.d = spec.state_dim(model)
-        self.A, Q1, self.P0 = spec.scaled_motion(model, 1.0 / fps)
-        self.Qi1 = np.linalg.inv(Q1)
-        self.Qi1 = 0.5 * (self.Qi1 + self.Qi1.T)
-        self.wq = 1.0 / spec.noise_scale(model, np.asarray(noise, float))
-        w3 = self.wq[..., None, None]  # (1, 1) or (M', 1, 1)
-        self.Qi = w3 * self.Qi1
+        if model == spec.OSCILLATING:  # two noise levels per marker: Qi and P0 are full matrices per marker
+            self.A, Q, self.P0 = spec.oscillating_motion(1.0 / fps, oscillation, noise)
+            self.Qi = np.linalg.inv(Q)
+            self.Qi = 0.5 * (self.Qi + _T(self.Qi))
+            self.Qi1, self.wq = None, np.ones(len(Q))
+        else:
+            self.A, Q1, self.P0 = spec.scaled_motion(model, 1.0 / fps)
+            self.Qi1 = np.linalg.inv(Q1)
+            self.Qi1 = 0.5 * (self.Qi1 + self.Qi1.T)
+            self.wq = 1.0 / spec.noise_scale(model, np.asarray(noise, float))
+            w3 = self.wq[..., None, None]  # (1, 1) or (M', 1, 1)
+            self.Qi = w3 * self.Qi1
         self.AtQiA = self.A.T @ self.Qi @ self.A
         self.B = -self.Qi @ self.A  # the off-diagonal block H[k+1, k], constant over frames
 
@@ -255,7 +262,19 @@ class _Problem:
         out = object.__new__(_Problem)
         out.__dict__.update(self.__dict__)
         out.wq, out.Qi, out.AtQiA, out.B = self.wq[keep], self.Qi[keep], self.AtQiA[keep], self.B[keep]
+        if self.P0.ndim == 3:
+            out.P0 = self.P0[keep]
         return out
+
+    def _times_P0(self, e0: np.ndarray) -> np.ndarray:
+        """e0 P0 per marker (M', d) for first-frame deviations e0 (M', d) (P0 symmetric, shared or per marker)."""
+        return np.einsum("mi,mij->mj", e0, self.P0) if self.P0.ndim == 3 else e0 @ self.P0
+
+    def _motion_cost(self, e: np.ndarray) -> np.ndarray:
+        """0.5 sum_k e_k^T Qi e_k per marker (M',) of the motion residuals e (F-1, M', d)."""
+        if self.Qi1 is None:
+            return 0.5 * np.einsum("fmi,mij,fmj->m", e, self.Qi, e)
+        return 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
 
     def evaluate(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations, jacobian: bool,
                  closest: np.ndarray | None = None) -> tuple[np.ndarray, _Linearization | None]:
@@ -280,10 +299,9 @@ class _Problem:
                                 kernels.ROBUST_CODE[self.robust], float(self.k), jacobian, total, near, Hw, Hc, g, rr)
         lin = _Linearization(Hw.reshape(F, M, 6), Hc.reshape(F, M, 6), g.reshape(F, M, 3), rr.reshape(F, M)) \
             if jacobian else None
-        e = x[1:] - x[:-1] @ self.A.T
-        total += 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
+        total += self._motion_cost(x[1:] - x[:-1] @ self.A.T)
         e0 = x[0] - mu0
-        total += 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
+        total += 0.5 * np.einsum("mi,mi->m", e0, self._times_P0(e0))
         total = np.where(np.isnan(total), np.inf, total)
         return total, lin
 
@@ -303,13 +321,13 @@ class _Problem:
         g = np.zeros((F, M, self.d))
         g[..., :3] = lin.g
         e = x[1:] - x[:-1] @ self.A.T  # (F-1, M, d)
-        eQ = (e @ self.Qi1) * self.wq[..., None]
+        eQ = np.einsum("fmi,mij->fmj", e, self.Qi) if self.Qi1 is None else (e @ self.Qi1) * self.wq[..., None]
         g[:-1] -= eQ @ self.A
         g[1:] += eQ
         D[:-1] += self.AtQiA
         D[1:] += self.Qi
         D[0] += self.P0
-        g[0] += (x[0] - mu0) @ self.P0
+        g[0] += self._times_P0(x[0] - mu0)
         return D, g
 
 
@@ -396,7 +414,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
                noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
                covariances: bool = True, a_init: np.ndarray | None = None, loo: bool = False,
-               ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+               oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
     session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
@@ -407,7 +425,9 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     model: "random_walk" (noise_level = sigma_m, per-axis std per frame [m]), "constant_velocity"
         (noise_level = q, acceleration PSD [m^2/s^3]) or "constant_acceleration" (noise_level = j, jerk
         PSD [m^2/s^5]); noise_level is one value for every marker or one per marker, shape (M,) (entries
-        of markers not estimated are ignored and may be NaN).
+        of markers not estimated are ignored and may be NaN). "oscillating" (noise_level = the trend's q
+        [m^2/s^3]) also needs ``oscillation`` (cost.Oscillation: the wingbeat frequency and each marker's
+        sigma_m, a scalar or (M,)); see cost.oscillating_motion.
     fps: frame rate [Hz]; robust, robust_k: loss on projection factors (see :func:`robust_loss`).
     v_init: starting velocities (F, M, 3) [m/s] (constant velocity / acceleration); default
         np.gradient(p_init) * fps. a_init: starting accelerations (F, M, 3) [m/s^2] (constant
@@ -440,7 +460,12 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     estimated = np.isfinite(p_init).all(axis=(0, 2))
     ms = np.flatnonzero(estimated)  # the state holds the estimated markers only
     level = np.asarray(noise_level, float)
-    prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k)
+    osc = None if oscillation is None else oscillation.of(ms)
+    if model == spec.OSCILLATING:
+        if oscillation is None:
+            raise ValueError("the oscillating model needs an oscillation (cost.Oscillation)")
+        level = np.broadcast_to(level, (M,))
+    prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k, osc)
     obs = _observations(rig, ideal, estimated)
     x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps, a_init)
     x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
@@ -464,7 +489,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
         cov = Sigma[..., :3, :3]
     else:
         cov = None
-    velocity, acceleration = _derivatives(x_all, dt)
+    velocity, acceleration = _derivatives(x_all, dt, None if oscillation is None else oscillation.hz)
 
     def per_marker(a, fill):
         out = np.full(M, fill, dtype=np.asarray(a).dtype)
@@ -521,11 +546,15 @@ def _gradient(a: np.ndarray, fps: float) -> np.ndarray:
     return np.gradient(a, axis=0) * fps if len(a) > 1 else np.zeros_like(a)
 
 
-def _derivatives(x: np.ndarray, dt: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _derivatives(x: np.ndarray, dt: float, hz: float | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Velocities [m/s] and accelerations [m/s^2] (..., 3) of states x (..., d) [m] (None where the model
-    has none): v = u / dt, a = w / dt^2."""
+    has none): v = u / dt, a = w / dt^2. The oscillating model (d > 9, wingbeat frequency ``hz``): the
+    trend's u / dt plus each harmonic's d c_h / dt = 2 pi h hz s_h; no acceleration."""
     d = x.shape[-1]
     v = spec.velocity_mps(x[..., 3:6], dt) if d >= 6 else None
+    if d > 9:
+        for h in range(spec.OSC_HARMONICS):
+            v = v + 2 * np.pi * (h + 1) * hz * x[..., 9 + 6 * h:12 + 6 * h]
     a = spec.acceleration_mps2(x[..., 6:9], dt) if d == 9 else None
     return v, a
 
@@ -611,7 +640,8 @@ def next_damping(was_exact, ok, damping, lam, lam_x, robust: bool):
 def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: str, levels: np.ndarray,
                  fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
                  p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
-                 a_start: np.ndarray | None = None, loo: bool = False) -> dict:
+                 a_start: np.ndarray | None = None, loo: bool = False, oscillation: spec.Oscillation | None = None,
+                 ) -> dict:
     """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
 
     levels: (K, M) noise levels (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]), one row per candidate. The K copies of
@@ -620,6 +650,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     the one solve_fast gives with that row (to the solver's tolerance); the observation rows are
     repeated per candidate, in groups of candidates of at most ``max_rows`` rows in all.
     v_start, p_start, a_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
+    oscillation: the "oscillating" model's, its sigma_m one per candidate and marker (K, M).
     Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
     logdet_per_marker), position (K, F, M, 3), velocity and acceleration (K, F, M, 3) or None,
     iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's), and with ``loo`` the
@@ -636,10 +667,10 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     ms = np.flatnonzero(estimated)
     obs = _observations(rig, ideal, estimated)
     dt = 1.0 / fps
-    order = spec.MOTION_ORDER[model]
+    d = spec.state_dim(model)
     out = {"cost": np.zeros((K, M)), "logdet": np.zeros((K, M)), "position": np.full((K, F, M, 3), np.nan),
-           "velocity": np.full((K, F, M, 3), np.nan) if order >= 1 else None,
-           "acceleration": np.full((K, F, M, 3), np.nan) if order >= 2 else None,
+           "velocity": np.full((K, F, M, 3), np.nan) if d >= 6 else None,
+           "acceleration": np.full((K, F, M, 3), np.nan) if d == 9 else None,
            "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool),
            "at_camera": np.zeros((K, M), bool), "loo": np.zeros((K, M)) if loo else None}
     group = max(1, int(max_rows // max(1, len(obs.f))))
@@ -649,7 +680,9 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
 
     for k0 in range(0, K, group):
         ks = np.arange(k0, min(K, k0 + group))
-        prob = _Problem(model, levels[ks][:, ms].ravel(), fps, robust, robust_k)
+        osc = None if oscillation is None else spec.Oscillation(
+            oscillation.hz, np.broadcast_to(oscillation.sigma_m, (K, M))[ks][:, ms].ravel())
+        prob = _Problem(model, levels[ks][:, ms].ravel(), fps, robust, robust_k, osc)
         starts = [_start(prob, p_init, pick(v_start, k), pick(p_start, k), ms, fps, pick(a_start, k)) for k in ks]
         x = np.concatenate([s[0] for s in starts], axis=1)
         mu0 = np.concatenate([s[1] for s in starts])
@@ -662,7 +695,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
         else:
             ld = logdet(D, prob.B)
         ld = ld + 2 * F * spec.log_det_scale(model, dt)  # spec units (as solve_fast)
-        v, a = _derivatives(x, dt)
+        v, a = _derivatives(x, dt, None if oscillation is None else oscillation.hz)
         n = len(ms)
         for j, k in enumerate(ks):
             cols = slice(j * n, (j + 1) * n)
@@ -683,7 +716,8 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             markers: np.ndarray, fps: float, robust: str, robust_k: float,
                             p_start: np.ndarray | None = None, v_start: np.ndarray | None = None,
                             progress: bool = False, model: str = "constant_velocity",
-                            a_start: np.ndarray | None = None, rule: str = "evidence") -> tuple[np.ndarray, dict]:
+                            a_start: np.ndarray | None = None, rule: str = "evidence",
+                            oscillation_hz: float | None = None) -> tuple[np.ndarray, dict]:
     """Each marker's best-scoring noise level of ``model`` for a fixed rig: q [m^2/s^3] (constant
     velocity) or j [m^2/s^5] (constant acceleration) (batgraph.graph.noise). ``rule`` (noise.NOISE_RULES):
     "evidence" scores by the Laplace marginal likelihood (as described below), "loo" by the
@@ -707,8 +741,12 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     no Laplace approximation; a marker with no other level scores -inf and "auto" keeps the other model).
     n_solves counts the batched grid as one.
 
+    The "oscillating" model (wingbeat frequency ``oscillation_hz`` [Hz]) has two noise levels per marker: the
+    trend's q and the oscillation's sigma_m. Its grid is the decade grid of q times noise.OSC_LOG10_SIGMA_GRID
+    (one batched solve); the golden section then runs on q at each marker's best sigma_m of the grid.
+
     Returns the level (M,) (NaN for markers not in ``markers``) and info: per_marker {index: level},
-    rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others).
+    rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others); oscillating: sigma_m (M,).
     """
     markers = np.asarray(markers, int)
     F, M = p_init.shape[:2]
@@ -723,15 +761,16 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         raise ValueError(f"rule must be one of {noise.NOISE_RULES}, got {rule!r}")
     loo = rule == "loo"
 
-    def evidence(cost, logdet_, level, loo_score=None):
-        return loo_score if loo else noise.laplace_log_evidence(cost, logdet_, level, dt, F - 1, model=model)
+    def evidence(cost, logdet_, level, loo_score=None, osc=None):
+        return loo_score if loo else noise.laplace_log_evidence(cost, logdet_, level, dt, F - 1, model=model,
+                                                                oscillation=osc)
 
     def solve(level: np.ndarray, from_: tuple):
         nonlocal n_solves
         n_solves += 1
         _, _, info = solve_fast(rig, sub, p0, model, level, fps, robust, robust_k, v_init=from_[1],
-                                p_start=from_[0], a_init=from_[2], covariances=False, loo=loo)
-        score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"])
+                                p_start=from_[0], a_init=from_[2], covariances=False, loo=loo, oscillation=osc_best)
+        score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"], osc_best)
         score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
         return score, (info["position"], info["velocity"], info["acceleration"])
 
@@ -741,16 +780,27 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     bar = tqdm(total=1 + n_golden, desc=f"choosing {noise.NOISE_UNIT[model]} per marker", disable=not progress,
                leave=False)
     # the decade grid: every decade x every marker in one batched solve, each from the start
+    osc_grid = osc_best = None
+    sig_grid = np.full(1, np.nan)
+    if model == spec.OSCILLATING:  # and every sigma_m of the oscillation's grid
+        if oscillation_hz is None:
+            raise ValueError("the oscillating model needs the wingbeat frequency (oscillation_hz)")
+        sig_grid = 10.0 ** noise.OSC_LOG10_SIGMA_GRID
+    grid, sig_grid = np.repeat(grid, len(sig_grid)), np.tile(sig_grid, len(grid))
     levels = np.repeat(10.0 ** grid[:, None], len(markers), axis=1)
+    if model == spec.OSCILLATING:
+        osc_grid = spec.Oscillation(oscillation_hz, np.repeat(sig_grid[:, None], len(markers), axis=1))
     sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
-                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo)
+                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo, oscillation=osc_grid)
     n_solves += 1
     bar.update()
-    scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"])  # (len(grid), markers)
+    scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"], osc_grid)  # (len(grid), markers)
     scores = np.where(sol["at_camera"], -np.inf, scores)
     cols = np.arange(len(markers))
     best = np.argmax(scores, axis=0)
     x_best, s_best = grid[best], scores[best, cols]
+    if model == spec.OSCILLATING:
+        osc_best = spec.Oscillation(oscillation_hz, sig_grid[best])
     state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][best, :, cols].transpose(1, 0, 2))
                   for key in ("position", "velocity", "acceleration"))
 
@@ -776,8 +826,13 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     bar.close()
     level, ev = np.full(M, np.nan), np.full(M, np.nan)
     level[markers], ev[markers] = 10.0**x_best, s_best
-    return level, {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(level[m]) for m in markers},
-                   "n_solves": n_solves, "log_evidence": ev}
+    info = {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(level[m]) for m in markers},
+            "n_solves": n_solves, "log_evidence": ev}
+    if osc_best is not None:
+        info["sigma_m"] = np.full(M, np.nan)
+        info["sigma_m"][markers] = osc_best.sigma_m
+        info["wingbeat_hz"] = float(oscillation_hz)
+    return level, info
 
 
 choose_accel_psd_per_marker = choose_noise_per_marker  # the constant-velocity q per marker (its default model)
@@ -788,7 +843,7 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             candidates: tuple[str, ...] = spec.AUTO_CANDIDATES, p_start: np.ndarray | None = None,
                             v_start: np.ndarray | None = None, progress: bool = False,
                             groups: list[np.ndarray] = (), rule: str = "evidence",
-                            ) -> tuple[np.ndarray, np.ndarray, dict]:
+                            oscillation_hz: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Each marker's motion model among ``candidates`` and its noise level, by maximum Laplace evidence.
 
     ``rule`` (noise.NOISE_RULES) scores both the noise level and the model: the Laplace evidence or the
@@ -802,11 +857,14 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     members' evidences, searched without the segments (each member keeps its own noise level of that
     model). Returns model (M,) object array of names (None for markers not in
     ``markers``), level (M,) (that model's q [m^2/s^3] or j [m^2/s^5]; NaN elsewhere) and info:
-    {model: that search's info} plus ``log_evidence`` {model: (M,)}.
+    {model: that search's info} plus ``log_evidence`` {model: (M,)}. The "oscillating" candidate needs the
+    wingbeat frequency ``oscillation_hz`` [Hz]; its info's sigma_m (M,) is each marker's oscillation std.
     """
     M = p_init.shape[1]
     found = {name: choose_noise_per_marker(rig, ideal, p_init, v_init, markers, fps, robust, robust_k, p_start,
-                                           v_start, progress, model=name, rule=rule) for name in candidates}
+                                           v_start, progress, model=name, rule=rule,
+                                           oscillation_hz=oscillation_hz if name == spec.OSCILLATING else None)
+             for name in candidates}
     ev = np.stack([found[name][1]["log_evidence"] for name in candidates])  # (n_candidates, M)
     ev_ok = np.where(np.isfinite(ev), ev, -np.inf)
     won = np.argmax(ev_ok, axis=0)
@@ -826,11 +884,13 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 def solve_per_model(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray,
                     level: np.ndarray, fps: float, robust: str, robust_k: float, v_init: np.ndarray | None = None,
                     p_start: np.ndarray | None = None, a_init: np.ndarray | None = None,
-                    covariances: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
+                    covariances: bool = True, oscillation: spec.Oscillation | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """:func:`solve_fast` with a motion model per marker: one solve per model over its markers, merged
     (markers are independent with fixed cameras, so this is the joint minimiser exactly).
 
-    model: (M,) model names (None for markers not estimated); level (M,) each marker's noise level.
+    model: (M,) model names (None for markers not estimated); level (M,) each marker's noise level;
+    oscillation: that of the "oscillating" markers (sigma_m (M,)).
     Other arguments and the returns as solve_fast's; the info's per-marker arrays, velocity (NaN for
     random-walk markers) and acceleration (NaN for markers without one) are merged, cost / logdet /
     iterations are totals / maxima over the solves.
@@ -845,7 +905,8 @@ def solve_per_model(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, mode
         mine = np.array([m == name for m in model])
         p_mine = np.where(mine[None, :, None], p_init, np.nan)
         x, c, info = solve_fast(rig, ideal, p_mine, name, np.where(mine, level, np.nan), fps, robust, robust_k,
-                                v_init=v_init, p_start=p_start, covariances=covariances, a_init=a_init)
+                                v_init=v_init, p_start=p_start, covariances=covariances, a_init=a_init,
+                                oscillation=oscillation if name == spec.OSCILLATING else None)
         xyz[:, mine] = x[:, mine]
         if covariances:
             cov[:, mine] = c[:, mine]

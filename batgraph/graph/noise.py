@@ -53,15 +53,20 @@ from ..motion import random_walk_sigma_m
 from ..result import Options
 from ..session import NOISE_RULES, Session  # noqa: F401  (NOISE_RULES re-exported)
 from .cost import (
-    AUTO,
+    AUTO_CANDIDATES,
     MOTION_MODELS,
     MOTION_ORDER,
+    OSCILLATING,
     PRIOR_ACCELERATION_SIGMA_MPS2,
     PRIOR_POSITION_SIGMA_M,
     PRIOR_VELOCITY_SIGMA_MPS,
+    SELECTORS,
+    WINGBEAT_CANDIDATES,
     MotionModel,
+    Oscillation,
     log_det_scale,
     noise_scale,
+    oscillating_motion,
     scaled_motion,
 )
 
@@ -69,9 +74,13 @@ LOG10_Q_RANGE = (-2.0, 6.0)  # plausible accel PSD 0.01 (a gliding body) .. 1e6 
 # The search range of each model's noise level chosen from data: log10 of q [m^2/s^3] (constant velocity)
 # or of the jerk PSD j [m^2/s^5] (constant acceleration: a body changing its acceleration by ~1 m/s^2 in
 # a second, j ~ 1, .. a 15 Hz wing tip, j ~ (2 pi 15)^6 0.15^2 / (2 pi 15) ~ 1e9)
-LOG10_RANGE = {"constant_velocity": LOG10_Q_RANGE, "constant_acceleration": (0.0, 10.0)}
+LOG10_RANGE = {"constant_velocity": LOG10_Q_RANGE, "constant_acceleration": (0.0, 10.0), OSCILLATING: LOG10_Q_RANGE}
 NOISE_UNIT = {"random_walk": "sigma_m", "constant_velocity": "accel_psd_m2_s3",
-              "constant_acceleration": "jerk_psd_m2_s5"}
+              "constant_acceleration": "jerk_psd_m2_s5", OSCILLATING: "oscillating_accel_psd_m2_s3"}
+# The oscillating model's first-harmonic std sigma_m [m] is searched on this grid of log10 values (half decades,
+# 0.1 mm: a body's bob seen through a few pixels of noise, .. 100 mm: a wing tip), jointly with the trend's q
+# (the decade grid x these values in one batched solve, then golden section on q at each marker's best sigma_m).
+OSC_LOG10_SIGMA_GRID = np.arange(-4.0, -0.99, 0.5)
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
 GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
                " (decade grid + golden section), one q for all markers")
@@ -79,6 +88,9 @@ PER_MARKER_RULE = (f"max Laplace marginal likelihood per marker over log10 q in 
                    f"{LOG10_Q_RANGE[1]:g}] (shared decade grid + per-marker golden section)")
 AUTO_RULE = ("per marker, the model of larger Laplace marginal likelihood, each at its own best noise level "
              "(constant velocity: q, constant acceleration: jerk PSD j)")
+WINGBEAT_RULE = ("per marker, the model of larger Laplace marginal likelihood, each at its own best noise level "
+                 "(constant velocity: q; oscillating: the trend's q and the oscillation's sigma_m)")
+CANDIDATES_RULE = {AUTO_CANDIDATES: AUTO_RULE, WINGBEAT_CANDIDATES: WINGBEAT_RULE}
 LOG10_Q_TOL = 0.05  # golden-section stops when the bracket is this narrow (12 % in q; the peak is flat)
 _GOLDEN = (math.sqrt(5) - 1) / 2
 
@@ -86,17 +98,17 @@ _GOLDEN = (math.sqrt(5) - 1) / 2
 def motion_choice(session: Session, options: Options) -> tuple[str, float | None, float | None]:
     """(model, sigma_m, accel_psd) from options first, then session.toml.
 
-    model: one of cost.MOTION_MODELS, or "auto" (each marker's model from the data; a given q makes
-        it "constant_velocity", the model q belongs to).
+    model: one of cost.MOTION_MODELS, or a selector of cost.SELECTORS ("auto", "wingbeat": each marker's
+        model from the data; a given q makes it "constant_velocity", the model q belongs to).
     sigma_m [m]: the random walk's per-axis std per frame (paper eq. 4-5 or ``sigma_m``), always given.
     accel_psd [m^2/s^3]: options.accel_psd_m2_s3, else the session's, else None ("choose from data");
         the constant-velocity q (the constant-acceleration jerk PSD is always chosen from the data).
     """
     model = options.motion_model or session.motion.model
-    if model not in (*MOTION_MODELS, AUTO):
-        raise ValueError(f"motion model must be one of {(*MOTION_MODELS, AUTO)}, got {model!r}")
+    if model not in (*MOTION_MODELS, *SELECTORS):
+        raise ValueError(f"motion model must be one of {(*MOTION_MODELS, *SELECTORS)}, got {model!r}")
     q = options.accel_psd_m2_s3 if options.accel_psd_m2_s3 is not None else session.motion.accel_psd_m2_s3
-    if model == AUTO and q is not None:
+    if model in SELECTORS and q is not None:
         model = "constant_velocity"
     return model, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
 
@@ -138,7 +150,8 @@ def cv_logdet_Q(accel_psd_m2_s3: float | np.ndarray, dt_s: float) -> float | np.
 
 
 def laplace_log_evidence(error: float, logdet_post: float, accel_psd_m2_s3: float, dt_s: float,
-                         n_steps: int, model: str = "constant_velocity", n_chains: int = 1) -> float:
+                         n_steps: int, model: str = "constant_velocity", n_chains: int = 1,
+                         oscillation: Oscillation | None = None) -> float:
     """Laplace log marginal likelihood up to a constant common to every model and noise level
     (the data term's normaliser; module docstring).
 
@@ -152,9 +165,26 @@ def laplace_log_evidence(error: float, logdet_post: float, accel_psd_m2_s3: floa
     accel_psd_m2_s3: the model's noise level (for constant acceleration the jerk PSD [m^2/s^5]).
     n_steps: number of motion steps in the graph (sum over marker chains of F - 1).
     n_chains: number of marker chains, each with its first-frame gauge priors (:func:`prior_logdet`).
+    oscillation: the "oscillating" model's (its sigma_m broadcast with the level): the step's log det Q and the
+        first frame's prior (which depends on sigma_m) from cost.oscillating_motion (:func:`oscillating_logdets`).
     """
-    logdet_prior = -n_steps * logdet_Q(model, accel_psd_m2_s3, dt_s) + n_chains * prior_logdet(model)
+    if model == OSCILLATING:
+        log_q, log_p0 = oscillating_logdets(accel_psd_m2_s3, oscillation, dt_s)
+        logdet_prior = -n_steps * log_q + n_chains * log_p0
+    else:
+        logdet_prior = -n_steps * logdet_Q(model, accel_psd_m2_s3, dt_s) + n_chains * prior_logdet(model)
     return -error - 0.5 * logdet_post + 0.5 * logdet_prior
+
+
+def oscillating_logdets(q: float | np.ndarray, oscillation: Oscillation, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(log det Q, log det P0) of the oscillating model in the spec's variables [p m, v m/s, c m, s m], for the
+    trend's q [m^2/s^3] and oscillation.sigma_m broadcast together (any shape; results of that shape): the
+    scaled state's (cost.oscillating_motion) with v = u / dt, i.e. Q_spec = S^-1 Q S^-1, P0_spec = S P0 S."""
+    q_arr, sig = np.broadcast_arrays(np.asarray(q, float), np.asarray(oscillation.sigma_m, float))
+    _, Q, P0 = oscillating_motion(dt_s, Oscillation(oscillation.hz, sig.ravel()), q_arr.ravel())
+    ls = log_det_scale(OSCILLATING, dt_s)
+    return ((np.linalg.slogdet(Q)[1] - 2 * ls).reshape(q_arr.shape),
+            (np.linalg.slogdet(P0)[1] + 2 * ls).reshape(q_arr.shape))
 
 
 FIT_MARKERS = 8  # markers one global q is fitted on (evenly spread over the estimated ones)
@@ -268,7 +298,7 @@ def loo_log_predictive(rr: np.ndarray, g: np.ndarray, A: np.ndarray, Sigma: np.n
     return out
 
 
-_PREFIX = {"constant_velocity": "accel_psd", "constant_acceleration": "jerk_psd"}
+_PREFIX = {"constant_velocity": "accel_psd", "constant_acceleration": "jerk_psd", OSCILLATING: "oscillating_accel_psd"}
 
 
 def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, names: list[str],
@@ -279,12 +309,13 @@ def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, nam
     model (M,) names, level (M,) noise levels, markers: int indices of the estimated markers, names:
     marker labels. Gives motion_model_per_marker {name: model}, per model its noise per marker
     (accel_psd_m2_s3 {name: q} for the constant-velocity markers, jerk_psd_m2_s5 {name: j} for the
-    constant-acceleration ones), its search's rule and counts (``accel_psd_selection``,
-    ``jerk_psd_selection``) and, with several candidates, log_evidence_per_marker {name: {model: score}}.
+    constant-acceleration ones, oscillating_accel_psd_m2_s3 and oscillation_sigma_m {name: sigma_m [m]} for
+    the oscillating ones), its search's rule and counts (``accel_psd_selection``, ``jerk_psd_selection``, ...)
+    and, with several candidates, log_evidence_per_marker {name: {model: score}}.
     """
     out = {"accel_psd_source": "data", "motion_model_per_marker": {names[m]: str(model[m]) for m in markers}}
     if len(candidates) > 1:
-        out["motion_model_rule"] = AUTO_RULE
+        out["motion_model_rule"] = CANDIDATES_RULE.get(tuple(candidates), AUTO_RULE)
         out["log_evidence_per_marker"] = {names[m]: {c: float(selection["log_evidence"][c][m]) for c in candidates}
                                           for m in markers}
     for c in candidates:
@@ -293,6 +324,8 @@ def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, nam
         out[f"{_PREFIX[c]}_selection"] = {"rule": sel["rule"], "n_solves": sel["n_solves"],
                                           "per_marker": sel["per_marker"]}
         out[NOISE_UNIT[c]] = {names[m]: float(level[m]) for m in markers if model[m] == c}
+        if c == OSCILLATING:
+            out["oscillation_sigma_m"] = {names[m]: float(sel["sigma_m"][m]) for m in markers if model[m] == c}
     return out
 
 

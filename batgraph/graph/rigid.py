@@ -216,7 +216,7 @@ def solve_rigid(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: n
                 fps: float, robust: str, robust_k: float, pairs: np.ndarray, sigma_m: float,
                 v_init: np.ndarray | None = None, p_start: np.ndarray | None = None,
                 a_init: np.ndarray | None = None, covariances: bool = True, max_iterations: int = 200,
-                ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+                oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """fast.solve_per_model with segment-length factors on ``pairs`` (S, 2) marker indices, stiffness
     sigma_m [m]: markers in no segment are solved per marker as there, each group of joined markers
     jointly (module docstring). Arguments and returns as fast.solve_per_model's (the members of a group
@@ -234,7 +234,7 @@ def solve_rigid(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: n
     free = np.where(grouped, None, model)
     xyz, cov, info = fast.solve_per_model(rig, ideal, np.where(grouped[None, :, None], np.nan, p_init), free, level,
                                           fps, robust, robust_k, v_init=v_init, p_start=p_start, a_init=a_init,
-                                          covariances=covariances)
+                                          covariances=covariances, oscillation=oscillation)
     info["segments"] = []
     dt = 1.0 / fps
     for members, seg_ids in found:
@@ -243,7 +243,8 @@ def solve_rigid(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: n
             raise ValueError(f"markers {members.tolist()} are joined by segments but have models "
                              f"{sorted(map(str, names))}")
         name = names.pop()
-        prob = fast._Problem(name, np.asarray(level, float)[members], fps, robust, robust_k)
+        prob = fast._Problem(name, np.asarray(level, float)[members], fps, robust, robust_k,
+                             None if name != spec.OSCILLATING else oscillation.of(members))
         mask = np.zeros(M, bool)
         mask[members] = True
         obs = fast._observations(rig, ideal, mask)
@@ -257,7 +258,7 @@ def solve_rigid(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: n
         xyz[:, members] = x[..., :3]
         if covariances:
             cov[:, members] = cov_g[..., :3, :3]
-        v, a = fast._derivatives(x, dt)
+        v, a = fast._derivatives(x, dt, None if oscillation is None else oscillation.hz)
         for key, val in (("velocity", v), ("acceleration", a)):
             if val is not None:
                 info[key][:, members] = val
@@ -291,7 +292,8 @@ AMBIGUITY_MIN_WEIGHT = 1e-6  # a second mode less probable than this (motion-onl
 
 def ambiguity_covariances(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray | None,
                           model: np.ndarray, level: np.ndarray, fps: float, robust: str, robust_k: float,
-                          segments: list[dict], xyz: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, int]:
+                          segments: list[dict], xyz: np.ndarray, cov: np.ndarray,
+                          oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, int]:
     """Both smoothers' last step with segments: the motion-only solve (fast.solve_per_model at the same
     models and levels, from ``xyz``) and :func:`depth_ambiguity` with it. ``segments``: solve_rigid's
     info["segments"] (pair, length_m); other arguments as solve_rigid's and depth_ambiguity's. Returns
@@ -299,7 +301,7 @@ def ambiguity_covariances(rig: Rig, ideal: IdealObservations, p_init: np.ndarray
     if not segments:
         return cov, 0
     free_xyz, free_cov, _ = fast.solve_per_model(rig, ideal, p_init, model, level, fps, robust, robust_k,
-                                                 v_init=v_init, p_start=xyz)
+                                                 v_init=v_init, p_start=xyz, oscillation=oscillation)
     pairs = np.array([s["pair"] for s in segments], int)
     lengths = np.array([s["length_m"] for s in segments], float)
     return depth_ambiguity(rig, ideal, xyz, cov, pairs, lengths, free_xyz, free_cov)

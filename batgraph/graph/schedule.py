@@ -16,6 +16,7 @@ import numpy as np
 
 from ..camera import Rig
 from ..measurement import IdealObservations
+from ..motion import wingbeat_frequency
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
@@ -40,8 +41,10 @@ def run_smoother_fast(session: Session, dense: DenseObservations, ideal: IdealOb
     acceleration) and its noise chosen per marker without D by :func:`choose_model_per_marker`, final
     rounds until D is stable; see that module's docstring), each solve being fast.solve_per_model
     (solve_fast per model) with the same start, or with ``[markers] rigid`` segments rigid.solve_rigid
-    (the final rounds; module docstring). Figures: motion_model (as asked), motion_model_per_marker
-    {name: model}, accel_psd_m2_s3 / jerk_psd_m2_s5 {name: level} of the markers of each model,
+    (the final rounds; module docstring). "wingbeat": per marker constant velocity or oscillating (at
+    :func:`wingbeat_hz`; figures wingbeat_hz, wingbeat_hz_source, oscillation_sigma_m).
+    Figures: motion_model (as asked), motion_model_per_marker {name: model}, accel_psd_m2_s3 /
+    jerk_psd_m2_s5 {name: level} of the markers of each model,
     log_evidence_per_marker (auto), acceleration_rms_mps2 of constant-acceleration markers
     (noise.model_figures), and with segments rigid_sigma_m and segments {"a-b": {length_m,
     length_sigma_m, scatter_rms_m}} (rigid.solve_rigid).
@@ -85,22 +88,32 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         if clean == "constant_velocity":
             figures["cleaning"]["accel_psd_m2_s3"] = q0
     models = np.full(M, None, dtype=object)
+    oscillation = None  # the oscillating markers' (model "wingbeat")
     if model == "random_walk" or q is not None:  # one given noise level
         models[markers], level = model, np.full(M, sigma_m if model == "random_walk" else q)
         figures.update({"sigma_m": sigma_m} if model == "random_walk" else noise.q_figures(q))
         figures["motion_model_per_marker"] = {dense.markers[m]: model for m in markers}
-    else:  # step 3: model (auto) and noise per marker on the observations left, from the cleaning solution
-        candidates = spec.AUTO_CANDIDATES if model == spec.AUTO else (model,)
+    else:  # step 3: model (auto, wingbeat) and noise per marker on the observations left, from the cleaning solution
+        candidates = spec.SELECTORS.get(model, (model,))
+        hz = None
+        if model == spec.WINGBEAT:
+            hz, figures["wingbeat_hz_source"] = wingbeat_hz(session, tri)
+            figures["wingbeat_hz"] = hz
+            if hz is None:  # no frequency to oscillate at: every marker constant velocity
+                candidates = ("constant_velocity",)
         models, level, selection = choose_model_per_marker(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
-            p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options))
+            p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options),
+            oscillation_hz=hz)
         figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
+        if spec.OSCILLATING in candidates:
+            oscillation = spec.Oscillation(hz, selection[spec.OSCILLATING]["sigma_m"])
     rounds = []
     n_rounds = spec.REJECTION_ROUNDS if reject else 1
     for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
         xyz, cov, info = rigid.solve_rigid(rig, spec.without_observations(ideal, excluded), p_init, models, level,
                                            fps, robust, k, pairs, session.rigid_sigma_m, v_init=v_start,
-                                           p_start=p_start, a_init=a_start)
+                                           p_start=p_start, a_init=a_start, oscillation=oscillation)
         rounds.append(info["iterations"])
         again = _rejected(rig, ideal, xyz)
         if r == n_rounds - 1 or (again == excluded).all():
@@ -109,7 +122,7 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
     if info["segments"]:  # the second depth a segment allows a single-view point
         cov, figures["depth_ambiguous_points"] = rigid.ambiguity_covariances(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, models, level, fps, robust, k,
-            info["segments"], xyz, cov)
+            info["segments"], xyz, cov, oscillation=oscillation)
     outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))
@@ -127,6 +140,15 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         figures["rejected"] = int(excluded.sum())
         figures["rejection_converged"] = bool((again == excluded).all())
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)
+
+
+def wingbeat_hz(session: Session, xyz_tri_m: np.ndarray) -> tuple[float | None, str]:
+    """The oscillating model's frequency [Hz] and where it came from: session.toml's ``[motion] flap_hz`` when
+    given (and > 0), else measured from the triangulated tracks (F, M, 3) [m] (motion.wingbeat_frequency;
+    None when the take is too short to hold two cycles of any frequency it looks for)."""
+    if session.motion.flap_hz:
+        return float(session.motion.flap_hz), "session"
+    return wingbeat_frequency(xyz_tri_m, session.fps), "measured"
 
 
 def cleaning_motion(model: str, sigma_m: float, q: float | None, session: Session) -> tuple[str, float]:

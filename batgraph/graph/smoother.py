@@ -45,12 +45,13 @@ import time
 import gtsam
 import numpy as np
 
+from ..errors import InputError
 from ..measurement import IdealObservations
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import factors, noise, rigid
-from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, motion_model  # noqa: F401  (the schedule's constants, module docstring)
+from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, WINGBEAT, motion_model  # noqa: F401  (the schedule's constants, module docstring)
 from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
 from .fast import choose_model_per_marker
 from .schedule import cleaning_motion
@@ -192,6 +193,9 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     C, F, M = ideal.seen.shape
     dt = 1.0 / session.fps
     model_name, sigma_m, q = noise.motion_choice(session, options)
+    if model_name == WINGBEAT and q is None:
+        raise InputError(f'[motion] model = "{WINGBEAT}" needs the fast smoother with fixed cameras: the GTSAM '
+                         "smoother (--solver gtsam, or cameras with pose covariances) has no oscillating model")
     tri = dlt_points(session.rig, ideal)
     p_init, v_init, estimated = factors.initial_track(tri, session.fps)
     markers = np.flatnonzero(estimated)
