@@ -73,6 +73,10 @@ AT_CAMERA_DEPTH_FRACTION = 1e-3
 # of at most this many rows in all (~64 B a row: 32 MB), so memory stays bounded at any scene size; a
 # larger scene solves its candidates one by one (there the sweeps are work, not per-call overhead).
 MAX_BATCH_ROWS = 1 << 19
+# ... and of at most this many values in one array of the candidates' diagonal blocks (F, K M, d, d) (32 MB): the
+# oscillating model's d = 18 makes those blocks 9 times the constant velocity's (its 63 candidates in groups by
+# rows alone peaked at 1.6 GB on the bundled 24-marker flight).
+MAX_BATCH_STATE = 1 << 22
 
 
 @dataclass
@@ -673,7 +677,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
            "acceleration": np.full((K, F, M, 3), np.nan) if d == 9 else None,
            "iterations": np.zeros((K, M), int), "converged": np.zeros((K, M), bool),
            "at_camera": np.zeros((K, M), bool), "loo": np.zeros((K, M)) if loo else None}
-    group = max(1, int(max_rows // max(1, len(obs.f))))
+    group = max(1, min(int(max_rows // max(1, len(obs.f))), MAX_BATCH_STATE // max(1, F * len(ms) * d * d)))
 
     def pick(a, k):
         return a if a is None or a.ndim == 3 else a[k]
