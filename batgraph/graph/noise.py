@@ -258,8 +258,12 @@ def per_marker_rule(model: str, rule: str = "evidence") -> str:
     """The per-marker search's rule for ``model``'s noise level under score ``rule`` (NOISE_RULES;
     PER_MARKER_RULE for constant velocity and the evidence)."""
     lo, hi = LOG10_RANGE[model]
-    what = "q" if model == "constant_velocity" else "j"
     score = "Laplace marginal likelihood" if rule == "evidence" else "leave-one-frame-out log predictive density"
+    if model == OSCILLATING:
+        return (f"max {score} per marker over log10 q (the trend's) in [{lo:g}, {hi:g}] x log10 sigma_m (the "
+                f"oscillation's) in {OSC_LOG10_SIGMA_GRID[0]:g} .. {OSC_LOG10_SIGMA_GRID[-1]:g} by half decades "
+                "(shared grid + per-marker golden section on q at the best sigma_m)")
+    what = "q" if model == "constant_velocity" else "j"
     return (f"max {score} per marker over log10 {what} in [{lo:g}, {hi:g}] "
             "(shared decade grid + per-marker golden section)")
 
