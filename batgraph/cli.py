@@ -11,6 +11,7 @@ import gc
 import sys
 from pathlib import Path
 
+from . import _blas_threads  # noqa: F401  (first of batgraph's: one BLAS thread unless set, before numpy loads)
 from .errors import InputError
 from .inputs import (
     angle_deg,

@@ -89,3 +89,19 @@ def test_simulate_then_export_dltdv_and_console_script(tmp_path):
     assert xyz.shape == (20, 3 * 9) and list(xyz.columns[:3]) == ["pt1_X", "pt1_Y", "pt1_Z"]
     r = run("simulate", "ear", tmp_path / "ear")  # exists, not empty
     assert r.returncode == 2 and "--force" in r.stderr
+
+
+def test_command_line_runs_blas_on_one_thread_unless_the_user_chose():
+    """batgraph.cli sets OPENBLAS_NUM_THREADS=1 before numpy loads (batgraph._blas_threads: its own work uses the
+    cores; OpenBLAS's idle workers nearly doubled the CPU time on 16 cores), and leaves a user's setting alone."""
+    import os
+
+    code = ("import batgraph.cli, numpy, threadpoolctl; "
+            "print(max(i['num_threads'] for i in threadpoolctl.threadpool_info() if i['internal_api'] == 'openblas'))")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    plain = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert plain.stdout.strip() == "1"
+    chosen = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_NUM_THREADS": "2"}, capture_output=True,
+                            text=True, check=True)
+    assert chosen.stdout.strip() == "2"
