@@ -77,10 +77,11 @@ LOG10_Q_RANGE = (-2.0, 6.0)  # plausible accel PSD 0.01 (a gliding body) .. 1e6 
 LOG10_RANGE = {"constant_velocity": LOG10_Q_RANGE, "constant_acceleration": (0.0, 10.0), OSCILLATING: LOG10_Q_RANGE}
 NOISE_UNIT = {"random_walk": "sigma_m", "constant_velocity": "accel_psd_m2_s3",
               "constant_acceleration": "jerk_psd_m2_s5", OSCILLATING: "oscillating_accel_psd_m2_s3"}
-# The oscillating model's first-harmonic std sigma_m [m] is searched on this grid of log10 values (half decades,
-# 0.1 mm: a body's bob seen through a few pixels of noise, .. 100 mm: a wing tip), jointly with the trend's q
-# (the decade grid x these values in one batched solve, then golden section on q at each marker's best sigma_m).
-OSC_LOG10_SIGMA_GRID = np.arange(-4.0, -0.99, 0.5)
+# The oscillating model's two levels (batgraph.graph.fast.choose_noise_per_marker): the first harmonic's std
+# sigma_m [m] in 10^-4 (0.1 mm: a body's bob seen through a few pixels of noise) .. 10^-1 (a wing tip), searched
+# jointly with the trend's q on a grid of decades of sigma_m x every OSC_LOG10_Q_STEP decades of q, then refined.
+OSC_LOG10_SIGMA_RANGE = (-4.0, -1.0)
+OSC_LOG10_Q_STEP = 2.0
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
 GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
                " (decade grid + golden section), one q for all markers")
@@ -260,9 +261,10 @@ def per_marker_rule(model: str, rule: str = "evidence") -> str:
     lo, hi = LOG10_RANGE[model]
     score = "Laplace marginal likelihood" if rule == "evidence" else "leave-one-frame-out log predictive density"
     if model == OSCILLATING:
+        s_lo, s_hi = OSC_LOG10_SIGMA_RANGE
         return (f"max {score} per marker over log10 q (the trend's) in [{lo:g}, {hi:g}] x log10 sigma_m (the "
-                f"oscillation's) in {OSC_LOG10_SIGMA_GRID[0]:g} .. {OSC_LOG10_SIGMA_GRID[-1]:g} by half decades "
-                "(shared grid + per-marker golden section on q at the best sigma_m)")
+                f"oscillation's) in [{s_lo:g}, {s_hi:g}] (shared grid, every {OSC_LOG10_Q_STEP:g} decades of q x "
+                "every decade of sigma_m, + per-marker golden section on q, then on sigma_m)")
     what = "q" if model == "constant_velocity" else "j"
     return (f"max {score} per marker over log10 {what} in [{lo:g}, {hi:g}] "
             "(shared decade grid + per-marker golden section)")
