@@ -139,7 +139,9 @@ def test_map_jobs_says_when_there_are_too_many_jobs():
 def _prepare_writer(log):
     """A Standby preparation: records which process prepared, returns a writer of its arguments."""
     def prepare():
-        log.write_text(f"{os.getpid()}\n")
+        tmp = log.with_suffix(".tmp")  # then renamed: the test polls for the file and must not read it half-written
+        tmp.write_text(f"{os.getpid()}\n")
+        tmp.replace(log)
 
         def write(path, payload):
             path.write_text(f"{payload['n']} {os.getpid()}")
