@@ -814,19 +814,14 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     def oscillation(log10_sigma: np.ndarray) -> spec.Oscillation | None:
         return spec.Oscillation(oscillation_hz, 10.0**log10_sigma) if osc_model else None
 
-    def f_q(x: np.ndarray) -> np.ndarray:
-        nonlocal state, x_best, s_best
-        s, state = solve(10.0**x, state, oscillation(y_best))
+    def f(values: np.ndarray, along_sigma: bool) -> np.ndarray:
+        """The score at log10 q = values (or log10 sigma_m = values, along_sigma) and the other level at its best;
+        keeps each marker's best point."""
+        nonlocal state, x_best, y_best, s_best
+        x, y = (x_best, values) if along_sigma else (values, y_best)
+        s, state = solve(10.0**x, state, oscillation(y))
         better = s > s_best
-        x_best, s_best = np.where(better, x, x_best), np.where(better, s, s_best)
-        bar.update()
-        return s
-
-    def f_sigma(y: np.ndarray) -> np.ndarray:
-        nonlocal state, y_best, s_best
-        s, state = solve(10.0**x_best, state, oscillation(y))
-        better = s > s_best
-        y_best, s_best = np.where(better, y, y_best), np.where(better, s, s_best)
+        x_best, y_best, s_best = np.where(better, x, x_best), np.where(better, y, y_best), np.where(better, s, s_best)
         bar.update()
         return s
 
@@ -844,9 +839,9 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
             fn = f(new)
             fc, fd = np.where(left, fn, fd), np.where(left, fc, fn)
 
-    golden(f_q, np.maximum(lo, x_best - step), np.minimum(hi, x_best + step))
+    golden(lambda v: f(v, False), np.maximum(lo, x_best - step), np.minimum(hi, x_best + step))
     if osc_model:  # then sigma_m at that q, within a decade of the grid's best
-        golden(f_sigma, np.maximum(s_lo, y_best - 1.0), np.minimum(s_hi, y_best + 1.0))
+        golden(lambda v: f(v, True), np.maximum(s_lo, y_best - 1.0), np.minimum(s_hi, y_best + 1.0))
     bar.close()
     level, ev = np.full(M, np.nan), np.full(M, np.nan)
     level[markers], ev[markers] = 10.0**x_best, s_best
