@@ -236,7 +236,9 @@ class _Problem:
 
     ``noise`` (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]) is a scalar or one value per marker (M',): every
     noise is a scale of a unit one (Q(q) = q Q(1), sigma_m^2 I), so Qi = ``wq`` Qi1 with the per-marker
-    weight wq = 1 / noise_scale, shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d).
+    weight wq = 1 / noise_scale, shape () or (M',); Qi, AtQiA and B are then (d, d) or (M', d, d). The
+    "oscillating" model (d = 18, cost.oscillating_motion) has two levels per marker, ``noise`` (the trend's q)
+    and ``oscillation``'s sigma_m: its Qi and P0 are full matrices per marker (M', d, d) (Qi1 is None).
     """
 
     def __init__(self, model: str, noise: float | np.ndarray, fps: float, robust: str, robust_k: float,
