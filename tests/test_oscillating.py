@@ -201,13 +201,14 @@ def test_solve_levels_equals_solve_fast(scene):
 
 def test_velocity_includes_the_oscillation(scene):
     """The reported velocity is the trend's plus the harmonics' d c_h / dt: on a smooth solution it matches
-    the positions' central differences (to the discretisation of a 7 Hz motion at 100 fps)."""
+    the positions' central differences (to the discretisation of a 7 Hz motion at 100 fps). Measured: 0.053 of
+    the velocity's RMS; the trend's velocity alone is off by 0.13."""
     session, dense, ideal, p_init = scene
     xyz, _, info = fast.solve_fast(session, ideal, p_init, spec.OSCILLATING, Q_TREND, FPS, "none", 2.0,
                                    oscillation=spec.Oscillation(HZ, SIGMAS))
     diff = (xyz[2:, :3] - xyz[:-2, :3]) * FPS / 2
     v = info["velocity"][1:-1, :3]
-    assert np.sqrt(np.mean((diff - v) ** 2)) < 0.1 * np.sqrt(np.mean(v**2))
+    assert np.sqrt(np.mean((diff - v) ** 2)) < 0.08 * np.sqrt(np.mean(v**2))
 
 
 def test_wingbeat_frequency_from_tracks():
