@@ -133,7 +133,9 @@ def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
     fps / 4 and of at least WINGBEAT_MIN_CYCLES cycles in the take, sampled WINGBEAT_OVERSAMPLE times finer
     than 1 / (take length). Returns None when that band is empty or no track is long enough.
     It is the frequency of the largest periodic motion, whether or not the animal flaps: the smoother's
-    per-marker model choice (evidence) decides whether an oscillation at it helps.
+    per-marker model choice (evidence) decides whether an oscillation at it helps. A maximum at either end of
+    the band is no peak (the spectrum still rising toward a slower or faster motion, e.g. a walking human's
+    stride below 2 Hz): None then too, rather than a frequency of nothing.
     """
     from scipy.signal import lombscargle
 
@@ -154,4 +156,7 @@ def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
         y = track[ok] - np.polyval(np.polyfit(tt, track[ok], 2), tt)
         power += lombscargle(tt, y, 2 * np.pi * hz)
         used = True
-    return float(hz[np.argmax(power)]) if used else None
+    if not used:
+        return None
+    peak = int(np.argmax(power))
+    return float(hz[peak]) if 0 < peak < len(hz) - 1 else None

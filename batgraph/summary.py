@@ -199,10 +199,11 @@ def segment_warnings(info: dict | None) -> list[str]:
     """One line per rigid segment (``[markers] rigid``) whose length scatters over the frames by more than
     RIGID_WARN_FACTOR x rigid_sigma_m RMS at the smoother's solution: the pair is not rigid, or a label is
     swapped, and the segment factor is pulling the two markers toward a length they do not keep. Also the
-    smoother's reason when it left the segments out (``segments_left_out``)."""
+    smoother's reason when it left the segments out (``segments_left_out``), or left the wingbeat model's
+    oscillation out for want of a frequency (``wingbeat_left_out``)."""
     info = info or {}
     sigma = info.get("rigid_sigma_m")
-    out = [info["segments_left_out"]] if info.get("segments_left_out") else []
+    out = [info[key] for key in ("segments_left_out", "wingbeat_left_out") if info.get(key)]
     for name, s in (info.get("segments") or {}).items():
         if sigma and s["scatter_rms_m"] > RIGID_WARN_FACTOR * sigma:
             out.append(f"segment {name}: its length varies by {1000 * s['scatter_rms_m']:.1f} mm RMS over the frames, "

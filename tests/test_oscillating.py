@@ -21,7 +21,7 @@ from test_fast import FPS, make_problem
 
 from batgraph.errors import InputError
 from batgraph.graph import cost as spec
-from batgraph.graph import fast, noise
+from batgraph.graph import fast, noise, schedule
 from batgraph.graph.smoother import run_smoother
 from batgraph.motion import constant_velocity_Q, wingbeat_frequency
 from batgraph.result import Options
@@ -212,8 +212,9 @@ def test_velocity_includes_the_oscillation(scene):
 
 
 def test_wingbeat_frequency_from_tracks():
-    """A 9 Hz oscillation on a curved path with noise and gaps is found to 1 / (8 take lengths); a take too
-    short for two cycles of 2 Hz still finds a fast one; no tracks give None."""
+    """A 9 Hz oscillation on a curved path with noise and gaps is found to 1 / (8 take lengths); no tracks, a
+    take too short for two cycles of anything, and a slow sway without a wingbeat (a maximum at the band's
+    edge) give None; that sway with a 9 Hz oscillation added gives 9 Hz."""
     rng = np.random.default_rng(0)
     fps, F = 120.0, 96
     t = np.arange(F) / fps
@@ -227,6 +228,13 @@ def test_wingbeat_frequency_from_tracks():
     assert abs(found - 9.0) < fps / F / 8
     assert wingbeat_frequency(np.full((F, 2, 3), np.nan), fps) is None
     assert wingbeat_frequency(xyz[:7], fps) is None  # 7 frames cannot hold two cycles of anything below fps / 4
+    slow = np.zeros((F, 4, 3))  # a 0.8 Hz sway and no wingbeat: the spectrum peaks at the band's lower end
+    slow[:, :, 0] = 4.0 * t[:, None]
+    slow[:, :, 1] = 0.05 * np.sin(2 * np.pi * 0.8 * t[:, None] + rng.uniform(0, 6, 4))
+    slow += rng.normal(0, 0.001, slow.shape)
+    assert wingbeat_frequency(slow, fps) is None
+    slow[:, :, 2] = 0.01 * np.sin(2 * np.pi * 9.0 * t[:, None])  # the same with a wingbeat
+    assert abs(wingbeat_frequency(slow, fps) - 9.0) < fps / F / 8
 
 
 @pytest.fixture(scope="module")
@@ -262,6 +270,27 @@ def test_wingbeat_model_on_a_bobbing_body(dorsal):
     assert info["wingbeat_hz_source"] == "measured" and abs(info["wingbeat_hz"] - 8.0) < 120.0 / 96 / 8
     assert all(info["motion_model_per_marker"][m] == "oscillating" for m in body)
     assert set(info["oscillation_sigma_m"]) >= set(body)
+
+
+def test_wingbeat_model_without_a_wingbeat_says_so():
+    """A glide (no flapping; the hold-out generator's seed 2) has no wingbeat to find: "wingbeat" runs every
+    marker with constant velocity, the same answer as constant velocity itself, and summary.json's warnings
+    say why, in one line."""
+    from batgraph.pipeline import run_methods
+    from batgraph.wingbeat import simulate_wingbeat
+
+    glide = simulate_wingbeat(np.random.default_rng(2), flight="glide", n_cameras=5, fps=60.0, n_frames=60,
+                              pixel_sigma_px=2.0)
+    out = {model: run_methods(glide, ["smoother"], Options(progress=False, motion_model=model))
+           for model in ("wingbeat", "constant_velocity")}
+    info = out["wingbeat"].estimates["smoother"].info
+    assert info["wingbeat_hz"] is None and info["wingbeat_left_out"] == schedule.NO_WINGBEAT
+    assert set(info["motion_model_per_marker"].values()) == {"constant_velocity"}
+    assert schedule.NO_WINGBEAT in out["wingbeat"].summary["warnings"]
+    assert schedule.NO_WINGBEAT not in out["constant_velocity"].summary["warnings"]
+    a, b = (out[m].estimates["smoother"] for m in ("wingbeat", "constant_velocity"))
+    np.testing.assert_array_equal(a.xyz_m, b.xyz_m)
+    np.testing.assert_array_equal(a.cov_m2, b.cov_m2)
 
 
 def test_gtsam_smoother_refuses_the_wingbeat_model(scene):

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..camera import Rig
 from ..measurement import IdealObservations
-from ..motion import wingbeat_frequency
+from ..motion import WINGBEAT_BAND_HZ, wingbeat_frequency
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
@@ -99,8 +99,9 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         if model == spec.WINGBEAT:
             hz, figures["wingbeat_hz_source"] = wingbeat_hz(session, tri)
             figures["wingbeat_hz"] = hz
-            if hz is None:  # no frequency to oscillate at: every marker constant velocity
+            if hz is None:  # no frequency to oscillate at: every marker constant velocity, and the user is told
                 candidates = ("constant_velocity",)
+                figures["wingbeat_left_out"] = NO_WINGBEAT
         models, level, selection = choose_model_per_marker(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
             p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options),
@@ -142,10 +143,17 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, figures)
 
 
+#: The smoother's note (figure ``wingbeat_left_out``, a warning in summary.json) when "wingbeat" finds no frequency.
+NO_WINGBEAT = ("motion model wingbeat: no wingbeat found in the triangulated tracks (their periodogram has no peak "
+               f"inside {WINGBEAT_BAND_HZ[0]:g}-{WINGBEAT_BAND_HZ[1]:g} Hz, or the take is too short for two cycles): "
+               "every marker uses constant velocity; set [motion] flap_hz in session.toml if the animal flaps")
+
+
 def wingbeat_hz(session: Session, xyz_tri_m: np.ndarray) -> tuple[float | None, str]:
     """The oscillating model's frequency [Hz] and where it came from: session.toml's ``[motion] flap_hz`` when
     given (and > 0), else measured from the triangulated tracks (F, M, 3) [m] (motion.wingbeat_frequency;
-    None when the take is too short to hold two cycles of any frequency it looks for)."""
+    None when the take is too short to hold two cycles of any frequency it looks for, or the periodogram's
+    maximum is at an end of its band)."""
     if session.motion.flap_hz:
         return float(session.motion.flap_hz), "session"
     return wingbeat_frequency(xyz_tri_m, session.fps), "measured"
