@@ -298,6 +298,15 @@ def test_fast_equals_gtsam(scene, model, robust):
     assert abs(info["logdet"] - logdet_ref) < (1e-6 if robust == "none" else 1e-5)
 
 
+def _assert_same_levels(a: dict, b: dict) -> None:
+    """Two smoothers' info chose the same q and j per marker, to rounding: 1e-8 relative (the search's
+    parabolic steps follow the scores, which two solvers of one cost reach to rounding; measured 2e-10)."""
+    for key in ("accel_psd_m2_s3", "jerk_psd_m2_s5"):
+        x, y = a.get(key) or {}, b.get(key) or {}
+        assert x.keys() == y.keys()
+        np.testing.assert_allclose([x[k] for k in x], [y[k] for k in x], rtol=1e-8)
+
+
 @pytest.mark.parametrize(("model", "robust", "bound_cov"), [("random_walk", "none", 1e-6),
                                                           ("random_walk", "huber", 1e-4),
                                                           ("constant_velocity", "huber", 1e-4),
@@ -306,7 +315,8 @@ def test_fast_equals_gtsam(scene, model, robust):
 def test_run_smoother_fast_matches_run_smoother(scene, model, robust, bound_cov):
     """The ``smoother`` method both ways, as ``reconstruct`` calls it: same initialisation, same q (or
     jerk PSD j, or per-marker model with "auto") chosen from the data (no q in the session: the same
-    marginal-likelihood search must pick the identical ones), positions to 1e-6 m, the same outlier flags.
+    marginal-likelihood search must pick the same ones, to rounding: _assert_same_levels), positions to
+    1e-6 m, the same outlier flags.
 
     Covariances: 1e-6 relative for least squares (measured 2e-10); for Huber 1e-4 (measured 1.3e-5),
     because the GTSAM smoother stops at a relative error decrease of 1e-12, ~1.5e-7 m from the
@@ -324,8 +334,7 @@ def test_run_smoother_fast_matches_run_smoother(scene, model, robust, bound_cov)
     if model != "random_walk":
         assert a.info["accel_psd_source"] == b.info["accel_psd_source"] == "data"
         assert a.info["motion_model_per_marker"] == b.info["motion_model_per_marker"]
-        assert a.info.get("accel_psd_m2_s3") == b.info.get("accel_psd_m2_s3")
-        assert a.info.get("jerk_psd_m2_s5") == b.info.get("jerk_psd_m2_s5")
+        _assert_same_levels(a.info, b.info)
     if model == "auto":  # every estimated marker has a model, each the better of its two evidences
         assert set(a.info["motion_model_per_marker"]) == {"m0", "m1", "m2"}
         for name, chosen in a.info["motion_model_per_marker"].items():
@@ -434,9 +443,8 @@ def test_rejection_schedule_matches_run_smoother(model):
     np.testing.assert_allclose(a.xyz_m, b.xyz_m, rtol=0, atol=1e-6)
     assert _rel_cov_error(a.cov_m2, b.cov_m2) < 1e-4
     if model != "random_walk":
-        assert a.info["accel_psd_m2_s3"] == b.info["accel_psd_m2_s3"]
         assert a.info["motion_model_per_marker"] == b.info["motion_model_per_marker"]
-        assert a.info.get("jerk_psd_m2_s5") == b.info.get("jerk_psd_m2_s5")
+        _assert_same_levels(a.info, b.info)
     off = schedule.run_smoother_fast(session, dense, ideal, Options(motion_model=model, outlier_rejection=False,
                                                                    progress=False))
     assert np.nanmax(np.abs(off.xyz_m - b.xyz_m)) > 1e-3

@@ -6,6 +6,8 @@ by 4 cameras with 0.5 px noise, so the maximum-likelihood q has a known target.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from conftest import cv_scene
@@ -54,7 +56,7 @@ def test_slow_and_fast_markers_get_their_own_q():
     """A marker drawn with q = 0.3 and one with q = 300 m^2/s^3 (80 frames): the per-marker rule
     orders them and separates them by far more than 10x (measured 0.24 and 156: each within a
     factor 3 of its truth, the bound asserted too), and no q in a 0.02-decade scan of +-0.2 decade
-    around each beats it by more than the golden-section tolerance 0.05 decade (measured: none beats
+    around each beats it by more than the search tolerance 0.05 decade (measured: none beats
     it; the search finds the maximum of each marker's own evidence)."""
     q_true = np.array([0.3, 300.0])
     session, dense, ideal, _ = cv_scene(q_true, n_frames=80, seed=3)
@@ -98,3 +100,43 @@ def test_run_smoother_uses_the_per_marker_q():
     print("per-marker vs fast", diff, "vs global", np.abs(est.xyz_m - xyz_g).max())
     assert diff < 1e-5
     assert np.abs(est.xyz_m - xyz_g).max() > 1e-3
+
+
+def test_brent_bracket_finds_every_maximum_to_the_tolerance():
+    """noise.Bracket on 4000 smooth concave scores per marker, skewed (curvature changing up to e^5 across
+    the bracket) and with peaks past the range's ends, started as choose_noise_per_marker starts it (a grid
+    every 2 decades, its best point and neighbours): every point stays in its bracket, every maximum is
+    found to the tolerance within twice golden section's step count (12; measured: 1 marker in 4000 takes
+    14), and in fewer steps per marker on average (measured 6.9 against 12)."""
+    rng = np.random.default_rng(0)
+    M, step, tol = 4000, 2.0, noise.LOG10_Q_TOL
+    peak, curv, skew = rng.uniform(-2.5, 6.5, M), 10 ** rng.uniform(-1, 3, M), rng.uniform(-0.9, 0.9, M)
+
+    def score(x):
+        u = x - peak
+        return -curv * u**2 * np.exp(3 * skew * u) - 0.05 * curv * u**4
+
+    grid = np.arange(-2.0, 6.001, step)
+    S = score(grid[:, None])
+    best, cols = S.argmax(axis=0), np.arange(M)
+    x = grid[best]
+    fa = np.where(best > 0, S[np.maximum(best - 1, 0), cols], np.nan)  # NaN: no grid point past the range
+    fb = np.where(best < len(grid) - 1, S[np.minimum(best + 1, len(grid) - 1), cols], np.nan)
+    a, b = np.maximum(grid[0], x - step), np.minimum(grid[-1], x + step)
+    a_better = ~(fb > fa)
+    br = noise.Bracket(a, b, x.copy(), score(x), np.where(a_better, a, b), np.where(a_better, fa, fb),
+                       np.where(a_better, b, a), np.where(a_better, fb, fa))
+    n_golden = math.ceil(math.log(tol / (2 * step)) / math.log((math.sqrt(5) - 1) / 2)) + 2
+    live_steps = 0
+    for _ in range(2 * n_golden):
+        live = ~br.done()
+        if not live.any():
+            break
+        live_steps += live.sum()
+        v = br.next()
+        assert np.all((v >= br.a) & (v <= br.b))
+        br.update(v, score(v))
+    assert br.done().all()
+    assert np.abs(br.m - np.clip(peak, grid[0], grid[-1])).max() <= tol
+    print("steps per marker", live_steps / M)
+    assert live_steps / M < 0.75 * n_golden

@@ -98,7 +98,7 @@ def test_rejection_does_not_touch_clean_data(scenes):
 def test_q_choice_ignores_mislabels():
     """Marginal-likelihood q (one per marker) on the observations the Cauchy cleaning keeps: with 5 %
     mislabels each marker's is within 15 % of the clean scene's (measured <= 10 %, i.e. within one
-    golden-section tolerance of 0.05 decade = 12 %; median +2 %) while choosing it with the mislabels in
+    search tolerance of 0.05 decade = 12 %; median +2 %) while choosing it with the mislabels in
     (rejection off) inflates it more (measured median +9 %, up to +25 %). 40 frames to keep it fast."""
     picks = {}
     for rate, rej in ((0.0, True), (0.05, True), (0.05, False)):

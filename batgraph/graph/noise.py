@@ -10,9 +10,10 @@ E = the graph's total cost at its optimum x* for this q, Lambda_post = its Gauss
 (from GTSAM's elimination), and log det Lambda_prior(q) = -n_steps log det Q(q) + const per marker
 chain (the prior over a chain is x0 times one transition per step; the frame-0 gauge priors do not
 depend on q). The search is on log10 q over 0.01 .. 1e6 m^2/s^3: a grid at every decade, then golden
-section around the best grid point. With outlier rejection the smoother scores only the observations
-its Cauchy cleaning step kept (mislabels inflated q: 26 instead of 20 on the simulated flight with 5 %
-of them).
+section around the best grid point (:func:`maximise_log10`, one q for all markers), or Brent's search per
+marker (:class:`Bracket`, as :func:`batgraph.graph.fast.choose_noise_per_marker` runs it). With outlier
+rejection the smoother scores only the observations its Cauchy cleaning step kept (mislabels inflated q:
+26 instead of 20 on the simulated flight with 5 % of them).
 
 q is chosen PER MARKER (:func:`choose_accel_psd_per_marker`): with fixed cameras the markers are
 independent, so the evidence is a sum of per-marker terms and each marker's q maximises its own term
@@ -45,6 +46,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -86,13 +88,13 @@ CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data
 GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
                " (decade grid + golden section), one q for all markers")
 PER_MARKER_RULE = (f"max Laplace marginal likelihood per marker over log10 q in [{LOG10_Q_RANGE[0]:g}, "
-                   f"{LOG10_Q_RANGE[1]:g}] (shared decade grid + per-marker golden section)")
+                   f"{LOG10_Q_RANGE[1]:g}] (shared decade grid + per-marker Brent search)")
 AUTO_RULE = ("per marker, the model of larger Laplace marginal likelihood, each at its own best noise level "
              "(constant velocity: q, constant acceleration: jerk PSD j)")
 WINGBEAT_RULE = ("per marker, the model of larger Laplace marginal likelihood, each at its own best noise level "
                  "(constant velocity: q; oscillating: the trend's q and the oscillation's sigma_m)")
 CANDIDATES_RULE = {AUTO_CANDIDATES: AUTO_RULE, WINGBEAT_CANDIDATES: WINGBEAT_RULE}
-LOG10_Q_TOL = 0.05  # golden-section stops when the bracket is this narrow (12 % in q; the peak is flat)
+LOG10_Q_TOL = 0.05  # a search stops when its bracket is this narrow (12 % in q; the peak is flat)
 _GOLDEN = (math.sqrt(5) - 1) / 2
 
 
@@ -236,6 +238,93 @@ def maximise_log10(score: Callable[[float], float], lo: float = LOG10_Q_RANGE[0]
     return 10.0**x_best, trace
 
 
+@dataclass
+class Bracket:
+    """Brent's search for the maximum of a score over one log10 level, per marker and vectorised (arrays (M,)).
+
+    The maximum lies in [a, b]; m is the best point so far (score fm), w and v the second and third best
+    (fw, fv; NaN where not evaluated). :meth:`next` proposes each marker's next point, :meth:`update` takes
+    its score. The proposal is the vertex of the parabola through (m, w, v) when it lies inside the bracket
+    and is shorter than half the step before last (successive parabolic interpolation: near a smooth
+    maximum a few points locate it where golden section needs ~10), else the golden-section point of the
+    bracket's larger side (scores not known, not concave, or parabolic steps that stopped shrinking: an
+    evidence far steeper on one side than the other). Every point is at least tol / 2 from m, so that it
+    narrows the bracket; where m is within tol / 2 of an end (e.g. a grid point at the range's edge, where
+    a marker's q often stays), the point is the probe on the other side that leaves a bracket tol wide if
+    it scores worse (unless m just moved there: a climb along a slope). A marker is done when its bracket is
+    at most tol wide: its maximum is then located to the tolerance, as by golden section on a unimodal score
+    (R. P. Brent, Algorithms for Minimization without Derivatives, 1973, ch. 5; written here because
+    scipy's is one scalar search at a time, and each of these points is one solve of every marker).
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    m: np.ndarray
+    fm: np.ndarray
+    w: np.ndarray
+    fw: np.ndarray
+    v: np.ndarray
+    fv: np.ndarray
+    tol: float = LOG10_Q_TOL
+
+    def __post_init__(self):
+        self._steps = (np.full(len(self.m), np.inf), np.full(len(self.m), np.inf))  # before last, last
+        self._pending = self._steps
+        self._moved = np.zeros(len(self.m), bool)  # the last point scored better than m (m moved to it)
+
+    def done(self) -> np.ndarray:
+        return self.b - self.a <= self.tol * (1 + 1e-9)
+
+    def next(self) -> np.ndarray:
+        """Each marker's next point, strictly inside its bracket (m itself where done)."""
+        a, m, b, t = self.a, self.m, self.b, self.tol
+        da, db = m - a, b - m
+        with np.errstate(all="ignore"):
+            r = (m - self.w) * (self.fm - self.fv)
+            q = (m - self.v) * (self.fm - self.fw)
+            p = (m - self.v) * q - (m - self.w) * r
+            q = 2.0 * (q - r)
+            vertex = m - p / q  # the stationary point of the parabola through (m, w, v)
+            curvature = ((self.fw - self.fm) / (self.w - m) - (self.fv - self.fm) / (self.v - m)) / (self.w - self.v)
+        concave = curvature < 0  # (False where NaN: a point not evaluated, or two points alike)
+        before_last, last = self._steps
+        parabolic = (np.isfinite(vertex) & concave & (vertex > a) & (vertex < b)
+                     & (np.abs(vertex - m) < 0.5 * before_last))
+        right = np.where(parabolic & (vertex != m), vertex > m, db >= da)  # which side of m to try
+        side = np.where(right, db, da)
+        dist = np.where(parabolic, np.abs(vertex - m), (1 - _GOLDEN) * side)
+        dist = np.clip(dist, np.minimum(t / 2, side / 2), 0.9 * side)
+        short = np.minimum(da, db)
+        # m at an end it did not just come from (a crawl along a slope is left to the steps above): the probe
+        edge = (short <= t / 2 * (1 + 1e-9)) & ~self._moved  # that closes the bracket if it scores worse
+        right = np.where(edge, db >= da, right)
+        dist = np.where(edge, np.minimum(t - short, 0.9 * np.maximum(da, db)), dist)
+        self._pending = (np.where(parabolic | edge, last, np.maximum(da, db)), dist)
+        return np.where(self.done(), m, np.where(right, m + dist, m - dist))
+
+    def update(self, u: np.ndarray, fu: np.ndarray) -> None:
+        """Take the scores fu at the points u that :meth:`next` proposed (done markers are left as they are;
+        a NaN score counts as -inf)."""
+        live = ~self.done()
+        fu = np.where(np.isnan(fu), -np.inf, fu)
+        self._steps = tuple(np.where(live, new, old) for new, old in zip(self._pending, self._steps, strict=True))
+        better, right = live & (fu > self.fm), u > self.m
+        worse = live & ~better
+        # the bracket: the old best becomes the end on the far side of a better point; a worse point an end
+        self.a = np.where(better & right, self.m, np.where(worse & ~right, u, self.a))
+        self.b = np.where(better & ~right, self.m, np.where(worse & right, u, self.b))
+        # the three best points (Brent's x, w, v)
+        second = worse & ((fu >= self.fw) | np.isnan(self.fw) | (self.w == self.m))
+        third = worse & ~second & ((fu >= self.fv) | np.isnan(self.fv) | (self.v == self.m) | (self.v == self.w))
+        shift = better | second
+        self.v, self.fv = (np.where(shift, self.w, np.where(third, u, self.v)),
+                           np.where(shift, self.fw, np.where(third, fu, self.fv)))
+        self.w, self.fw = (np.where(better, self.m, np.where(second, u, self.w)),
+                           np.where(better, self.fm, np.where(second, fu, self.fw)))
+        self.m, self.fm = np.where(better, u, self.m), np.where(better, fu, self.fm)
+        self._moved = np.where(live, better, self._moved)
+
+
 GIVEN_RULE = "given (options or session), one q for all markers"
 # How a noise level is scored when chosen from the data ([motion] noise_rule): "evidence" = the Laplace
 # marginal likelihood (module docstring); "loo" = the leave-one-frame-out log predictive density of the
@@ -264,10 +353,10 @@ def per_marker_rule(model: str, rule: str = "evidence") -> str:
         s_lo, s_hi = OSC_LOG10_SIGMA_RANGE
         return (f"max {score} per marker over log10 q (the trend's) in [{lo:g}, {hi:g}] x log10 sigma_m (the "
                 f"oscillation's) in [{s_lo:g}, {s_hi:g}] (shared grid, every {OSC_LOG10_Q_STEP:g} decades of q x "
-                "every decade of sigma_m, + per-marker golden section on q, then on sigma_m)")
+                "every decade of sigma_m, + per-marker Brent search on q, then on sigma_m)")
     what = "q" if model == "constant_velocity" else "j"
     return (f"max {score} per marker over log10 {what} in [{lo:g}, {hi:g}] "
-            "(shared decade grid + per-marker golden section)")
+            "(shared decade grid + per-marker Brent search)")
 
 
 def loo_log_predictive(rr: np.ndarray, g: np.ndarray, A: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
