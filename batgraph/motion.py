@@ -121,12 +121,25 @@ WINGBEAT_OVERSAMPLE = 16  # the spectrum is sampled this many times finer than 1
 WINGBEAT_MIN_FRAMES = 8  # a track with fewer triangulated frames is left out
 
 
+WINGBEAT_PROMINENCE = 10.0  # a periodogram peak this many times its median is a periodic motion (wingbeat_peak)
+
+
 def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
-    """The wingbeat frequency [Hz] measured from tracks: the peak of their summed periodogram.
+    """The wingbeat frequency [Hz] measured from tracks: the peak of their summed periodogram
+    (:func:`wingbeat_peak`'s frequency), or None."""
+    peak = wingbeat_peak(xyz_m, fps)
+    return None if peak is None else peak[0]
+
+
+def wingbeat_peak(xyz_m: np.ndarray, fps: float) -> tuple[float, float] | None:
+    """The peak of the tracks' summed periodogram: (frequency [Hz], prominence = its power / the band's
+    median power), or None.
 
     xyz_m: positions (F, M, 3) [m], NaN where not triangulated (a marker hidden behind a wing for half of
-    every stroke leaves gaps, so the spectrum is scipy.signal.lombscargle's, which takes the triangulated
+    every stroke leaves gaps, so the spectrum is the Lomb-Scargle periodogram, which takes the triangulated
     frames as they are: interpolating across the gaps put the peak at the band's edge on one hold-out scene).
+    It is scipy.signal.lombscargle's (tested against it), written here as four matrix products over every
+    track at once because scipy's takes one track at a time: 2.1 s at 30 x 180 x 160, every smoother run.
     Each marker's axis with at least WINGBEAT_MIN_FRAMES frames is detrended by a quadratic in time (a
     flight's path and its turn are not the wingbeat); the periodograms, summed over markers and axes (the
     wing markers, which move most, dominate), are maximised over WINGBEAT_BAND_HZ cut to frequencies below
@@ -135,28 +148,52 @@ def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
     It is the frequency of the largest periodic motion, whether or not the animal flaps: the smoother's
     per-marker model choice (evidence) decides whether an oscillation at it helps. A maximum at either end of
     the band is no peak (the spectrum still rising toward a slower or faster motion, e.g. a walking human's
-    stride below 2 Hz): None then too, rather than a frequency of nothing.
+    stride below 2 Hz): None then too, rather than a frequency of nothing. Prominence, measured: 23-2000 on
+    every flapping simulated scene (both generators, 4-15 Hz, 60-1000 fps, 1-8 px), 1.8 on a glide with an
+    interior maximum, 69 on the real MCSC LED wand's 3.1 Hz waving; WINGBEAT_PROMINENCE tells them apart.
     """
-    from scipy.signal import lombscargle
+    spectrum = periodogram(xyz_m, fps)
+    if spectrum is None:
+        return None
+    hz, power = spectrum
+    peak = int(np.argmax(power))
+    if not 0 < peak < len(hz) - 1:
+        return None
+    median = float(np.median(power))
+    return float(hz[peak]), float(power[peak] / median) if median > 0 else float("inf")
 
+
+def periodogram(xyz_m: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`wingbeat_peak`'s spectrum: the frequencies (K,) [Hz] and the Lomb-Scargle power (K,) summed over
+    the tracks (scipy.signal.lombscargle's scale, [m^2]); None when the band is empty or no track is long
+    enough."""
     F = len(xyz_m)
     lo = max(WINGBEAT_BAND_HZ[0], WINGBEAT_MIN_CYCLES * fps / max(F, 1))
     hi = min(WINGBEAT_BAND_HZ[1], fps / 4.0)
     if lo >= hi:
         return None
     hz = np.arange(lo, hi, fps / F / WINGBEAT_OVERSAMPLE)
-    t = np.arange(F) / fps
-    power = np.zeros(len(hz))
-    used = False
-    for track in np.moveaxis(np.asarray(xyz_m, float), 0, -1).reshape(-1, F):  # (M * 3, F)
-        ok = np.isfinite(track)
-        if ok.sum() < WINGBEAT_MIN_FRAMES:
-            continue
-        tt = t[ok] - t[ok].mean()
-        y = track[ok] - np.polyval(np.polyfit(tt, track[ok], 2), tt)
-        power += lombscargle(tt, y, 2 * np.pi * hz)
-        used = True
-    if not used:
+    y = np.moveaxis(np.asarray(xyz_m, float), 0, -1).reshape(-1, F)  # (M * 3, F), one track per row
+    ok = np.isfinite(y)
+    keep = ok.sum(axis=1) >= WINGBEAT_MIN_FRAMES
+    if not keep.any():
         return None
-    peak = int(np.argmax(power))
-    return float(hz[peak]) if 0 < peak < len(hz) - 1 else None
+    y, w = np.where(ok, y, 0.0)[keep], ok[keep].astype(float)  # w: 1 on a triangulated frame
+    t = np.arange(F) / fps
+    t = t - t.mean()
+    # each track less its least-squares quadratic in time over its own frames
+    V = np.stack([np.ones(F), t, t * t], axis=1)  # (F, 3)
+    coef = np.linalg.solve(np.einsum("nf,fi,fj->nij", w, V, V), np.einsum("nf,fi->ni", w * y, V)[..., None])[..., 0]
+    y = w * (y - coef @ V.T)
+    # Lomb-Scargle per (track, frequency): sums over a track's frames of y cos wt, y sin wt, cos 2wt, sin 2wt
+    wt = 2 * np.pi * t[:, None] * hz[None, :]  # (F, K)
+    yc, ys = y @ np.cos(wt), y @ np.sin(wt)
+    c2, s2 = w @ np.cos(2 * wt), w @ np.sin(2 * wt)
+    n = w.sum(axis=1)[:, None]
+    two_tau = np.arctan2(s2, c2)  # 2 w tau: the time shift that makes the sine and cosine terms orthogonal
+    c, s = np.cos(two_tau / 2), np.sin(two_tau / 2)
+    cc = 0.5 * (n + c2)  # sum cos^2 wt, sum sin^2 wt, sum sin wt cos wt
+    ss, cs = 0.5 * (n - c2), 0.5 * s2
+    power = 0.5 * ((c * yc + s * ys) ** 2 / (c * c * cc + 2 * c * s * cs + s * s * ss)
+                   + (c * ys - s * yc) ** 2 / (c * c * ss - 2 * c * s * cs + s * s * cc))
+    return hz, power.sum(axis=0)

@@ -37,7 +37,7 @@ OUTLIER_WARN_FRACTION = 0.05
 method) gets a warning: the noise model or the calibration of that camera is suspect."""
 RIGID_WARN_FACTOR = 3.0
 """A rigid segment whose length scatters by more than this x rigid_sigma_m RMS is warned about
-(:func:`segment_warnings`); measured on simulated bones (truly rigid, 1 px): 0.3-0.8 mm at 2 mm."""
+(:func:`smoother_warnings`); measured on simulated bones (truly rigid, 1 px): 0.3-0.8 mm at 2 mm."""
 
 
 HEADLINE_GROUPS = {
@@ -195,15 +195,20 @@ def outlier_warnings(method_summary: dict, method: str) -> list[str]:
     return out
 
 
-def segment_warnings(info: dict | None) -> list[str]:
+#: The smoother's own notes (its info) that summary.json lists as warnings, each one line of text.
+SMOOTHER_NOTES = ("segments_left_out", "wingbeat_left_out", "wingbeat_advice")
+
+
+def smoother_warnings(info: dict | None) -> list[str]:
     """One line per rigid segment (``[markers] rigid``) whose length scatters over the frames by more than
     RIGID_WARN_FACTOR x rigid_sigma_m RMS at the smoother's solution: the pair is not rigid, or a label is
-    swapped, and the segment factor is pulling the two markers toward a length they do not keep. Also the
-    smoother's reason when it left the segments out (``segments_left_out``), or left the wingbeat model's
-    oscillation out for want of a frequency (``wingbeat_left_out``)."""
+    swapped, and the segment factor is pulling the two markers toward a length they do not keep. Before
+    them, the smoother's notes (:data:`SMOOTHER_NOTES`): why it left the segments out, or the wingbeat
+    model's oscillation for want of a frequency, or that the tracks move periodically and its motion model
+    does not follow that (batgraph.graph.schedule.periodic_advice)."""
     info = info or {}
     sigma = info.get("rigid_sigma_m")
-    out = [info[key] for key in ("segments_left_out", "wingbeat_left_out") if info.get(key)]
+    out = [info[key] for key in SMOOTHER_NOTES if info.get(key)]
     for name, s in (info.get("segments") or {}).items():
         if sigma and s["scatter_rms_m"] > RIGID_WARN_FACTOR * sigma:
             out.append(f"segment {name}: its length varies by {1000 * s['scatter_rms_m']:.1f} mm RMS over the frames, "
@@ -326,7 +331,7 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
     use = recommended(methods)[0] if methods else None
     warnings = list(session.warnings)
     if use is not None:
-        warnings += [w for w in outlier_warnings(per_method[use], use) + segment_warnings((infos or {}).get(use))
+        warnings += [w for w in outlier_warnings(per_method[use], use) + smoother_warnings((infos or {}).get(use))
                      if w not in warnings]
     first = trajectories[trajectories["method"] == methods[0]] if methods else trajectories
     reproj_first = reprojection[reprojection["method"] == methods[0]] if methods else reprojection

@@ -237,6 +237,35 @@ def test_wingbeat_frequency_from_tracks():
     assert abs(wingbeat_frequency(slow, fps) - 9.0) < fps / F / 8
 
 
+def test_periodogram_is_scipys_lomb_scargle():
+    """motion.periodogram (every track at once) equals scipy.signal.lombscargle summed over the tracks, each
+    detrended by a quadratic over its own frames, on tracks with gaps of every kind (a block, every third
+    frame, half the frames at random, a track too short to count), to 1e-10 relative."""
+    from scipy.signal import lombscargle
+
+    from batgraph.motion import WINGBEAT_MIN_FRAMES, periodogram
+
+    rng = np.random.default_rng(0)
+    fps, F, M = 120.0, 96, 5
+    t = np.arange(F) / fps
+    wave = 0.01 * np.sin(2 * np.pi * 9 * t)[:, None, None] * rng.uniform(0.2, 1, (1, M, 3))
+    xyz = rng.normal(0, 0.002, (F, M, 3)) + wave
+    xyz[:, :, 0] += 4 * t[:, None]
+    xyz[20:40, 1] = np.nan
+    xyz[::3, 2, 1] = np.nan
+    xyz[rng.uniform(size=F) < 0.5, 3, 2] = np.nan
+    xyz[5:, 4] = np.nan
+    hz, power = periodogram(xyz, fps)
+    ref = np.zeros(len(hz))
+    for track in np.moveaxis(xyz, 0, -1).reshape(-1, F):
+        ok = np.isfinite(track)
+        if ok.sum() < WINGBEAT_MIN_FRAMES:
+            continue
+        tt = t[ok] - t[ok].mean()
+        ref += lombscargle(tt, track[ok] - np.polyval(np.polyfit(tt, track[ok], 2), tt), 2 * np.pi * hz)
+    np.testing.assert_allclose(power, ref, rtol=1e-10)
+
+
 @pytest.fixture(scope="module")
 def dorsal():
     """The hold-out wingbeat scene whose body markers bob with the wingbeat (4 cameras, dorsal markers)."""
@@ -248,7 +277,8 @@ def dorsal():
 
 def test_wingbeat_model_on_a_bobbing_body(dorsal):
     """On the dorsal scene, constant velocity puts the body's markers (which bob +-3 mm and pitch +-3 deg at
-    8 Hz) at q's floor and their 95 % ellipsoids cover their truth on fewer than 70 % of observed frames;
+    8 Hz) at q's floor and their 95 % ellipsoids cover their truth on fewer than 70 % of observed frames (and
+    its summary warns that the tracks move periodically at 8 Hz, which it does not model);
     "wingbeat" measures the frequency (8 Hz to the spectrum's 1/16 bin), gives them the oscillation, and
     covers >= 90 % (measured: 48 / 37 / 55 / 58 % -> 97 / 97 / 100 / 100 %), with every observed point's
     RMSE lower."""
@@ -262,9 +292,12 @@ def test_wingbeat_model_on_a_bobbing_body(dorsal):
         e = evaluate.point_errors(res.trajectories, dorsal.truth)
         obs = e[e.status == "observed"]
         out[model] = (obs.groupby("marker").mahal2.apply(lambda x: np.mean(x < 7.8147))[body],
-                      np.sqrt(np.mean(obs.err_m**2)), res.estimates["smoother"].info)
+                      np.sqrt(np.mean(obs.err_m**2)), res.estimates["smoother"].info, res.summary["warnings"])
     cv, wb = out["constant_velocity"], out["wingbeat"]
     assert (cv[0] < 0.7).all() and (wb[0] >= 0.9).all()
+    # constant velocity says, in one warning, that the tracks move periodically and it does not model that
+    assert abs(cv[2]["periodic_motion_hz"] - 8.0) < 120.0 / 96 / 8 and cv[2]["wingbeat_advice"] in cv[3]
+    assert "wingbeat_advice" not in wb[2] and not any("periodically" in w for w in wb[3])
     assert wb[1] < cv[1]
     info = wb[2]
     assert info["wingbeat_hz_source"] == "measured" and abs(info["wingbeat_hz"] - 8.0) < 120.0 / 96 / 8
@@ -288,6 +321,7 @@ def test_wingbeat_model_without_a_wingbeat_says_so():
     assert set(info["motion_model_per_marker"].values()) == {"constant_velocity"}
     assert schedule.NO_WINGBEAT in out["wingbeat"].summary["warnings"]
     assert schedule.NO_WINGBEAT not in out["constant_velocity"].summary["warnings"]
+    assert "wingbeat_advice" not in out["constant_velocity"].estimates["smoother"].info  # no periodic motion
     a, b = (out[m].estimates["smoother"] for m in ("wingbeat", "constant_velocity"))
     np.testing.assert_array_equal(a.xyz_m, b.xyz_m)
     np.testing.assert_array_equal(a.cov_m2, b.cov_m2)
