@@ -78,7 +78,8 @@ def _section(name: str, what: str, summary: dict, val: pd.DataFrame, wall: float
     lines = [f"## {name}", "", what, "",
              f"{summary['n_cameras']} cameras, {summary['n_frames']} frames, {summary['n_markers']} markers, "
              f"{summary['n_observations']} observations; reconstruct --validate {wall:.1f} s wall.", "",
-             "Warnings (self-checks and the smoother's): " + ("; ".join(summary["warnings"]) if summary["warnings"] else "no warning") + ".", "",
+             "Warnings (self-checks and the smoother's): "
+             + ("; ".join(summary["warnings"]) if summary["warnings"] else "no warning") + ".", "",
              "| camera | measured noise [px] | inliers / rejected | distance to points [m] | behind |",
              "|---|---|---|---|---|"]
     for cam, n in noise.items():
