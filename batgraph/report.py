@@ -816,8 +816,8 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
 
     # --- the verdict: which result, how good, what to look at, where the gaps are
     warnings = summary.get("warnings") or []
-    warn_html = ('<div class="warn"><p><b>Warnings</b> (self-checks before any estimator ran, and the noise '
-                 "model's outlier counts):</p><ul>"
+    warn_html = ('<div class="warn"><p><b>Warnings</b> (self-checks before any estimator ran, the noise '
+                 "model's outlier counts, and the smoother's notes on its segments and motion model):</p><ul>"
                  + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
     use = verdict.use if verdict else (plotted[0] if plotted else None)
 
