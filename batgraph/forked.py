@@ -1,17 +1,14 @@
-"""Work in forked child processes: one call beside this process's own work (the report, while the estimators
-run and the other outputs are written), or a list of jobs shared over the cores (the methods; the
-report's figures).
+"""Work in forked child processes: one call beside this process's own work (the report, while the other outputs
+are written), or a list of jobs shared over the cores (the methods).
 
-:class:`Standby` forks a child at once that prepares (imports matplotlib and the report, ~0.5 s) while
-this process goes on, then waits for the arguments of its one call; :meth:`Standby.run` pickles them
-straight into a pipe and returns a :class:`Pending`, whose :meth:`Pending.wait` waits for the call and
-raises what it raised. A child leaves with ``os._exit`` (as multiprocessing's fork children do): the
-figures' ~130k garbage objects are never collected (~0.2 s on the bundled sample that no one pays).
+:class:`Standby` forks a child at once that prepares (imports the report's modules) while this process goes
+on, then waits for the arguments of its one call; :meth:`Standby.run` pickles them straight into a pipe and
+returns a :class:`Pending`, whose :meth:`Pending.wait` waits for the call and raises what it raised. A child
+leaves with ``os._exit`` (as multiprocessing's fork children do): its garbage is never collected.
 
 :func:`map_jobs` computes ``fn(0) .. fn(n - 1)`` in this process and up to cores - 1 forked children,
-each taking the next undone index (the costly jobs first, where the caller orders them so): the methods,
-and the report's figures (each a matplotlib figure built and encoded to PNG; matplotlib holds the GIL, so
-processes, not threads, are what spreads them over the cores). A child sees this process's memory as it
+each taking the next undone index (the costly jobs first, where the caller orders them so): the methods
+(processes, not threads: most of their work holds the GIL). A child sees this process's memory as it
 was at the fork, so nothing is pickled on the way in; results come back pickled.
 
 The work runs in this process instead where a child would not help or cannot be made: not Linux (no
@@ -117,9 +114,9 @@ class Standby:
 
     ``prepare()`` runs in the child at once and returns the function to call; :meth:`run` sends that
     function's arguments (pickled straight into a pipe, so no second copy of them is held here) and returns
-    the :class:`Pending` call. Used for the report: its child imports matplotlib (~0.5 s) while the
-    estimators run, instead of after them. Where no child can be made (:func:`can_fork`), or an argument
-    cannot be pickled, ``prepare()`` runs in :meth:`run`, here, and the call with it.
+    the :class:`Pending` call. Used for the report, drawn while this process writes the other outputs. Where
+    no child can be made (:func:`can_fork`), or an argument cannot be pickled, ``prepare()`` runs in
+    :meth:`run`, here, and the call with it.
     """
 
     def __init__(self, prepare: Callable[[], Callable[..., None]], what: str):

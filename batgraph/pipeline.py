@@ -163,8 +163,8 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash or kill leaves the previous
     complete result or the new one, never a mix; files in ``out_dir`` that are not in :data:`OUTPUT_FILES`
     are carried over. report.html is drawn in a child process while this process writes the other files,
-    and waited for before the swap: ``report``, a :func:`report_standby` made earlier (it has imported
-    matplotlib meanwhile), or one forked here (here, in this process, where no child can be made).
+    and waited for before the swap: ``report``, a :func:`report_standby` made earlier, or one forked here
+    (here, in this process, where no child can be made).
     Returns the paths written (under ``out_dir``).
     """
     out_dir = Path(out_dir)
@@ -182,7 +182,7 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
 
 
 def _report_writer():
-    """The report child's preparation: import the report (and matplotlib); returns its writer."""
+    """The report child's preparation: import the report; returns its writer."""
     from .report import write_report
 
     return write_report
@@ -244,7 +244,7 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     options = options or Options()
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
-    # the report's child imports matplotlib while this process reads and estimates; cancelled on failure
+    # the report's child, forked before the estimators' memory grows; cancelled on failure
     with report_standby() as report:
         session = read_session(session_dir, calibration)
         methods = list(methods or DEFAULT_METHODS)

@@ -1,11 +1,9 @@
 """The self-contained HTML comparison report (report.html): every method side by side, plots embedded.
 
 It reads finished tables (trajectories, reprojection, summary) and draws them; it estimates nothing
-and writes nothing but the one HTML file. Figures are matplotlib ``Figure`` objects rendered to
-PNG in memory (no pyplot, so no global backend state) and embedded as base64 ``data:`` URIs, so
-the file opens anywhere, offline, with no external ``src`` or ``href``. The figures are drawn after the
-text, shared over the cores by forked processes (:class:`_Figures`, batgraph.forked.map_jobs); the HTML is
-the same as when one process draws them all.
+and writes nothing but the one HTML file. Figures are inline SVG (batgraph.svg: drawn by the browser,
+sharp at any zoom, ~30x cheaper to make than the matplotlib PNGs they replaced), so the file opens
+anywhere, offline, with no script and no external ``src`` or ``href``.
 
 Sections: overview, 3D trajectories, reprojection error per camera with 95 % ellipses in mm at the
 marker's depth (the paper's Fig. 5 b-f), reprojections over the 2D features (Fig. 6), marker
@@ -16,22 +14,15 @@ paper's published figures, and -- when the session has them -- errors against tr
 
 from __future__ import annotations
 
-import base64
-import contextlib
-import gc
 import html
-import io
 import math
 import textwrap
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
-from matplotlib.patches import Ellipse
-from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-from . import atomic, evaluate, forked
+from . import atomic, evaluate, svg
 from . import methods as methods_registry
 from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
 
@@ -39,12 +30,11 @@ from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
 CHI2_2DOF_95 = 5.991464547107979  # 95 % quantile of chi-square, 2 DOF (reprojection ellipses)
 
-MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps PNGs small and fast
+MAX_SCATTER = 1500  # residual points drawn per (method, camera): keeps the figures small
 MAX_TRACK_FRAMES = 600  # frames drawn per track in the image-space and time plots
 # Per-camera figures draw at most this many panels (evenly spaced over the rig; the per-camera table lists
-# every camera): drawing is per axis, so 30 panels per figure made a 30-camera report ~4 s slower.
+# every camera): 30 small panels are unreadable side by side.
 MAX_CAMERA_PANELS = 10
-DPI = 100
 MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretched so that it stays readable
 
 
@@ -75,34 +65,6 @@ def _panel_cameras(cameras: list[str]) -> tuple[list[str], str]:
     return [cameras[i] for i in pick], (f" {len(pick)} of the {len(cameras)} cameras are drawn (evenly spaced "
                                          "over the rig: cameras " + ", ".join(html.escape(cameras[i]) for i in pick) +
                                          "); the per-camera table lists every camera.")
-
-
-def _png(fig: Figure) -> str:
-    """The figure as a PNG ``data:`` URI, cropped to its drawn content plus a 0.1 inch margin.
-
-    One Agg draw, then the pixels that are not the white background bound the crop: what
-    ``savefig(bbox_inches="tight")`` gives, without its extra layout-only draw and tight-box pass (together
-    ~40 % of a report's time). The figures below keep every artist (legends included) inside their canvas;
-    should one still reach the canvas's edge (e.g. very long marker names), the figure is saved the slow way,
-    with ``bbox_inches="tight"``, so that nothing is cut off.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from PIL import Image
-
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    rgb = np.asarray(canvas.buffer_rgba())[..., :3]  # opaque white figure: alpha is 255 everywhere
-    ink = (rgb != 255).any(axis=2)
-    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
-    buf = io.BytesIO()
-    if len(rows) and (rows[0] == 0 or cols[0] == 0 or rows[-1] == ink.shape[0] - 1 or cols[-1] == ink.shape[1] - 1):
-        fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    else:
-        if len(rows):
-            pad = round(0.1 * DPI)
-            rgb = rgb[max(rows[0] - pad, 0):rows[-1] + pad + 1, max(cols[0] - pad, 0):cols[-1] + pad + 1]
-        Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format="png")
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
 def _fmt(x, digits: int = 2) -> str:
@@ -173,43 +135,31 @@ def _points_cube(points: pd.DataFrame | None, frames: np.ndarray, markers: list[
     return evaluate.dense_from_table(points.drop_duplicates(["frame", "marker"]), frames, markers)[0]
 
 
-def _legend_handles(methods, style, extra=()):
-    from matplotlib.lines import Line2D
-    h = [Line2D([], [], color=style[m][0], ls=style[m][1], lw=1.6, label=m) for m in methods]
-    return h + [Line2D([], [], **kw) for kw in extra]
+def _legend_items(methods, style, extra=()) -> list[tuple[str, dict]]:
+    """Legend entries (svg.Figure.legend) of the methods' line styles, then ``extra`` (label, style) pairs."""
+    return [(m, {"colour": style[m][0], "dash": style[m][1], "width": 1.6}) for m in methods] + list(extra)
 
 
 # ----------------------------------------------------------------------------------------------
-# figures: each returns a Figure (or None when there is nothing to draw)
+# figures: each returns an svg.Figure (or None when there is nothing to draw); sizes in px
 # ----------------------------------------------------------------------------------------------
-def _panel_grid(n: int, max_cols: int, panel_in: tuple[float, float]) -> tuple[Figure, int, int]:
-    """A figure for ``n`` panels in rows of at most ``max_cols``, each ``panel_in`` (w, h) inches: (fig, nrow, ncol)."""
+def _grid(n: int, max_cols: int) -> tuple[int, int]:
+    """(rows, columns) for ``n`` panels in rows of at most ``max_cols``."""
     ncol = min(n, max_cols)
-    nrow = int(math.ceil(n / ncol))
-    return Figure(figsize=(panel_in[0] * ncol, panel_in[1] * nrow), dpi=DPI), nrow, ncol
+    return int(math.ceil(n / ncol)), ncol
 
 
-def _legend_size_in(fig: Figure, legend) -> tuple[float, float]:
-    """(width, height) [in] of ``legend`` as it will be drawn: its texts measured, nothing drawn."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    box = legend.get_window_extent(FigureCanvasAgg(fig).get_renderer())
-    return box.width / fig.dpi, box.height / fig.dpi
-
-
-def _widen_for(fig: Figure, width_in: float, margin_in: float = 0.2) -> None:
-    """Widen ``fig`` (its panels keep their fractions) so that something ``width_in`` wide, centred, fits."""
-    if width_in + margin_in > fig.get_figwidth():
-        fig.set_figwidth(width_in + margin_in)
-
-
-def _room_right(fig: Figure, legend, gap_in: float = 0.35) -> None:
-    """Move the panels' right edge left so that ``legend``, placed just right of them, ends inside ``fig``."""
-    fig.subplots_adjust(right=1.0 - (_legend_size_in(fig, legend)[0] + gap_in) / fig.get_figwidth())
+def _separated(parts: list[np.ndarray]) -> np.ndarray:
+    """(n_i, D) arrays joined into one with a NaN row between them (one broken line, svg.Axes.line)."""
+    if not parts:
+        return np.empty((0, 2))
+    gap = np.full((1, parts[0].shape[1]), np.nan)
+    return np.concatenate([x for p in parts for x in (p, gap)])
 
 
 def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, truth_cube):
-    """One 3D panel per method; all markers' paths, coloured by marker; skeleton at a few frames."""
+    """One 3D panel per method (svg.View3D: the same view for all); all markers' paths, coloured by marker;
+    the skeleton at a few frames; truth thin black."""
     cubes = {m: _trajectory_cube(trajectories, m, frames, markers) for m in methods}
     allpts = np.concatenate([c.reshape(-1, 3) for c in cubes.values()]
                             + ([truth_cube.reshape(-1, 3)] if truth_cube is not None else []))
@@ -220,68 +170,53 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
     lo, hi = np.percentile(allpts, 1, axis=0), np.percentile(allpts, 99, axis=0)
     pad = 0.08 * max(float((hi - lo).max()), 1e-3)
     lo, hi = lo - pad, hi + pad
-    fig, nrow, ncol = _panel_grid(len(methods), 3, (4.6, 3.6))
-    cmap = _marker_colours(len(markers))
+    span = np.maximum(hi - lo, 1e-9)
+    view = svg.View3D(lo, hi, np.maximum(span, span.max() / MAX_ASPECT))
+    cmap = svg.colours(len(markers))
     mi = {m: i for i, m in enumerate(markers)}
     sk = [(mi[a], mi[b]) for a, b in skeleton if a in mi and b in mi]
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     snap = np.linspace(0, len(frames) - 1, min(5, len(frames))).astype(int)
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
-
-    truth_runs = _finite_runs(truth_cube[::st].transpose(1, 0, 2)) if truth_cube is not None else []
-    for k, m in enumerate(methods):
-        ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
-        ax.computed_zorder = False  # truth behind the estimates, the skeleton on top: in the order added
-        c = cubes[m]
-        if truth_runs:
-            ax.add_collection3d(Line3DCollection(truth_runs, colors="k", linewidths=0.6, alpha=0.35))
-        tracks = c[::st].transpose(1, 0, 2)  # (M, F, 3)
-        runs = [(r, cmap[j]) for j in range(len(markers)) for r in _finite_runs(tracks[j:j + 1])]
-        if runs:
-            ax.add_collection3d(Line3DCollection([r for r, _ in runs], colors=[col for _, col in runs],
-                                                 linewidths=1.0))
-        bones = [c[f, [a, b]] for f in snap for a, b in sk if np.isfinite(c[f, [a, b]]).all()]
-        if bones:
-            ax.add_collection3d(Line3DCollection(bones, colors="#3060c0", linewidths=1.2, alpha=0.7))
-        n_est = int(np.isfinite(c[..., 0]).sum())
-        ax.set_title(f"{m}  ({n_est}/{c.shape[0] * c.shape[1]} estimates)", fontsize=10, color=style[m][0])
-        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
-        span = hi - lo
-        ax.set_box_aspect(np.maximum(span, span.max() / MAX_ASPECT))
-        ax.set_xlabel("x [m]", fontsize=8)
-        ax.set_ylabel("y [m]", fontsize=8)
-        ax.set_zlabel("z [m]", fontsize=8)
-        ax.tick_params(labelsize=7)
-        for a in (ax.xaxis, ax.yaxis, ax.zaxis):
-            a.set_major_locator(MaxNLocator(4))
-        ax.view_init(elev=22, azim=-65)
-    from matplotlib.lines import Line2D
-    handles = [Line2D([], [], color=cmap[j], lw=2, label=mk) for j, mk in enumerate(markers[:20])]
+    legend = [(mk, {"colour": cmap[j], "width": 2}) for j, mk in enumerate(markers[:20])]
     if truth_cube is not None:
-        handles.append(Line2D([], [], color="k", lw=0.6, alpha=0.5, label="truth"))
+        legend.append(("truth", {"colour": "#000", "width": 0.6, "opacity": 0.5}))
     if sk:
-        handles.append(Line2D([], [], color="#3060c0", lw=1.2, label="skeleton (5 frames)"))
-    legend = fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=8, frameon=False)
-    _widen_for(fig, _legend_size_in(fig, legend)[0])
-    fig.subplots_adjust(bottom=0.12 if len(handles) > 8 else 0.08, wspace=0.05)
+        legend.append(("skeleton (5 frames)", {"colour": "#3060c0", "width": 1.2}))
+    ncol_legend = min(len(legend), 8)
+    nrow, ncol = _grid(len(methods), 3)
+    (x0, x1), (y0, y1) = view.limits()
+    pw = 460
+    ih = min(max((pw - 100) * (y1 - y0) / (x1 - x0), 110.0), 330.0)  # the panels take the view's proportions
+    ph = ih + 60
+    legend_w = ncol_legend * (max(svg.text_width(lab, 11) for lab, _ in legend) + 40)
+    fig = svg.Figure(max(pw * ncol, legend_w + 20), ph * nrow + 10 + math.ceil(len(legend) / ncol_legend) * 18)
+    for k, m in enumerate(methods):
+        r, c = divmod(k, ncol)
+        ax = fig.add_axes((c * pw + 50, r * ph + 28, pw - 100, ih), (x0, x1), (y0, y1), equal=True)
+        cube = cubes[m]
+        view.draw_box(ax)  # under the paths
+        if truth_cube is not None:
+            ax.line(*view.project(_separated(list(truth_cube[::st].transpose(1, 0, 2)))), "#000", 0.6, opacity=0.35)
+        tracks = cube[::st]
+        for j in range(len(markers)):
+            ax.line(*view.project(tracks[:, j]), cmap[j], 1.0)
+        bones = [cube[f, [a, b]] for f in snap for a, b in sk if np.isfinite(cube[f, [a, b]]).all()]
+        if bones:
+            ax.line(*view.project(_separated(bones)), "#3060c0", 1.2, opacity=0.7)
+        n_est = int(np.isfinite(cube[..., 0]).sum())
+        fig.text(c * pw + pw / 2, r * ph + 18, f"{m}  ({n_est}/{cube.shape[0] * cube.shape[1]} estimates)", 13,
+                 style[m][0], "middle")
+    fig.legend(legend, fig.width / 2, nrow * ph + 4, ncol=ncol_legend)
     return fig
 
 
-def _marker_colours(n: int) -> list:
-    from matplotlib import colormaps
-    cmap = colormaps["tab10" if n <= 10 else "tab20"]
-    return [cmap(i % cmap.N) for i in range(n)]
-
-
-def _ellipse_params(d: np.ndarray):
-    """Mean (2,), and width, height, angle [deg] of the 95 % ellipse of residuals ``d`` (n, 2)."""
+def _ellipse_points(d: np.ndarray, n: int = 73) -> np.ndarray:
+    """The 95 % ellipse (mean +- chi2_2 95 % of the covariance) of residuals ``d`` (n, 2), as (n, 2) points."""
     mean = d.mean(axis=0)
-    cov = np.cov(d.T)
-    w, v = np.linalg.eigh(cov)
-    w = np.clip(w, 0, None)
-    width, height = 2 * np.sqrt(CHI2_2DOF_95 * w[::-1])
-    angle = math.degrees(math.atan2(v[1, 1], v[0, 1]))
-    return mean, width, height, angle
+    w, v = np.linalg.eigh(np.cov(d.T))
+    t = np.linspace(0, 2 * np.pi, n)
+    circle = np.stack([np.cos(t), np.sin(t)], axis=1)  # (n, 2) in the eigenvectors' frame
+    return mean + (circle * np.sqrt(CHI2_2DOF_95 * np.clip(w, 0, None))) @ v.T
 
 
 def _fig_reprojection_ellipses(rep_mm, methods, style, cameras, rng):
@@ -292,179 +227,178 @@ def _fig_reprojection_ellipses(rep_mm, methods, style, cameras, rng):
     cams = [c for c in cameras if (rep["camera"] == c).any()]
     if not cams:
         return None
-    fig, nrow, ncol = _panel_grid(len(cams), 5, (3.3, 3.5))
+    nrow, ncol = _grid(len(cams), 5)
+    pw, ph = 270, 300
+    fig = svg.Figure(max(pw * ncol, 120 * len(methods) + 40), ph * nrow + 24)
     groups = dict(tuple(rep.groupby(["camera", "method"], sort=False)))
     for k, cam in enumerate(cams):
-        ax = fig.add_subplot(nrow, ncol, k + 1)
-        extent = 0.0
+        r, c = divmod(k, ncol)
+        drawn, extent = [], 0.0
         for m in methods:
             g = groups.get((cam, m))
             if g is None or len(g) < 3:
                 continue
             d = g[["du_mm", "dv_mm"]].to_numpy(float)
             pick = d if len(d) <= MAX_SCATTER else d[rng.choice(len(d), MAX_SCATTER, replace=False)]
-            colour, ls = style[m]
-            ax.scatter(pick[:, 0], pick[:, 1], s=2, color=colour, alpha=0.25, lw=0)
-            mean, w, h, ang = _ellipse_params(d)
-            ax.add_patch(Ellipse(mean, w, h, angle=ang, fill=False, color=colour, ls=ls, lw=1.6))
-            extent = max(extent, abs(mean).max() + 0.5 * max(w, h))
+            ell = _ellipse_points(d)
+            drawn.append((m, pick, ell))
+            extent = max(extent, float(np.abs(ell).max()))
         lim = 1.15 * extent if extent > 0 else 1.0
-        ax.set(xlim=(-lim, lim), ylim=(lim, -lim), aspect="equal")  # v (down) positive downward
-        ax.axhline(0, color="0.7", lw=0.5)
-        ax.axvline(0, color="0.7", lw=0.5)
-        ax.set_title(f"camera {cam}", fontsize=10)
-        ax.set_xlabel("Δu at depth [mm]", fontsize=8)
-        if k % ncol == 0:
-            ax.set_ylabel("Δv at depth [mm]", fontsize=8)
-        ax.tick_params(labelsize=7)
-    fig.legend(handles=_legend_handles(methods, style), loc="lower center", ncol=len(methods),
-               fontsize=8, frameon=False)
-    fig.subplots_adjust(bottom=0.2 if nrow == 1 else 0.1, wspace=0.35, hspace=0.35)
+        # v (down) positive downward, as in the image
+        ax = fig.add_axes((c * pw + 62, r * ph + 28, pw - 80, pw - 80), (-lim, lim), (-lim, lim), y_down=True,
+                          equal=True)
+        ax.hline(0, "#b3b3b3", 0.5)
+        ax.vline(0, "#b3b3b3", 0.5)
+        for m, pick, _ in drawn:
+            ax.points(pick[:, 0], pick[:, 1], style[m][0], 2.0, opacity=0.25)
+        for m, _, ell in drawn:
+            ax.line(ell[:, 0], ell[:, 1], style[m][0], 1.6, style[m][1])
+        ax.frame("Δu at depth [mm]", "Δv at depth [mm]" if c == 0 else "", f"camera {cam}", n_xticks=4, n_yticks=4)
+    fig.legend(_legend_items(methods, style), fig.width / 2, nrow * ph)
     return fig
 
 
 def _fig_reprojection_image(session, reproj_tracks, methods, style, cameras, selected, frames):
-    """Per camera: 2D features (dots) and each method's reprojected track (lines) of selected markers."""
+    """Per camera: 2D features (rings) and each method's reprojected track (lines) of selected markers."""
     obs = session.observations
     obs = obs[obs["marker"].isin(selected)]
     cams = [c for c in cameras if (obs["camera"] == c).any()]
     if not cams:
         return None
-    from matplotlib.collections import LineCollection
-
-    fig, nrow, ncol = _panel_grid(len(cams), 3, (4.6, 3.6))
-    cmap = _marker_colours(len(selected))
+    nrow, ncol = _grid(len(cams), 3)
+    limits = {}
+    for cam in cams:  # each panel zoomed to its camera's features
+        uv_all = obs.loc[obs["camera"] == cam, ["u", "v"]].to_numpy(float)
+        w_img, h_img = session.rig[cam].size_wh
+        lo, hi = uv_all.min(axis=0), uv_all.max(axis=0)
+        pad = 0.1 * max(float((hi - lo).max()), 20.0)
+        limits[cam] = ((max(lo[0] - pad, -0.5), min(hi[0] + pad, w_img - 0.5)),
+                       (max(lo[1] - pad, -0.5), min(hi[1] + pad, h_img - 0.5)))
+    pw = 440
+    # the rows as tall as the tallest panel needs at this width (equal axes), within 120-300 px
+    ih = min(max(max((v[1] - v[0]) / (u[1] - u[0]) for u, v in limits.values()) * (pw - 80), 120.0), 300.0)
+    ph = ih + 75
+    fig = svg.Figure(pw * ncol, ph * nrow + 24)
+    cmap = svg.colours(len(selected))
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     for k, cam in enumerate(cams):
-        ax = fig.add_subplot(nrow, ncol, k + 1)
+        r, c = divmod(k, ncol)
         o = obs[obs["camera"] == cam]
         w_img, h_img = session.rig[cam].size_wh
-        points, colours = [], []
+        ax = fig.add_axes((c * pw + 62, r * ph + 28, pw - 80, ih), *limits[cam], y_down=True, equal=True)
+        for m in methods:
+            uvm = reproj_tracks[m][cam][::st]  # (F, M_sel, 2)
+            colour, ls = style[m]
+            ax.line(*_separated(list(uvm.transpose(1, 0, 2))).T, colour, 0.9, ls, opacity=0.85)
         for j, mk in enumerate(selected):
             om = o[o["marker"] == mk]
             if len(om) == 0:
                 continue
             uv = om[["u", "v"]].to_numpy(float)[::max(1, st)]
-            points.append(uv)
-            colours += [cmap[j]] * len(uv)
+            ax.points(uv[:, 0], uv[:, 1], cmap[j], 5.0, hollow=True)
             # label at the track's median: the tracks' starts often coincide, their middles less so
-            ax.annotate(mk, np.median(uv, axis=0), fontsize=7, fontweight="bold", color=cmap[j], xytext=(4, 0),
-                        textcoords="offset points")
-        uv = np.concatenate(points)
-        ax.scatter(uv[:, 0], uv[:, 1], s=7, facecolor="none", edgecolor=colours, lw=0.7, zorder=3)
-        for m in methods:
-            uvm = reproj_tracks[m][cam]  # (F, M_sel, 2)
-            colour, ls = style[m]
-            ax.add_collection(LineCollection(_finite_runs(uvm[::st].transpose(1, 0, 2)), colors=colour,
-                                             linestyles=ls, linewidths=0.9, alpha=0.85), autolim=False)
-        uv_all = o[["u", "v"]].to_numpy(float)
-        lo, hi = uv_all.min(axis=0), uv_all.max(axis=0)
-        pad = 0.1 * max(float((hi - lo).max()), 20.0)
-        ax.set(xlim=(max(lo[0] - pad, -0.5), min(hi[0] + pad, w_img - 0.5)),
-               ylim=(min(hi[1] + pad, h_img - 0.5), max(lo[1] - pad, -0.5)), aspect="equal")
-        ax.set_title(f"camera {cam}  ({w_img}×{h_img} px, zoomed)", fontsize=10)
-        ax.set_xlabel("u [px]", fontsize=8)
-        ax.set_ylabel("v [px]", fontsize=8)
-        ax.tick_params(labelsize=7)
-    extra = [dict(marker="o", ls="", mfc="none", mec="k", label="image features")]
-    fig.legend(handles=_legend_handles(methods, style, extra), loc="lower center", ncol=len(methods) + 1,
-               fontsize=8, frameon=False)
-    fig.subplots_adjust(bottom=0.16 if nrow == 1 else 0.08, wspace=0.3, hspace=0.3)
+            mid = np.median(uv, axis=0)
+            ax.text(mid[0], mid[1], mk, 9, cmap[j], dx=5, dy=3, weight="bold")
+        ax.frame("u [px]", "v [px]", f"camera {cam}  ({w_img}×{h_img} px, zoomed)", n_xticks=4, n_yticks=4)
+    fig.legend(_legend_items(methods, style, [("image features", {"colour": "#000", "points": True, "hollow": True})]),
+               fig.width / 2, nrow * ph)
     return fig
 
 
 def _fig_coordinates(trajectories, methods, style, frames, fps, selected, status_fm, truth_cube, ref_cube):
     """Selected markers (rows) x, y, z (columns) over time; 95 % bands; occlusion shaded."""
     t = frames / fps
-    panels_in = 1.55 * len(selected) + 0.9
-    fig = Figure(figsize=(13.0, panels_in), dpi=DPI)
-    axes = fig.subplots(len(selected), 3, sharex=True, squeeze=False)
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     has_cov = all(c in trajectories for c in evaluate.TRAJ_COLUMNS[7:13])
     cubes = {m: evaluate.dense_from_table(trajectories, frames, selected, method=m)[:2] for m in methods}
     half = 0.5 / fps
+    legend = _legend_items(methods, style)
+    if truth_cube is not None:
+        legend.append(("truth", {"colour": "#000", "dash": ":", "width": 1.0}))
+    if ref_cube is not None:
+        legend.append(("reference", {"colour": "#9467bd", "points": True}))
+    legend += [("single view", {"colour": "#f6d7a7", "patch": True}),
+               ("unobserved", {"colour": "#f4a6a6", "patch": True}),
+               ("95 % band (±1.96 σ)", {"colour": "#999", "patch": True, "opacity": 0.3})]
+    pw, ph, gap, left = 400, 105, 16, 95
+    fig = svg.Figure(left + 3 * pw + 20, 0)
+    top = fig.legend(legend, fig.width / 2, 2) + 28  # above the panels, in a band of its own height
+    fig.height = top + len(selected) * (ph + gap) + 36
+    x_lim = (t[0], t[-1]) if len(t) > 1 else (t[0] - half, t[0] + half)
     for i, mk in enumerate(selected):
         for a, axis in enumerate("xyz"):
-            ax = axes[i, a]
-            if status_fm is not None:
-                s = status_fm[mk]
-                for name, colour in (("single_view", "#f6d7a7"), ("unobserved", "#f4a6a6")):
-                    for f0, f1 in _status_runs(frames, s == name):
-                        ax.axvspan(f0 / fps - half, f1 / fps + half, color=colour, lw=0, zorder=0)
+            lines = []
             for m in methods:
                 xyz, cov = cubes[m]
                 y = xyz[:, i, a]
-                colour, ls = style[m]
-                if has_cov:
-                    sd = np.sqrt(np.clip(cov[:, i, a, a], 0, None))
-                    ax.fill_between(t[::st], (y - 1.96 * sd)[::st], (y + 1.96 * sd)[::st], color=colour,
-                                    alpha=0.15, lw=0)
-                ax.plot(t[::st], y[::st], color=colour, ls=ls, lw=1.0)
+                sd = np.sqrt(np.clip(cov[:, i, a, a], 0, None)) if has_cov else None
+                lines.append((m, y[::st], None if sd is None else (y - 1.96 * sd)[::st],
+                              None if sd is None else (y + 1.96 * sd)[::st]))
+            shown = [v for _, *ys in lines for v in ys if v is not None]
+            shown += [c[::st, i, a] for c in (truth_cube, ref_cube) if c is not None]
+            vals = np.concatenate(shown) if shown else np.empty(0)
+            vals = vals[np.isfinite(vals)]
+            y_lim = (vals.min(), vals.max()) if len(vals) else (0.0, 1.0)
+            y_pad = 0.05 * (y_lim[1] - y_lim[0]) or 0.01
+            ax = fig.add_axes((left + a * pw + 20, top + i * (ph + gap), pw - 40, ph), x_lim,
+                              (y_lim[0] - y_pad, y_lim[1] + y_pad))
+            if status_fm is not None:
+                s = status_fm[mk]
+                for name, colour in (("single_view", "#f6d7a7"), ("unobserved", "#f4a6a6")):
+                    runs = np.array(_status_runs(frames, s == name), float).reshape(-1, 2)
+                    ax.vspan(runs[:, 0] / fps - half, runs[:, 1] / fps + half, colour)
+            for m, _, lo_, hi_ in lines:
+                if lo_ is not None:
+                    ax.band(t[::st], lo_, hi_, style[m][0], 0.15)
+            for m, y, _, _ in lines:
+                ax.line(t[::st], y, style[m][0], 1.0, style[m][1])
             if truth_cube is not None:
-                ax.plot(t[::st], truth_cube[::st, i, a], color="k", lw=0.8, ls=(0, (1, 1)))
+                ax.line(t[::st], truth_cube[::st, i, a], "#000", 0.9, ":")
             if ref_cube is not None:
-                ax.plot(t[::st], ref_cube[::st, i, a], color="#9467bd", lw=0.8, marker=".", ms=2, ls="")
-            if i == 0:
-                ax.set_title(f"{axis} [m]", fontsize=10)
-            if a == 0:
-                ax.set_ylabel(mk, fontsize=9)
-            ax.tick_params(labelsize=7)
-            ax.margins(x=0)
-            # few ticks on these small panels: matplotlib builds an object per tick, ~40 % of this figure's time
-            ax.yaxis.set_major_locator(MaxNLocator(3))
-            ax.xaxis.set_major_locator(MaxNLocator(4))
-    for a in range(3):
-        axes[-1, a].set_xlabel("time [s]", fontsize=8)
-    from matplotlib.patches import Patch
-    extra_h = _legend_handles(methods, style)
-    if truth_cube is not None:
-        extra_h += _legend_handles([], {}, [dict(color="k", lw=0.8, ls=(0, (1, 1)), label="truth")])
-    if ref_cube is not None:
-        extra_h += _legend_handles([], {}, [dict(color="#9467bd", marker=".", ls="", label="reference")])
-    extra_h += [Patch(color="#f6d7a7", label="single view"), Patch(color="#f4a6a6", label="unobserved"),
-                Patch(color="0.6", alpha=0.3, label="95 % band (±1.96 σ)")]
-    # above the panels, in a band of its own height: the gap does not grow with the number of markers
-    legend = fig.legend(handles=extra_h, loc="upper center", bbox_to_anchor=(0.5, 1.0), ncol=len(extra_h),
-                        fontsize=8, frameon=False)
-    height = panels_in + _legend_size_in(fig, legend)[1]
-    fig.set_figheight(height)
-    fig.subplots_adjust(top=1.0 - (height - panels_in + 0.4) / height, bottom=0.5 / height, hspace=0.15,
-                        wspace=0.18)
+                ax.points(t[::st], ref_cube[::st, i, a], "#9467bd", 2.5)
+            last = i == len(selected) - 1
+            ax.frame("time [s]" if last else "", mk if a == 0 else "", f"{axis} [m]" if i == 0 else "",
+                     xticks=last, n_xticks=5, n_yticks=3)
     return fig
 
 
-def _fig_group_bars(values: dict[str, dict[str, float | None]], methods, style, ylabel: str, scale: float,
-                    hline: float | None, title: str, ax):
-    """Bars per headline group (x) and method (colour): values[method][group]; None draws nothing."""
+def _fig_group_bars(fig, box, values: dict[str, dict[str, float | None]], methods, style, ylabel: str,
+                    scale: float, hline: float | None, title: str, log: bool = False, ylim=None):
+    """Bars per headline group (x) and method (colour) in ``box`` of ``fig``: values[method][group]; None draws
+    nothing."""
     groups = list(HEADLINE_GROUPS)
-    x = np.arange(len(groups))
+    vals = np.array([[np.nan if values.get(m, {}).get(g) is None else values[m][g] * scale for g in groups]
+                     for m in methods], float).reshape(len(methods), len(groups))
+    if ylim is None:
+        fin = vals[np.isfinite(vals) & (vals > 0)] if log else vals[np.isfinite(vals)]
+        ylim = ((fin.min() / 1.5, fin.max() * 1.5) if log else (0.0, fin.max() * 1.1)) if len(fin) else (0.1, 1.0)
+    ax = fig.add_axes(box, (-0.5, len(groups) - 0.5), ylim, ylog=log)
     w = 0.8 / max(len(methods), 1)
     for k, m in enumerate(methods):
-        y = [values.get(m, {}).get(g) for g in groups]
-        ax.bar(x + (k - (len(methods) - 1) / 2) * w, [np.nan if v is None else v * scale for v in y], w,
-               color=style[m][0], label=m)
+        x = np.arange(len(groups)) + (k - (len(methods) - 1) / 2) * w
+        ok = np.isfinite(vals[k])
+        ax.rects(x[ok] - w / 2, x[ok] + w / 2, np.full(ok.sum(), ylim[0]), vals[k][ok], style[m][0])
     if hline is not None:
-        ax.axhline(hline, color="k", ls="--", lw=0.8)
-    ax.set_xticks(x, [textwrap.fill(HEADLINE_GROUPS[g], 14) for g in groups], fontsize=7)  # no overlap
-    ax.set_ylabel(ylabel, fontsize=8)
-    ax.set_title(title, fontsize=10)
-    ax.tick_params(labelsize=7)
+        ax.hline(hline, "#000", 0.8, "--")
+    ax.frame("", ylabel, title, xticks=False)
+    for j, g in enumerate(groups):  # the groups' names under the bars, wrapped
+        for n, piece in enumerate(textwrap.wrap(HEADLINE_GROUPS[g], 14)):
+            fig.text(float(ax.px(j)), box[1] + box[3] + 15 + 12 * n, piece, 10, anchor="middle")
+    return ax
 
 
 def _fig_truth(summary, errors, methods, style, fps):
     """RMSE and 95 % coverage per headline group (from summary.json), and the error over time."""
-    fig = Figure(figsize=(14.0, 3.6), dpi=DPI)
-    a1, a2, a3 = fig.subplots(1, 3, gridspec_kw=dict(width_ratios=[1.2, 1.2, 1.4]))
+    fig = svg.Figure(1380, 330)
     rmse = {m: _get(summary, "methods", m, "truth", "rmse_m") or {} for m in methods}
     cov = {m: _get(summary, "methods", m, "truth", "coverage95") or {} for m in methods}
-    _fig_group_bars(rmse, methods, style, "RMSE [mm, log]", 1000.0, None, "RMSE vs truth", a1)
-    a1.set_yscale("log")
-    _fig_group_bars(cov, methods, style, "fraction inside", 1.0, 0.95, "truth inside the 95 % ellipsoid", a2)
-    a2.set_ylim(0, 1.05)
-    _fig_error_time(errors, methods, style, fps, a3, "median error over markers [mm]")
-    a3.set_title("error vs truth over time", fontsize=10)
-    a1.legend(fontsize=7, frameon=False)
-    fig.subplots_adjust(wspace=0.3)
+    _fig_group_bars(fig, (70, 30, 340, 210), rmse, methods, style, "RMSE [mm, log]", 1000.0, None, "RMSE vs truth",
+                    log=True)
+    _fig_group_bars(fig, (500, 30, 340, 210), cov, methods, style, "fraction inside", 1.0, 0.95,
+                    "truth inside the 95 % ellipsoid", ylim=(0.0, 1.05))
+    _fig_error_time(fig, (930, 30, 430, 210), errors, methods, style, fps, "median error over markers [mm]",
+                    "error vs truth over time")
+    fig.legend(_legend_items(methods, style), fig.width / 2, 300)
     return fig
 
 
@@ -476,9 +410,6 @@ _MAP_LABELS = ("seen by >= 2 cameras", "seen by 1 camera (gap)", "seen by none (
 def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: list[str], fps: float):
     """Marker x frame map of where the data are: observed / single view / unobserved inside each marker's
     span, and the track ends outside it (the rows of ``method``; status and span are the same for all)."""
-    from matplotlib.colors import ListedColormap
-    from matplotlib.patches import Patch
-
     t = trajectories[trajectories["method"] == method].drop_duplicates(["frame", "marker"])
     if not len(t) or "status" not in t:
         return None
@@ -487,49 +418,53 @@ def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: li
         code = np.where(t["span"].to_numpy() == "outside", _MAP_CODES["outside"], code)
     grid = (pd.Series(code, index=pd.MultiIndex.from_frame(t[["marker", "frame"]]))
             .unstack("frame").reindex(index=markers, columns=frames).to_numpy(float))
-    height = 0.9 + 0.17 * len(markers)
-    fig = Figure(figsize=(12.0, height), dpi=DPI)
-    fig.subplots_adjust(bottom=0.45 / height, top=1.0 - 0.15 / height)  # the time axis's labels inside, few markers too
-    ax = fig.add_subplot(1, 1, 1)
     joined = len(frames) and frames[-1] - frames[0] + 1 != len(frames)  # several takes: their frames side by side
-    x0, x1 = (0, len(frames)) if joined else (frames[0] / fps, (frames[-1] + 1) / fps)
-    ax.imshow(np.ma.masked_invalid(grid), aspect="auto", interpolation="nearest", vmin=-0.5, vmax=3.5,
-              cmap=ListedColormap(_MAP_COLOURS), extent=(x0, x1, len(markers), 0))
-    ax.set_yticks(np.arange(len(markers)) + 0.5, markers, fontsize=6 if len(markers) > 30 else 7)
-    ax.set_xlabel("frames of the takes, side by side" if joined else "time [s]", fontsize=8)
-    ax.tick_params(labelsize=7)
-    legend = ax.legend(handles=[Patch(color=c, label=lab) for c, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
-                       loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
-    _room_right(fig, legend)
+    edges = np.arange(len(frames) + 1, dtype=float) if joined else np.append(frames, frames[-1] + 1) / fps
+    row = 12 if len(markers) > 30 else 16
+    left = 20 + max(svg.text_width(m, 10) for m in markers)
+    legend_w = max(svg.text_width(lab, 11) for lab in _MAP_LABELS) + 50
+    fig = svg.Figure(1200, row * len(markers) + 50)
+    ax = fig.add_axes((left, 8, 1200 - left - legend_w - 20, row * len(markers)), (edges[0], edges[-1]),
+                      (0, len(markers)), y_down=True)
+    for c, colour in enumerate(_MAP_COLOURS):  # one rectangle per run of a status along a marker's row
+        on = np.pad(grid == c, ((0, 0), (1, 1))).astype(np.int8)
+        starts, ends = np.nonzero(np.diff(on, axis=1) == 1), np.nonzero(np.diff(on, axis=1) == -1)
+        ax.rects(edges[starts[1]], edges[ends[1]], starts[0].astype(float), starts[0] + 1.0, colour)
+    ax.frame("frames of the takes, side by side" if joined else "time [s]", "", "",
+             yticklabels=(np.arange(len(markers)) + 0.5, list(markers)))
+    fig.legend([(lab, {"colour": col, "patch": True}) for col, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
+               1200 - legend_w, 8, ncol=1, anchor="start")
     return fig
 
 
-def _fig_error_time(errors, methods, style, fps, ax, ylabel):
+def _fig_error_time(fig, box, errors, methods, style, fps, ylabel: str, title: str, hline: float | None = None):
+    """Median error over markers per frame [mm, log] of each method, in ``box`` of ``fig``; ``hline``: a dashed
+    line at that value [mm] (kept in view)."""
+    series = []
     for m in methods:
         e = errors[errors["method"] == m].groupby("frame")["err_m"].median()
         if len(e):
-            ax.plot(e.index.to_numpy() / fps, e.to_numpy() * 1000, color=style[m][0], ls=style[m][1], lw=1.0,
-                    label=m)
-    ax.set_yscale("log")
-    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # "6" rather than "6 x 10^0"
-    # minor ticks: only 2 and 5 x 10^k labelled (every one overlaps its neighbours over a decade or two)
-    ax.yaxis.set_minor_formatter(FuncFormatter(
-        lambda v, _: f"{v:g}" if v > 0 and f"{v:.0e}"[0] in "25" else ""))
-    ax.set_xlabel("time [s]", fontsize=8)
-    ax.set_ylabel(ylabel, fontsize=8)
-    ax.tick_params(labelsize=7)
+            series.append((m, e.index.to_numpy() / fps, e.to_numpy() * 1000))
+    ys = np.concatenate([y for *_, y in series]) if series else np.empty(0)
+    ys = np.append(ys[np.isfinite(ys) & (ys > 0)], [] if hline is None else [hline])
+    xs = np.concatenate([x for _, x, _ in series]) if series else np.zeros(1)
+    ax = fig.add_axes(box, (xs.min(), xs.max()), (ys.min() / 1.3, ys.max() * 1.3) if len(ys) else (0.1, 10.0),
+                      ylog=True)
+    for m, x, y in series:
+        ax.line(x, np.where(y > 0, y, np.nan), style[m][0], 1.0, style[m][1])
+    if hline is not None:
+        ax.hline(hline, "#000", 0.8, "--")
+    ax.frame("time [s]", ylabel, title)
 
 
 def _fig_reference(errors, methods, style, fps):
-    fig = Figure(figsize=(9.0, 3.0), dpi=DPI)
-    ax = fig.add_subplot(1, 1, 1)
-    _fig_error_time(errors, methods, style, fps, ax, "median distance over markers [mm]")
-    ax.axhline(1.0, color="k", ls="--", lw=0.8, label="paper (ear): EKF/UKF within 1 mm of triangulation")
-    ax.set_title("distance to the reference reconstruction over time", fontsize=10)
-    legend = ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.set_figwidth(fig.get_figwidth() + _legend_size_in(fig, legend)[0])  # the panel keeps its width
-    fig.subplots_adjust(bottom=0.18)  # room for the time axis's label
-    _room_right(fig, legend)
+    text = "paper (ear): EKF/UKF within 1 mm of triangulation"
+    legend = _legend_items(methods, style, [(text, {"colour": "#000", "dash": "--", "width": 0.8})])
+    legend_w = max(svg.text_width(lab, 11) for lab, _ in legend) + 50
+    fig = svg.Figure(900 + legend_w, 300)
+    _fig_error_time(fig, (80, 30, 800, 215), errors, methods, style, fps, "median distance over markers [mm]",
+                    "distance to the reference reconstruction over time", hline=1.0)
+    fig.legend(legend, 900, 30, ncol=1, anchor="start")
     return fig
 
 
@@ -550,40 +485,29 @@ figcaption{font-size:.85em;color:#444;max-width:75em}
 """
 
 
-def _figure_html(fig: Figure | None, caption: str, alt: str) -> str:
+def _figure_html(fig: svg.Figure | None, caption: str, alt: str, key: str) -> str:
+    """A figure's HTML: its SVG (clip ids prefixed ``key``, unique in the page) and caption."""
     if fig is None:
         return f'<p class="note">No data to draw: {html.escape(alt)}.</p>'
-    return (f'<figure><img alt="{html.escape(alt)}" src="{_png(fig)}">'
-            f"<figcaption>{caption}</figcaption></figure>")
+    return f'<figure>{fig.svg(key, alt)}<figcaption>{caption}</figcaption></figure>'
 
 
 class _Figures:
-    """The report's figures, drawn after the text, over the cores (batgraph.forked.map_jobs): each
-    :meth:`add` gives a placeholder for the text, :meth:`fill` puts every figure's HTML in its place.
-    A figure is built inside its job, so the work of making it is shared out too."""
+    """The report's figures: each :meth:`add` gives a placeholder for the text, :meth:`fill` draws every figure
+    and puts its HTML in its place (the text first, so that a figure's failure cannot hide the tables)."""
 
     def __init__(self):
         self._jobs: list[tuple[object, str, str]] = []
-        self._cost: list[float] = []
 
-    def add(self, build, caption: str, alt: str, cost: float = 1.0) -> str:
-        """``build()`` gives the Figure (or None: no data); returns the placeholder for its HTML. ``cost``:
-        its relative drawing time (the costly figures are handed out first, so that none is left for last)."""
+    def add(self, build, caption: str, alt: str) -> str:
+        """``build()`` gives the svg.Figure (or None: no data); returns the placeholder for its HTML."""
         self._jobs.append((build, caption, alt))
-        self._cost.append(cost)
         return f"\x00figure {len(self._jobs) - 1}\x00"
 
     def fill(self, text: str) -> str:
         """``text`` with every placeholder replaced by its figure's HTML."""
-        order = sorted(range(len(self._jobs)), key=lambda i: -self._cost[i])
-
-        def draw(k: int) -> str:
-            build, caption, alt = self._jobs[order[k]]
-            return _figure_html(build(), caption, alt)
-
-        drawn = forked.map_jobs(draw, len(order))
-        for k, i in enumerate(order):
-            text = text.replace(f"\x00figure {i}\x00", drawn[k])
+        for i, (build, caption, alt) in enumerate(self._jobs):
+            text = text.replace(f"\x00figure {i}\x00", _figure_html(build(), caption, alt, f"f{i}"))
         return text
 
 
@@ -743,23 +667,6 @@ def _validation_section(summary: dict) -> str | None:
     )
 
 
-@contextlib.contextmanager
-def _gc_paused():
-    """Python's cyclic garbage collector off inside (as it was outside afterwards).
-
-    Matplotlib builds many short-lived reference cycles (artists, transforms), which trigger collections
-    that also walk every long-lived object of the run (tables, session): ~10 % of a report's time. The
-    figures' cycles are collected after the report, by the collector's next ordinary run.
-    """
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
-
-
 def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
                   summary: dict | None) -> str:
     """The report as one HTML string (see the module docstring for its sections).
@@ -769,12 +676,6 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     summary: the summary.json dict, whose figures are shown as they are; None (or one without ``methods``)
         computes it from the tables with batgraph.summary.summarize, as reconstruct does.
     """
-    with _gc_paused():
-        return _render_report(session, trajectories, reprojection, summary)
-
-
-def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: dict | None) -> str:
-    """:func:`render_report`'s work (the collector paused around it)."""
     trajectories = trajectories.copy()
     trajectories["method"] = trajectories["method"].astype(str)
     if "span" not in trajectories and "n_views" in trajectories:
@@ -834,7 +735,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
                       "by one (orange) or none (red) inside the marker's track, and the track ends before its "
                       "first and after its last frame seen twice (grey), where every method extrapolates. "
                       "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
-                      "track ends out by default.", "where the data are", cost=0.1)
+                      "track ends out by default.", "where the data are")
     )
     sections.append(("verdict", "Verdict", verdict_html))
 
@@ -877,7 +778,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
         "axes (1st–99th percentile of all estimates), equally scaled unless one range is under a quarter of "
         "the longest (then that axis is stretched). Blue segments: the skeleton at five evenly spaced "
         "frames (the paper's Fig. 5a draws the wing the same way). Thin black: truth, when known.",
-        "3D trajectories per method", cost=0.15)))
+        "3D trajectories per method")))
 
     # --- reprojection ellipses (Fig. 5 b-f)
     def ellipses():
@@ -893,7 +794,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
         "the marker's depth in that camera (residual × depth / f). Ellipses: 95 % ellipse of each method's "
         "residuals (mean ± χ²₂ 95 % of their covariance); line styles and colours as everywhere in batgraph "
         "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image." + panel_note,
-        "reprojection error ellipses per camera", cost=0.2)))
+        "reprojection error ellipses per camera")))
 
     # --- reprojection over image features (Fig. 6)
     def features():
@@ -912,7 +813,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
         "each method's 3D estimate projected back into the raw (distorted) image over every frame "
         "(lines, method style), so the lines also run through occlusion gaps. Pixels: OpenCV convention, "
         "v downward; each panel is zoomed to the features." + panel_note,
-        "reprojections over image features", cost=0.25)))
+        "reprojections over image features")))
 
     # --- coordinates over time
     def coordinates():
@@ -926,7 +827,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
         f"(orange) or by none (red), from the status column of {html.escape(plotted[0]) if plotted else '–'}."
         + (" Dotted black: truth." if truth is not None else "")
         + (" Purple dots: reference reconstruction." if reference is not None else ""),
-        "marker coordinates over time", cost=0.6)))
+        "marker coordinates over time")))
 
     # --- per-camera table
     table = _camera_table(summary, methods, cameras, experiment)
@@ -956,7 +857,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
             + figures.add(lambda: _fig_truth(summary, errors, plotted, style, fps) if len(errors) else None,
                           "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
                           "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
-                          "errors against truth", cost=0.15))))
+                          "errors against truth"))))
 
     # --- reference
     if reference is not None and plotted:
@@ -969,7 +870,7 @@ def _render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFra
                else '<p class="note">No common (frame, marker) pairs.</p>')
             + figures.add(lambda: _fig_reference(ref_errors, plotted, style, fps) if len(ref_errors) else None,
                           "Median over markers of the distance to the reference on each frame [mm, "
-                          "log]; dashed: the paper's 1 mm.", "differences to the reference", cost=0.1))))
+                          "log]; dashed: the paper's 1 mm.", "differences to the reference"))))
 
     validation = _validation_section(summary)
     if validation is not None:

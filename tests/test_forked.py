@@ -116,20 +116,6 @@ def test_switched_off_runs_here(monkeypatch, tmp_path):
     assert forked.map_jobs(lambda i: os.getpid(), 3) == [os.getpid()] * 3
 
 
-def test_report_over_processes_is_the_report_drawn_here(monkeypatch):
-    from test_report import make_scene
-
-    from batgraph.report import render_report
-
-    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "triangulate"))
-    session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
-    monkeypatch.setenv(forked.ENV, "1")
-    spread = render_report(session, traj, rep, None)
-    monkeypatch.setenv(forked.ENV, "0")
-    here = render_report(session, traj, rep, None)
-    assert spread == here and "\x00" not in here and here.count("<img ") == 7
-
-
 def test_map_jobs_says_when_there_are_too_many_jobs():
     with pytest.raises(ValueError, match="at most 16384"):
         forked.map_jobs(lambda i: i, forked.MAX_JOBS + 1)

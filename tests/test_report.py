@@ -7,8 +7,6 @@ can be checked against what went in.
 
 from __future__ import annotations
 
-import base64
-import io
 import re
 from html.parser import HTMLParser
 
@@ -103,17 +101,20 @@ def make_scene(n_cams=3, n_frames=48, markers=MARKERS, fps=120.0, methods=("smoo
 
 
 class _Collector(HTMLParser):
-    """Collects images, links, sections, table rows (as lists of cell texts) from the report."""
+    """Collects figures (their SVG's aria-label), links, sections, table rows (as lists of cell texts) from the
+    report."""
 
     def __init__(self):
         super().__init__()
-        self.imgs, self.hrefs, self.srcs, self.sections, self.tables = [], [], [], [], []
+        self.figures, self.imgs, self.hrefs, self.srcs, self.sections, self.tables = [], [], [], [], [], []
         self._row, self._cell, self._depth = None, None, 0
 
     def handle_starttag(self, tag, attrs):
         a = dict(attrs)
         if tag == "img":
             self.imgs.append(a.get("src", ""))
+        if tag == "svg" and a.get("class") == "fig":
+            self.figures.append(a.get("aria-label"))
         if "src" in a:
             self.srcs.append(a["src"])
         if "href" in a:
@@ -213,11 +214,14 @@ def test_full_report_has_every_section_and_is_self_contained(tmp_path):
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table",
                           "truth", "reference"]
-    assert len(p.imgs) == 7
-    for src in p.imgs:
-        assert src.startswith("data:image/png;base64,")
-        png = base64.b64decode(src.split(",", 1)[1])
-        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    assert len(p.figures) == 7 and not p.imgs
+    svgs = figure_svgs(text)
+    assert len(svgs) == 7
+    for fig in svgs:  # every figure draws something: paths (lines, points, bands) and texts (ticks, labels)
+        assert len(fig.findall(".//path")) >= 5 and len(fig.findall(".//text")) >= 5
+    clip_ids = re.findall(r'<clipPath id="([^"]+)"', text)
+    assert len(clip_ids) == len(set(clip_ids))  # unique in the page, so each figure clips to its own panels
+    assert set(re.findall(r'url\(#([^)]+)\)', text)) <= set(clip_ids)
     # self-contained: only embedded data and in-page anchors
     assert all(s.startswith("data:") for s in p.srcs)
     assert all(h.startswith("#") for h in p.hrefs)
@@ -251,39 +255,35 @@ def test_full_report_has_every_section_and_is_self_contained(tmp_path):
     assert truth_rows["triangulate"][4] == "0"  # n of one-camera gaps: triangulation estimates none
 
 
-def test_figures_fit_their_canvas_and_are_drawn_once(monkeypatch):
-    """Every figure keeps its artists (legends included) inside its canvas, so report._png draws it once and
-    crops it, and never needs its fallback (savefig with bbox_inches="tight", for a figure that would be cut)."""
-    from matplotlib.figure import Figure
+def figure_svgs(text: str) -> list:
+    """Every figure's <svg> element of the report, parsed as XML (so each is well-formed)."""
+    import xml.etree.ElementTree as ET
 
-    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
-    session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
-    saved = []
-    monkeypatch.setenv("BATGRAPH_FORK", "0")  # drawn here, so that the patch below sees every figure
-    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: saved.append(self))
-    p = parse(render_report(session, traj, rep, None))
-    assert len(p.imgs) == 7 and saved == []
+    return [ET.fromstring(m) for m in re.findall(r'<svg class="fig".*?</svg>', text, re.S)]
 
 
-def test_png_crops_to_the_content_and_keeps_what_reaches_past_the_canvas():
-    """A figure inside its canvas is cropped to its content plus a 0.1 inch margin; a text placed past the
-    canvas's right edge is kept (the tight fallback), not cut off."""
-    from matplotlib.figure import Figure
-    from PIL import Image
+def test_figures_keep_their_texts_inside_their_canvas():
+    """Every text of every figure (ticks, labels, titles, legends), at its estimated width, lies inside its
+    figure's canvas, also with 12 cameras and a long marker name: nothing is cut off at the figure's edge."""
+    from batgraph.svg import text_width
 
-    from batgraph.report import DPI, _png
-
-    def size(fig):
-        src = _png(fig)
-        return Image.open(io.BytesIO(base64.b64decode(src.split(",", 1)[1]))).size
-
-    fig = Figure(figsize=(4.0, 3.0), dpi=DPI)
-    fig.text(0.5, 0.5, "x", fontsize=20)
-    w, h = size(fig)
-    assert w < 0.5 * 4 * DPI and h < 0.5 * 3 * DPI  # just the letter and its margin
-    fig.text(0.9, 0.5, "a text that runs well past the right edge", fontsize=20)
-    w, h = size(fig)
-    assert w > 4 * DPI
+    for kw in ({}, {"n_cams": 12, "markers": MARKERS[:-1] + ["a_rather_long_marker_name_on_the_tail"]}):
+        session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"), **kw)
+        session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
+        svgs = figure_svgs(render_report(session, traj, rep, None))
+        assert len(svgs) == 7
+        for fig in svgs:
+            w, h = float(fig.get("width")), float(fig.get("height"))
+            for t in fig.iter("text"):
+                x, y, size = float(t.get("x")), float(t.get("y")), float(t.get("font-size"))
+                width = text_width(t.text or "", size)
+                lo = {"start": 0.0, "middle": 0.5, "end": 1.0}[t.get("text-anchor")] * width
+                if t.get("transform"):  # rotated by -90 degrees about (x, y): the text runs upward
+                    box = (x - size, y - width + lo, x + 0.3 * size, y + lo)
+                else:
+                    box = (x - lo, y - size, x - lo + width, y + 0.3 * size)
+                assert box[0] >= -1 and box[1] >= -1 and box[2] <= w + 1 and box[3] <= h + 1, \
+                    (fig.get("aria-label"), t.text, box, (w, h))
 
 
 def test_finite_runs_are_the_pieces_plot_draws():
@@ -317,7 +317,7 @@ def test_report_without_truth_or_reference_omits_those_sections(tmp_path):
     text = write_report(tmp_path / "report.html", session, traj, rep, None).read_text(encoding="utf-8")
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.imgs) == 5
+    assert len(p.figures) == 5
     assert "Errors against truth" not in text and "reference reconstruction" not in text.split("</nav>")[0]
     cams = table(p, "cameras")[1:]
     assert [r[0] for r in cams] == ["cam1", "cam2"]
@@ -347,7 +347,7 @@ def test_degenerate_inputs_still_render(tmp_path):
     text = render_report(session, traj, rep.iloc[:0], None)
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.imgs) == 1  # the marker x frame map: where the data are, even without an estimate
+    assert len(p.figures) == 1  # the marker x frame map: where the data are, even without an estimate
     assert text.count("No data to draw") == 4
     assert "No reprojection errors." in text
 
