@@ -19,7 +19,7 @@ one batched operation over every column being solved. Measured alternatives on 5
 kd = 11) was no faster (its unblocked per-column BLAS calls cost as much as numpy's per-frame calls);
 odd-even cyclic reduction (log2 F sweeps, 2x the flops) was 1-2x slower; closed-form batched 6x6
 inverses did not beat LAPACK's at these batch sizes. What made the smoother faster is fewer and cheaper
-sweeps: the q search solves every decade of its grid as ONE batch (candidates x markers as columns,
+sweeps: the q search solves every point of its grid as ONE batch (candidates x markers as columns,
 :func:`solve_levels`), computes no covariances while searching (log det from the forward sweep),
 merges the forward elimination and substitution into one sweep, and gives exact (Newton) steps their
 own damping, so a Huber kink no longer makes a marker alternate rejected exact / accepted IRLS steps
@@ -733,15 +733,15 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     rig: fixed cameras (pose covariances ignored). ideal: ideal pixels (C, F, M, 2) and covariances
     (C, F, M, 2, 2). p_init, v_init: initial track (F, M, 3) [m], [m/s] (factors.initial_track);
     p_init[0] is the gauge prior's mean. markers: int indices of the markers to fit (estimated ones).
-    p_start, v_start, a_start: where the decade grid's solves start (F, M, 3) [m], [m/s], [m/s^2]
+    p_start, v_start, a_start: where the grid's solves start (F, M, 3) [m], [m/s], [m/s^2]
     (default p_init, v_init and solve_fast's default accelerations), e.g. the cleaning solution.
-    The decade grid over noise.LOG10_RANGE[model] is ONE batched solve (:func:`solve_levels`:
-    decades x markers as the batch axis, every column from the start, so no stiff solution is ever
-    carried to a neighbouring decade, which once dragged wing markers off their track). Then Brent's
-    search per marker (noise.Bracket: parabolic steps through the best three points, golden-section
+    The grid over noise.LOG10_RANGE[model], every noise.LOG10_GRID_STEP decades, is ONE batched solve
+    (:func:`solve_levels`: levels x markers as the batch axis, every column from the start, so no stiff
+    solution is ever carried to a neighbouring level, which once dragged wing markers off their track).
+    Then Brent's search per marker (noise.Bracket: parabolic steps through the best three points, golden-section
     steps where those fail), vectorised (each step is one solve_fast of the markers still searching, one
-    level each, warm-started from their previous step, without covariances), in [best decade - 1, best
-    decade + 1] from the grid's three points there, until the bracket is noise.LOG10_Q_TOL wide (at most
+    level each, warm-started from their previous step, without covariances), in [best - step, best + step]
+    from the grid's three points there, until the bracket is noise.LOG10_Q_TOL wide (at most
     twice the steps golden section takes); the answer is each marker's best level evaluated. It
     took 4.5-7 steps per marker where golden section takes 10-12, and chose q within 0.018 decade of
     golden's (evidence within -0.06..+0.8 nats) on the simulated scenes of BENCHMARKS.md. Score
@@ -752,7 +752,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     n_solves counts the batched grid as one.
 
     The "oscillating" model (wingbeat frequency ``oscillation_hz`` [Hz]) has two noise levels per marker: the
-    trend's q and the oscillation's sigma_m. Its grid is q every noise.OSC_LOG10_Q_STEP decades times sigma_m
+    trend's q and the oscillation's sigma_m. Its grid is q every noise.LOG10_GRID_STEP decades times sigma_m
     every decade of noise.OSC_LOG10_SIGMA_RANGE (one batched solve: each of its 18-wide blocks costs ~27 times a
     constant-velocity one); Brent's search then on log10 q within a grid step of the best point, at its
     sigma_m, and last on log10 sigma_m within a decade, at that q (coordinate-wise: measured against the full
@@ -801,7 +801,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     if osc_model and oscillation_hz is None:
         raise ValueError("the oscillating model needs the wingbeat frequency (oscillation_hz)")
     lo, hi = noise.LOG10_RANGE[model]
-    step = noise.OSC_LOG10_Q_STEP if osc_model else 1.0  # the grid's spacing in log10 q, and golden's half bracket
+    step = noise.LOG10_GRID_STEP  # the grid's spacing in log10 q, and Brent's half bracket
     grid = np.arange(math.ceil(lo), math.floor(hi) + 1, step, dtype=float)
     s_lo, s_hi = noise.OSC_LOG10_SIGMA_RANGE
     sig_grid = np.arange(s_lo, s_hi + 0.5, 1.0) if osc_model else np.full(1, np.nan)  # log10 sigma_m, decades
