@@ -189,6 +189,19 @@ def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> 
     return projection_rows(rig, ideal, c, f, m, (np.cumsum(estimated) - 1)[m], int(estimated.sum()))
 
 
+def observation_rows(rig: Rig, ideal: IdealObservations) -> _Observations:
+    """Every observation of every marker of ``ideal``, as solve_fast's and solve_levels' ``rows``."""
+    return _observations(rig, ideal, np.ones(ideal.seen.shape[2], bool))
+
+
+def _rows_of(rows: _Observations, estimated: np.ndarray) -> _Observations:
+    """The rows of the ``estimated`` markers (bool (M,)) out of :func:`observation_rows`' (the same rows, order
+    and columns as :func:`_observations` builds)."""
+    if rows.n_markers != len(estimated):
+        raise ValueError(f"rows hold {rows.n_markers} markers, the problem {len(estimated)}")
+    return rows if estimated.all() else rows.of_markers(estimated)
+
+
 # the 6 distinct entries (i, j), i <= j, of a symmetric 3x3 block
 _IU = np.triu_indices(3)
 # the Linearization arrays kernels.projection_sums is given when no Jacobian is asked for
@@ -420,7 +433,8 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
                noise_level: float | np.ndarray, fps: float, robust: str = "huber", robust_k: float = 2.0,
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
                covariances: bool = True, a_init: np.ndarray | None = None, loo: bool = False,
-               oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, np.ndarray | None, dict]:
+               oscillation: spec.Oscillation | None = None, rows: _Observations | None = None,
+               ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
     session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
@@ -442,6 +456,9 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     covariances: False skips the marginal covariances (cov is None; log det is still computed, from
         the forward sweep alone): what a search over the noise level by the evidence needs.
     loo: also each marker's leave-one-frame-out score (needs, and implies, the marginal covariances).
+    rows: every observation of every marker of ``ideal`` (:func:`observation_rows`), for a caller that solves
+        the same observations many times (the noise search: building them cost ~36 ms a solve at 30 x 180 x 160);
+        default built here.
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
@@ -472,7 +489,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
             raise ValueError("the oscillating model needs an oscillation (cost.Oscillation)")
         level = np.broadcast_to(level, (M,))
     prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k, osc)
-    obs = _observations(rig, ideal, estimated)
+    obs = _observations(rig, ideal, estimated) if rows is None else _rows_of(rows, estimated)
     x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps, a_init)
     x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
     D, _ = prob.system(x, mu0, lin, exact=False)
@@ -647,7 +664,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
                  fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
                  p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
                  a_start: np.ndarray | None = None, loo: bool = False, oscillation: spec.Oscillation | None = None,
-                 ) -> dict:
+                 rows: _Observations | None = None) -> dict:
     """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
 
     levels: (K, M) noise levels (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]), one row per candidate. The K copies of
@@ -657,6 +674,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     repeated per candidate, in groups of candidates of at most ``max_rows`` rows in all.
     v_start, p_start, a_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
     oscillation: the "oscillating" model's, its sigma_m one per candidate and marker (K, M).
+    rows: as solve_fast's.
     Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
     logdet_per_marker), position (K, F, M, 3), velocity and acceleration (K, F, M, 3) or None,
     iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's), and with ``loo`` the
@@ -671,7 +689,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     K = len(levels)
     estimated = np.isfinite(p_init).all(axis=(0, 2))
     ms = np.flatnonzero(estimated)
-    obs = _observations(rig, ideal, estimated)
+    obs = _observations(rig, ideal, estimated) if rows is None else _rows_of(rows, estimated)
     dt = 1.0 / fps
     d = spec.state_dim(model)
     out = {"cost": np.zeros((K, M)), "logdet": np.zeros((K, M)), "position": np.full((K, F, M, 3), np.nan),
@@ -765,6 +783,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     F, M = p_init.shape[:2]
     dt = 1.0 / fps
     sub = IdealObservations(ideal.uv_px[:, :, markers], ideal.cov_px2[:, :, markers])
+    rows = observation_rows(rig, sub)  # built once for every solve of the search
     p0 = p_init[:, markers]
     cut = (lambda a: None if a is None else a[:, markers])  # noqa: E731
     start = (cut(p_init if p_start is None else p_start), cut(v_init if v_start is None else v_start), cut(a_start))
@@ -785,7 +804,8 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         n_solves += 1
         p = p0 if live is None else np.where(live[None, :, None], p0, np.nan)
         _, _, info = solve_fast(rig, sub, p, model, level, fps, robust, robust_k, v_init=from_[1],
-                                p_start=from_[0], a_init=from_[2], covariances=False, loo=loo, oscillation=osc)
+                                p_start=from_[0], a_init=from_[2], covariances=False, loo=loo, oscillation=osc,
+                                rows=rows)
         score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"], osc)
         score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
         new = (info["position"], info["velocity"], info["acceleration"])
@@ -814,7 +834,8 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     osc_grid = spec.Oscillation(oscillation_hz, np.repeat(10.0 ** sig_grid[:, None], len(markers), axis=1)) \
         if osc_model else None
     sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
-                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo, oscillation=osc_grid)
+                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo, oscillation=osc_grid,
+                       rows=rows)
     n_solves += 1
     bar.update()
     scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"], osc_grid)  # (len(grid), markers)
