@@ -437,7 +437,7 @@ def label_codes(df: pd.DataFrame, col: str, path, is_csv: bool) -> Labels:
 
 def label_column(df: pd.DataFrame, col: str, path, is_csv: bool) -> pd.Series:
     """Column ``col`` as stripped, non-empty str (:func:`label_codes`); InputError naming the first empty row."""
-    return pd.Series(label_codes(df, col, path, is_csv).text(), index=df.index, dtype="str")
+    return pd.Series(label_codes(df, col, path, is_csv).column(), index=df.index)
 
 
 # ----------------------------------------------------------------------------------------------

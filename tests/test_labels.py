@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from batgraph.labels import factorize
+from batgraph.labels import factorize, text_column
 
 ROWS = ["cam2", " cam1", "cam10", "cam1 ", "cam2", "Cam1", "é", "cam1", "", "nan"]
 
@@ -46,3 +46,12 @@ def test_sort_keys_order_rows_as_pandas_sorts_their_text():
     labels = factorize(col)
     order = np.argsort(labels.sort_keys(), kind="stable")
     assert order.tolist() == col.sort_values(kind="stable").index.tolist()
+
+
+def test_text_column_is_the_column_pandas_makes_of_str():
+    names, codes = ["cam1", "flügel", "x"], np.array([2, 0, 0, 1, -1, 2])
+    got = pd.Series(text_column(names, codes))
+    want = pd.Series(np.array(["x", "cam1", "cam1", "flügel", None, "x"], dtype=object))
+    pd.testing.assert_series_equal(got, want, check_exact=True)
+    assert got.dtype == want.dtype and type(got.array) is type(want.array)
+    assert pd.Series(text_column(names, np.zeros(0, np.int64))).dtype == want.dtype
