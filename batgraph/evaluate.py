@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from .labels import factorize, text_column
 from .motion import CHI2_3DOF_95
 from .result import Estimate
 from .session import DenseObservations, Session
@@ -96,21 +97,56 @@ def trajectories_table(session: Session, dense: DenseObservations, est: Estimate
 
 def reprojection_table(session: Session, dense: DenseObservations, est: Estimate) -> pd.DataFrame:
     """One row per observation: raw pixels, the estimate reprojected with distortion, error, outlier flag."""
+    return reprojection_tables(session, dense, [est])
+
+
+def reprojection_tables(session: Session, dense: DenseObservations, estimates: list[Estimate]) -> pd.DataFrame:
+    """The reprojection tables of several estimates stacked in their order (each as :func:`reprojection_table`:
+    per camera in the rig's order, its observations frame by frame, marker by marker).
+
+    The observations' own columns (frame, camera, marker, u, v) are gathered once and repeated for every
+    estimate, and the table is built once; only u_hat, v_hat, err_px and outlier are per estimate.
+    """
     seen = dense.seen
-    parts = []
-    for c, cam in enumerate(session.rig):
-        fi, mi = np.nonzero(seen[c])
-        if len(fi) == 0:
-            continue
-        uv = dense.uv_px[c, fi, mi]
-        uv_hat = cam.project(est.xyz_m[fi, mi])
-        parts.append(pd.DataFrame({
-            "method": est.method, "frame": dense.frames[fi], "camera": cam.name,
-            "marker": np.asarray(dense.markers, dtype=object)[mi], "u": uv[:, 0], "v": uv[:, 1],
-            "u_hat": uv_hat[:, 0], "v_hat": uv_hat[:, 1],
-            "err_px": np.linalg.norm(uv_hat - uv, axis=1), "outlier": est.outlier[c, fi, mi],
-        }))
-    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=REPROJ_COLUMNS)
+    per_camera = [np.nonzero(seen[c]) for c in range(len(session.rig))]
+    parts = [(c, fi, mi) for c, (fi, mi) in enumerate(per_camera) if len(fi)]
+    if not parts:
+        return pd.concat([pd.DataFrame(columns=REPROJ_COLUMNS) for _ in estimates], ignore_index=True)
+    fi = np.concatenate([p[1] for p in parts])
+    mi = np.concatenate([p[2] for p in parts])
+    ci = np.concatenate([np.full(len(p[1]), p[0]) for p in parts])
+    uv = dense.uv_px[ci, fi, mi]  # (n, 2) raw pixels
+    uv_hat, outlier = [], []
+    for est in estimates:
+        for c, f, m in parts:  # camera by camera, as the rows are
+            uv_hat.append(session.rig[c].project(est.xyz_m[f, m]))
+            outlier.append(est.outlier[c, f, m])
+    uv_hat = np.concatenate(uv_hat)
+    k = len(estimates)
+    uv_all = np.tile(uv, (k, 1))
+    return pd.DataFrame({
+        "method": text_column([est.method for est in estimates], np.repeat(np.arange(k), len(fi))),
+        "frame": np.tile(dense.frames[fi], k),
+        "camera": text_column(session.rig.names, np.tile(ci, k)),
+        "marker": text_column(dense.markers, np.tile(mi, k)),
+        "u": uv_all[:, 0], "v": uv_all[:, 1], "u_hat": uv_hat[:, 0], "v_hat": uv_hat[:, 1],
+        "err_px": np.linalg.norm(uv_hat - uv_all, axis=1), "outlier": np.concatenate(outlier),
+    })
+
+
+def method_rows(table: pd.DataFrame) -> dict[str, slice | np.ndarray]:
+    """The rows (positions, for ``iloc``) of each method in a table with a ``method`` column, in order of first
+    appearance: a slice where a method's rows are one block (as the pipeline stacks them), else their indices.
+    ``table.iloc[rows]`` is ``table[table["method"] == m]`` without comparing every row's text per method."""
+    labels = factorize(table["method"])
+    out = {}
+    order = np.argsort(labels.codes, kind="stable")
+    starts = np.searchsorted(labels.codes[order], np.arange(len(labels.names) + 1))
+    for k, name in enumerate(labels.names):
+        rows = order[starts[k]:starts[k + 1]]
+        contiguous = len(rows) and rows[-1] - rows[0] + 1 == len(rows)
+        out[str(name)] = slice(int(rows[0]), int(rows[-1]) + 1) if contiguous else rows
+    return out
 
 
 def dense_from_table(table: pd.DataFrame, frames: np.ndarray | None = None, markers: list[str] | None = None,
@@ -191,12 +227,21 @@ def group_mask(table: pd.DataFrame, group: str) -> np.ndarray:
     return mask & (table["span"] == sp).to_numpy() if sp else mask
 
 
-def point_errors(traj: pd.DataFrame, points: pd.DataFrame) -> pd.DataFrame:
+def errors_by_method(traj: pd.DataFrame, points: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """:func:`errors_against` of each method of a stacked trajectories table (with ``span`` added if missing),
+    the join with ``points`` made once for all of them: per method, the frame errors_against of that method's
+    rows alone gives (same rows, order and index); a method with no row in the join is left out."""
+    j = errors_against(traj if "span" in traj.columns else add_span(traj), points)
+    return {m: j.iloc[rows].reset_index(drop=True) for m, rows in method_rows(j).items()}
+
+
+def point_errors(traj: pd.DataFrame, points: pd.DataFrame, joined: pd.DataFrame | None = None) -> pd.DataFrame:
     """errors_against restricted to the rows where the method gave an estimate: method, frame, marker,
-    status, span, err_m [m] and mahal2 (NaN without a valid covariance)."""
-    if "span" not in traj.columns:
-        traj = add_span(traj)
-    j = errors_against(traj, points)
+    status, span, err_m [m] and mahal2 (NaN without a valid covariance). joined: ``errors_against`` of these
+    rows, where the caller has it (:func:`errors_by_method`)."""
+    if joined is None:
+        joined = errors_against(traj if "span" in traj.columns else add_span(traj), points)
+    j = joined
     j = j[np.isfinite(j["err_m"].to_numpy(float))]
     return j[["method", "frame", "marker", "status", "span", "err_m", "mahal2"]].reset_index(drop=True)
 
@@ -206,12 +251,13 @@ def _rmse(err: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(err**2))) if len(err) else None
 
 
-def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame) -> dict:
+def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame, joined: pd.DataFrame | None = None) -> dict:
     """One method's errors against truth per group (GROUPS): rmse_m, mean_m, p95_m [m], coverage95, n (truth
-    points in the group), n_estimated (of those, the ones the method estimates; the figures are over these)."""
-    if "span" not in traj.columns:
-        traj = add_span(traj)
-    j = errors_against(traj, truth)
+    points in the group), n_estimated (of those, the ones the method estimates; the figures are over these).
+    joined: ``errors_against`` of these rows, where the caller has it (:func:`errors_by_method`)."""
+    if joined is None:
+        joined = errors_against(traj if "span" in traj.columns else add_span(traj), truth)
+    j = joined
     out = {"rmse_m": {}, "mean_m": {}, "p95_m": {}, "coverage95": {}, "n": {}, "n_estimated": {}}
     for name in GROUPS:
         g = j[group_mask(j, name)]
@@ -228,10 +274,10 @@ def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame) -> dict:
     return out
 
 
-def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame) -> dict:
+def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame, joined: pd.DataFrame | None = None) -> dict:
     """Differences to another tool's 3D (e.g. DLTdv's xyzpts): RMS, median, max [m] and count, over all
-    common points, plus rms_m and n per group (GROUPS)."""
-    d = point_errors(traj, reference)
+    common points, plus rms_m and n per group (GROUPS). joined: as :func:`point_errors`'."""
+    d = point_errors(traj, reference, joined)
     if not len(d):
         return {"n": 0}
     e = d["err_m"].to_numpy()
@@ -320,8 +366,11 @@ def _keys(table: pd.DataFrame) -> pd.MultiIndex:
 
 
 def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, runtime_s: float | None = None,
-                   info: dict | None = None) -> dict:
-    """summary.json's entry for one method, from its own rows of the two tables."""
+                   info: dict | None = None, truth_errors: pd.DataFrame | None = None,
+                   reference_errors: pd.DataFrame | None = None) -> dict:
+    """summary.json's entry for one method, from its own rows of the two tables. truth_errors, reference_errors:
+    ``errors_against`` of these rows and the session's truth / reference, where the caller has them
+    (:func:`errors_by_method`)."""
     rep_mm = reprojection_in_mm(reproj, traj, session.rig)
     t = traj if "span" in traj.columns else add_span(traj)
     has = np.isfinite(t["x"].to_numpy(float))
@@ -330,9 +379,9 @@ def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, r
          "estimated": {g: int((has & group_mask(t, g)).sum()) for g in GROUPS},
          "points": {g: int(group_mask(t, g).sum()) for g in GROUPS}}
     if session.truth is not None:
-        s["truth"] = truth_stats(traj, session.truth)
+        s["truth"] = truth_stats(t, session.truth, truth_errors)
     if session.reference is not None:
-        s["reference"] = reference_stats(traj, session.reference)
+        s["reference"] = reference_stats(t, session.reference, reference_errors)
     if session.mislabels is not None and len(reproj):
         is_planted = _keys(reproj).isin(_keys(session.mislabels))
         flagged = reproj["outlier"].to_numpy(bool)

@@ -87,9 +87,8 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
                 for i, name in enumerate(tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress,
                                               leave=False))]
     estimates = dict(zip(methods, ests, strict=True))
-    trajs = [evaluate.trajectories_table(session, dense, est) for est in ests]
-    reprojs = [evaluate.reprojection_table(session, dense, est) for est in ests]
-    traj_all, reproj_all = pd.concat(trajs, ignore_index=True), pd.concat(reprojs, ignore_index=True)
+    traj_all = pd.concat([evaluate.trajectories_table(session, dense, est) for est in ests], ignore_index=True)
+    reproj_all = evaluate.reprojection_tables(session, dense, ests)  # the observations' columns gathered once
     summary = summary_mod.summarize(
         session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},
         infos={m: e.info for m, e in estimates.items()},

@@ -29,31 +29,28 @@ MIN_OBSERVATIONS = 20
 MEDIAN_CHI2_2DOF = 2 * math.log(2)  # median of chi-square with 2 DOF
 
 
-def _gauss_newton(rig: Rig, ideal: IdealObservations, w_scale: np.ndarray, xyz: np.ndarray, use: np.ndarray,
-                  iters: int = 3):
+def _gauss_newton(P: np.ndarray, uv: np.ndarray, Wu: np.ndarray, w_scale: np.ndarray, xyz: np.ndarray,
+                  use: np.ndarray, iters: int = 3):
     """Refine xyz (F, M, 3) by weighted Gauss-Newton, a step kept per point only where it lowers its cost.
 
-    w_scale: (C,) 1 / sigma_c^2 multiplying each observation's unit information S1^-1; use: bool
-    (C, F, M), the observations that take part (points with >= 2 of them are refined, the others are NaN).
-    Returns xyz, residuals r (C, F, M, 2) [ideal px], unit information Wu (C, F, M, 2, 2), each
-    observation's J^T W J (C, F, M, 3, 3) (zero where not used) and the posterior covariance Sigma
-    (F, M, 3, 3) for the weights w_scale (NaN where not triangulated). The per-point loop is compiled
-    (batgraph.graph.kernels.weighted_triangulation: 2.5 -> 0.57 s at 30 x 180 x 160).
+    P (C, 3, 4) projection matrices to ideal pixels; uv (C, F, M, 2) ideal pixels (0 where unseen); Wu
+    (C, F, M, 2, 2) each observation's unit information S1^-1 (zero where not used); w_scale: (C,) 1 / sigma_c^2
+    multiplying it; use: bool (C, F, M), the observations that take part (points with >= 2 of them are refined,
+    the others are NaN). Returns xyz, residuals r (C, F, M, 2) [ideal px], each observation's leverage h
+    (C, F, M) (zero where not used) and the posterior covariance Sigma (F, M, 3, 3) for the weights w_scale
+    (NaN where not triangulated). The per-point loop is compiled (batgraph.graph.kernels.weighted_triangulation:
+    2.5 -> 0.57 s at 30 x 180 x 160).
     """
     from .graph import kernels  # numba: imported when the pixel noise is measured
 
-    Wu = np.zeros(use.shape + (2, 2))
-    Wu[use] = np.linalg.inv(ideal.cov_px2[use])
     W = Wu * w_scale[:, None, None, None, None]
     ok = np.isfinite(xyz).all(axis=-1) & (use.sum(axis=0) >= 2)
     xyz = np.ascontiguousarray(np.where(ok[..., None], xyz, np.nan))
     r = np.zeros(use.shape + (2,))
-    A = np.zeros(use.shape + (3, 3))
+    h = np.zeros(use.shape)
     Sigma = np.full(xyz.shape + (3,), np.nan)
-    P = np.stack([cam.P for cam in rig])
-    uv = np.ascontiguousarray(np.nan_to_num(ideal.uv_px))
-    kernels.weighted_triangulation(P, uv, W, use & ok[None], xyz, iters, r, A, Sigma)
-    return xyz, r, Wu, A, Sigma
+    kernels.weighted_triangulation(P, uv, W, use & ok[None], xyz, iters, r, h, Sigma)
+    return xyz, r, h, Sigma
 
 
 def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.ndarray | None = None,
@@ -73,13 +70,17 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     seen = ideal_unit.seen & np.isfinite(xyz0).all(axis=-1)[None]
     for c, cam in enumerate(rig):
         seen[c][seen[c]] = cam.to_cam(xyz0[seen[c]])[:, 2] > 0
+    # what every round shares: the cameras, the pixels and each observation's unit information
+    P = np.stack([cam.P for cam in rig])
+    uv = np.ascontiguousarray(np.nan_to_num(ideal_unit.uv_px))
+    Wu = np.zeros(seen.shape + (2, 2))
+    Wu[seen] = np.linalg.inv(ideal_unit.cov_px2[seen])
     sigma2 = np.ones(C)
     for _ in range(max_rounds):
-        xyz, r, Wu, A, Sigma = _gauss_newton(rig, ideal_unit, 1.0 / sigma2, xyz0, seen)
+        # leverage h = tr(W J Sigma J^T) = sum(J^T W J * Sigma) (Sigma symmetric), W = Wu / sigma_c^2
+        xyz, r, h, Sigma = _gauss_newton(P, uv, Wu, 1.0 / sigma2, xyz0, seen)
         seen_now = seen & np.isfinite(xyz).all(axis=-1)[None]
         e = np.einsum("...i,...ij,...j->...", r, Wu, r)  # (C, F, M) unit-noise squared residuals
-        # leverage h = tr(W J Sigma J^T) = sum(J^T W J * Sigma) (Sigma symmetric), W = Wu / sigma_c^2
-        h = np.sum(A * np.where(np.isfinite(Sigma), Sigma, 0.0)[None], axis=(-2, -1))
         dof = np.clip(2.0 - h, 1e-6, 2.0)
         new = np.full(C, np.nan)
         used, rejected = np.zeros(C, int), np.zeros(C, int)

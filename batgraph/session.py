@@ -25,6 +25,7 @@ from .camera import Camera, Rig
 from .errors import InputError
 from .formats.csv_text import write_csv
 from .geometry.dlt import UNITS_M
+from .labels import Labels, factorize, text_column
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
@@ -222,9 +223,11 @@ def dense_observations(session: Session) -> DenseObservations:
     frames, takes = frame_axis(obs["frame"].to_numpy(), session.take_gap_frames)
     F = len(frames)
     inputs.check_dense_memory(C, F, M, f"session {session.name!r}" if session.path is None else str(session.path))
-    ci = obs["camera"].map({n: i for i, n in enumerate(cams)}).to_numpy()
+    ci = factorize(obs["camera"]).positions(cams)
     fi = np.searchsorted(frames, obs["frame"].to_numpy())
-    mi = obs["marker"].map({n: i for i, n in enumerate(markers)}).to_numpy()
+    mi = factorize(obs["marker"]).positions(markers)
+    if (ci < 0).any():
+        raise ValueError(f"observations name camera {obs['camera'].iloc[int(np.argmax(ci < 0))]!r}, not in the rig")
     uv = np.full((C, F, M, 2), np.nan)
     w = np.zeros((C, F, M))
     uv[ci, fi, mi] = obs[["u", "v"]].to_numpy(float)
@@ -312,11 +315,15 @@ def read_calibration(path: Path, units: str | None = None) -> Rig:
 def read_observations(path: Path, rig: Rig,
                       calibration_name: str = "calibration.toml") -> tuple[pd.DataFrame, list[str]]:
     """Read and validate observations.csv/.parquet against ``rig`` (read from ``calibration_name``, named in
-    errors). Returns (table, warnings). Frames obey batgraph.inputs' limits (MAX_FRAME, MAX_FRAME_GAP)."""
+    errors). Returns (table, warnings). Frames obey batgraph.inputs' limits (MAX_FRAME, MAX_FRAME_GAP).
+
+    The camera and marker columns are checked, matched and sorted as codes into their distinct names
+    (batgraph.labels), not as text per row.
+    """
     df, is_csv = inputs.read_table(path, OBS_COLUMNS, "observations")
     frame = inputs.frame_column(df, path, is_csv)
-    camera = inputs.label_column(df, "camera", path, is_csv)
-    marker = inputs.label_column(df, "marker", path, is_csv)
+    camera = inputs.label_codes(df, "camera", path, is_csv)
+    marker = inputs.label_codes(df, "marker", path, is_csv)
     u = inputs.numeric_column(df, "u", path, is_csv, allow_missing=True)
     v = inputs.numeric_column(df, "v", path, is_csv, allow_missing=True)
     if "weight" in df.columns:
@@ -329,40 +336,51 @@ def read_observations(path: Path, rig: Rig,
                              f"is not in (0, 1]")
     else:
         w = np.ones(len(df))
-    unknown = ~camera.isin(rig.names)
-    if unknown.any():
-        i = int(np.argmax(unknown.to_numpy()))
+    cam = camera.positions(rig.names)  # (N,) index into the rig, -1 for a name not in it
+    if (cam < 0).any():
+        i = int(np.argmax(cam < 0))
         raise InputError(
-            f"{path} {inputs.row_name(i, is_csv)}: camera {camera.iloc[i]!r} is not in {calibration_name} "
-            f"(cameras: {', '.join(rig.names)})"
+            f"{path} {inputs.row_name(i, is_csv)}: camera {camera.names[camera.codes[i]]!r} is not in "
+            f"{calibration_name} (cameras: {', '.join(rig.names)})"
         )
     half = np.isnan(u) != np.isnan(v)
     if half.any():
         i = int(np.argmax(half))
         raise InputError(f"{path} {inputs.row_name(i, is_csv)}: only one of u, v is given")
-    out = pd.DataFrame({"frame": frame, "camera": camera.to_numpy(), "marker": marker.to_numpy(),
-                        "u": u, "v": v, "weight": w})
-    out["line"] = np.arange(len(out))
-    out = out[~np.isnan(u)]
-    if len(out) == 0:
+    rows = np.flatnonzero(~np.isnan(u))  # the file's data rows that hold an observation
+    if len(rows) == 0:
         raise InputError(f"{path}: no observations (every u, v is empty)")
-    inputs.check_frame_gaps(out["frame"].to_numpy(), path, is_csv, rows=out["line"].to_numpy())
-    dup = out.duplicated(["frame", "camera", "marker"], keep=False)
-    if dup.any():
-        rows = out[dup].head(2)
-        a, b = (inputs.row_name(int(i), is_csv) for i in rows["line"])
-        r = rows.iloc[0]
-        raise InputError(f"{path} {a} and {b}: duplicate observation of frame {r.frame}, "
-                         f"camera {r.camera!r}, marker {r.marker!r}")
+    inputs.check_frame_gaps(frame[rows], path, is_csv, rows=rows)
+    # the contract's order: frame, then camera and marker names as text sort (stable: file order within a key)
+    rows = rows[np.lexsort((marker.sort_keys()[rows], camera.sort_keys()[rows], frame[rows]))]
+    _check_duplicates(rows, frame, camera, marker, path, is_csv)
     warnings = []
     n_out = 0
-    for cam in rig:
-        sel = out["camera"] == cam.name
-        n_out += int((~cam.in_image(out.loc[sel, ["u", "v"]].to_numpy())).sum())
+    for c, one in enumerate(rig):
+        sel = rows[cam[rows] == c]
+        n_out += int((~one.in_image(np.stack([u[sel], v[sel]], axis=1))).sum())
     if n_out:
         warnings.append(f"{path}: {n_out} observation(s) lie outside their camera's image; kept")
-    out = out.drop(columns="line").sort_values(["frame", "camera", "marker"], kind="stable")
-    return out.reset_index(drop=True), warnings
+    out = pd.DataFrame({"frame": frame[rows], "camera": text_column(camera.names, camera.codes[rows]),
+                        "marker": text_column(marker.names, marker.codes[rows]),
+                        "u": u[rows], "v": v[rows], "weight": w[rows]})
+    return out, warnings
+
+
+def _check_duplicates(rows: np.ndarray, frame: np.ndarray, camera: Labels, marker: Labels, path: Path,
+                      is_csv: bool) -> None:
+    """InputError naming the first row (in file order) whose frame, camera and marker another row repeats, and
+    the next such row. rows: data rows sorted by (frame, camera, marker), file order within a key."""
+    same = ((frame[rows[1:]] == frame[rows[:-1]]) & (camera.codes[rows[1:]] == camera.codes[rows[:-1]])
+            & (marker.codes[rows[1:]] == marker.codes[rows[:-1]]))  # sorted row k + 1 repeats row k
+    if not same.any():
+        return
+    k = np.flatnonzero(same)
+    k = k[np.argmin(rows[k])]  # the repeated key whose first row comes first in the file
+    a, b = int(rows[k]), int(rows[k + 1])
+    raise InputError(f"{path} {inputs.row_name(a, is_csv)} and {inputs.row_name(b, is_csv)}: duplicate observation "
+                     f"of frame {frame[a]}, camera {camera.names[camera.codes[a]]!r}, "
+                     f"marker {marker.names[marker.codes[a]]!r}")
 
 
 def read_points(path: Path) -> pd.DataFrame:

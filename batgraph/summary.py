@@ -29,7 +29,17 @@ import numpy as np
 import pandas as pd
 
 from . import methods as methods_registry
-from .evaluate import GROUPS, SPANS, STATUSES, add_span, group_mask, method_summary, point_errors
+from .evaluate import (
+    GROUPS,
+    SPANS,
+    STATUSES,
+    add_span,
+    errors_by_method,
+    group_mask,
+    method_rows,
+    method_summary,
+    point_errors,
+)
 from .motion import CHI2_3DOF_95
 
 OUTLIER_WARN_FRACTION = 0.05
@@ -102,19 +112,24 @@ def _finite(x) -> float | None:
 
 
 def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: list[str],
-            truth: pd.DataFrame | None = None, reference: pd.DataFrame | None = None) -> Comparison | None:
+            truth: pd.DataFrame | None = None, reference: pd.DataFrame | None = None,
+            joined: dict[str, pd.DataFrame] | None = None) -> Comparison | None:
     """Each method's figure on the points every method in ``methods`` estimates, per group.
 
     trajectories, reprojection: the contract's tables (every method stacked). Against truth: RMSE [m] and
     95 % coverage; else against a reference: RMS difference [m]; else the reprojection error [px] of the
     observations of the common points that no compared method flags as an outlier. None for < 2 methods.
+    joined: per method, the trajectories joined with the truth (else the reference) where the caller has
+    them (batgraph.evaluate.errors_by_method).
     """
-    methods = [m for m in methods_registry.ordered(methods) if m in set(trajectories["method"])]
+    rows = method_rows(trajectories)
+    methods = [m for m in methods_registry.ordered(methods) if m in rows]
     if len(methods) < 2:
         return None
     points = truth if truth is not None else reference
     if points is not None:
-        errs = {m: point_errors(trajectories[trajectories["method"] == m], points).set_index(["frame", "marker"])
+        joined = errors_by_method(trajectories, points) if joined is None else joined
+        errs = {m: point_errors(trajectories.iloc[rows[m]], points, joined.get(m)).set_index(["frame", "marker"])
                 for m in methods}
         out = Comparison(methods, "truth" if truth is not None else "reference")
         for g in GROUPS:
@@ -124,8 +139,9 @@ def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: lis
     # reprojection: observations (frame, camera, marker) of the group a method reprojects and does not flag
     keys = ["frame", "camera", "marker"]
     tabs = {}
+    rep_rows = method_rows(reprojection)
     for m in methods:
-        t = reprojection[reprojection["method"] == m].set_index(keys)
+        t = (reprojection.iloc[rep_rows[m]] if m in rep_rows else reprojection.iloc[:0]).set_index(keys)
         ok = np.isfinite(t["err_px"].to_numpy(float)) & ~t["outlier"].fillna(False).astype(bool).to_numpy()
         tabs[m] = pd.concat([t[ok].reset_index(), _status_of_observations(trajectories, m, t.index[ok])],
                             axis=1).set_index(keys)
@@ -322,19 +338,24 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
     """
     if "span" not in trajectories.columns:
         trajectories = add_span(trajectories)
-    methods = methods_registry.ordered(pd.unique(trajectories["method"].astype(str)))
+    rows, rep_rows = method_rows(trajectories), method_rows(reprojection)
+    methods = methods_registry.ordered(rows)
+    # each method's rows by position, and the join with the truth / reference once for every method
+    traj_of = {m: trajectories.iloc[rows[m]] for m in methods}
+    rep_of = {m: reprojection.iloc[rep_rows[m]] if m in rep_rows else reprojection.iloc[:0] for m in methods}
+    truth_errors = errors_by_method(trajectories, session.truth) if session.truth is not None else {}
+    ref_errors = errors_by_method(trajectories, session.reference) if session.reference is not None else {}
     per_method = {}
     for m in methods:
-        per_method[m] = method_summary(session, trajectories[trajectories["method"] == m],
-                                       reprojection[reprojection["method"] == m],
-                                       (runtimes or {}).get(m), (infos or {}).get(m))
+        per_method[m] = method_summary(session, traj_of[m], rep_of[m], (runtimes or {}).get(m), (infos or {}).get(m),
+                                       truth_errors=truth_errors.get(m), reference_errors=ref_errors.get(m))
     use = recommended(methods)[0] if methods else None
     warnings = list(session.warnings)
     if use is not None:
         warnings += [w for w in outlier_warnings(per_method[use], use) + smoother_warnings((infos or {}).get(use))
                      if w not in warnings]
-    first = trajectories[trajectories["method"] == methods[0]] if methods else trajectories
-    reproj_first = reprojection[reprojection["method"] == methods[0]] if methods else reprojection
+    first = traj_of[methods[0]] if methods else trajectories
+    reproj_first = rep_of[methods[0]] if methods else reprojection
     summary = Summary(
         session=session.name, fps=float(session.fps), n_cameras=len(session.rig),
         n_frames=int(first["frame"].nunique()), n_markers=int(first["marker"].nunique()),
@@ -345,7 +366,8 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
         world={"units": "m", "world_mirror": session.world_mirror.tolist()},
         imported=session.extra_toml.get("import", {}), warnings=warnings,
         paper_experiment=paper_experiment(session), methods=per_method,
-        comparison=compare(trajectories, reprojection, methods, session.truth, session.reference),
+        comparison=compare(trajectories, reprojection, methods, session.truth, session.reference,
+                           joined=truth_errors if session.truth is not None else ref_errors),
     ).to_json()
     return refresh_verdict(summary)
 

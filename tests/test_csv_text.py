@@ -87,9 +87,34 @@ def test_fixed_point_bytes_are_pythons_text_at_ties_and_edges():
     })
     for fmt in ("%.6f", "%.0f", "%.3f", "%.9f"):
         assert fixed_csv_bytes(table, fmt).decode() == table.to_csv(index=False, float_format=fmt), fmt
-    assert fixed_csv_bytes(table, "%.9g") is None  # not fixed-point: csv_text's path
+    assert fixed_csv_bytes(table, "%.9e") is None  # neither "%.Nf" nor "%.Ng": csv_text's path
     quoted = table.assign(marker="a, b")
     assert fixed_csv_bytes(quoted, "%.6f") is None
+
+
+def test_general_format_bytes_are_pythons_text_at_ties_and_edges():
+    """"%.Ng" fields built by numpy (the 9-digit text of trajectories.csv) are pandas' characters: ties at N
+    significant digits and the floats either side of them, powers of ten and their neighbours (where the
+    exponent from log10 could be one off, and a rounding carries into a new digit), both notations and the
+    switch between them (exponent -5 / -4 and N - 1 / N), trailing zeros, -0.0, subnormals, huge values, inf,
+    NaN, and values of 45 decades."""
+    from batgraph.formats.csv_text import fixed_csv_bytes
+
+    rng = np.random.default_rng(11)
+    ties = (2 * rng.integers(10**8, 10**9, 300) + 1) / 2 * 10.0 ** rng.integers(-12, 4, 300)
+    powers = 10.0 ** np.arange(-20, 25)
+    edges = np.array([0.0, -0.0, 5e-324, 1e-310, 1.7976931348623157e308, np.inf, -np.inf, np.nan, 0.5, 2.5,
+                      123456789.5, 1234567895.0, 99999999.95, 999999999.5, 9.9999999995e-5, 1e-5, 1e-4, 1.25e-4,
+                      123456789.0, 1234567890.0, 100.0, 120.5, 7.0])
+    x = np.concatenate([ties, np.nextafter(ties, 0), np.nextafter(ties, np.inf), powers, np.nextafter(powers, 0),
+                        np.nextafter(powers, np.inf), edges, np.round(rng.normal(size=2000), 3),
+                        rng.normal(size=3000) * 10.0 ** rng.integers(-20, 25, 3000)])
+    x = np.concatenate([x, -x])
+    table = pd.DataFrame({"method": rng.choice(["smoother", "filter"], len(x)), "frame": rng.integers(0, 999, len(x)),
+                          "x": x, "y": rng.permutation(x), "n_views": rng.integers(0, 30, len(x))})
+    for fmt in ("%.9g", "%.1g", "%.6g", "%.15g"):
+        assert fixed_csv_bytes(table, fmt).decode() == table.to_csv(index=False, float_format=fmt), fmt
+    assert fixed_csv_bytes(table, "%.17g") is None  # more digits than the integer path holds: csv_text's path
 
 
 def test_fixed_point_file_in_chunks_is_pandas_text(tmp_path):

@@ -31,3 +31,50 @@ def test_singular_covariance_gets_no_coverage_instead_of_crashing():
     m2 = errors_against(traj, truth)["mahal2"].to_numpy()
     assert m2[0] == 1.0 and np.isnan(m2[1])
     assert truth_stats(traj, truth)["coverage95"]["observed"] == 1.0
+
+
+def test_stacked_reprojection_tables_are_the_single_tables_concatenated(session_folder):
+    """reprojection_tables gathers the observations once; the rows, values and dtypes are those of each method's
+    reprojection_table stacked (what the pipeline built before)."""
+    from batgraph.evaluate import reprojection_table, reprojection_tables
+    from batgraph.result import Estimate
+    from batgraph.session import dense_observations, read_session
+
+    session = read_session(session_folder)
+    dense = dense_observations(session)
+    C, F, M = dense.uv_px.shape[:3]
+    rng = np.random.default_rng(0)
+    ests = []
+    for name in ("smoother", "filter", "triangulate"):
+        xyz = rng.normal(size=(F, M, 3)) * 0.1
+        xyz[0, 0] = np.nan
+        ests.append(Estimate(name, xyz, np.full((F, M, 3, 3), np.nan), rng.random((C, F, M)) < 0.2, 0.0))
+    want = pd.concat([reprojection_table(session, dense, e) for e in ests], ignore_index=True)
+    got = reprojection_tables(session, dense, ests)
+    pd.testing.assert_frame_equal(got, want, check_exact=True)
+    assert [str(d) for d in got.dtypes] == [str(d) for d in want.dtypes]
+
+
+def test_method_rows_are_the_rows_of_each_method():
+    from batgraph.evaluate import method_rows
+
+    for methods in (["a", "a", "b", "b", "b", "c"], ["a", "b", "a", "c", "b"]):  # blocks, interleaved
+        table = pd.DataFrame({"method": pd.Series(methods, dtype="str"), "v": np.arange(len(methods))})
+        rows = method_rows(table)
+        assert list(rows) == list(dict.fromkeys(methods))
+        for m, r in rows.items():
+            pd.testing.assert_frame_equal(table.iloc[r], table[table["method"] == m])
+        assert isinstance(rows["c"], slice)
+    assert method_rows(pd.DataFrame({"method": pd.Series([], dtype="str")})) == {}
+
+
+def test_errors_by_method_is_each_methods_join():
+    from batgraph.evaluate import errors_by_method
+
+    a = _table(np.array([1.0, 3.0, 2.0]), np.array([1.0, 1.0, np.nan]), ["observed", "observed", "single_view"])
+    traj = pd.concat([a, a.assign(method="n", x=a["x"] * 2).iloc[1:]], ignore_index=True)
+    truth = pd.DataFrame({"frame": [2, 0, 1], "marker": "a", "x": 0.0, "y": 0.0, "z": 0.0})
+    got = errors_by_method(traj, truth)
+    for m in ("m", "n"):
+        want = errors_against(traj[traj["method"] == m].assign(span="inside"), truth)
+        pd.testing.assert_frame_equal(got[m], want, check_exact=True)

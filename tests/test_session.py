@@ -133,6 +133,18 @@ def test_duplicate_rows(session_folder):
     assert f"line {len(lines)}" in msg and f"camera '{dup[1]}'" in msg and f"marker '{dup[2]}'" in msg
 
 
+def test_duplicate_rows_named_in_pairs(session_folder):
+    """Two keys each given twice, interleaved (A, B, A, B): the message names A's two rows, not A's and B's."""
+    path = session_folder / "observations.csv"
+    lines = path.read_text().splitlines()
+    lines += [lines[3], lines[5]]  # line 4 again (A), then line 6 again (B)
+    path.write_text("\n".join(lines) + "\n")
+    a = lines[3].split(",")
+    msg = _error(session_folder)
+    assert f"line 4 and line {len(lines) - 1}: duplicate" in msg
+    assert f"frame {a[0]}, camera '{a[1]}', marker '{a[2]}'" in msg
+
+
 def test_empty_observation_file(session_folder):
     (session_folder / "observations.csv").write_bytes(b"")
     msg = _error(session_folder)

@@ -11,12 +11,15 @@ Same text as pandas: floats by ``float_format`` with NaN as an empty field, inte
 quoting (a comma, quote or line break) or whose columns are not plain numbers, booleans and strings is
 handed to pandas unchanged. tests/test_csv_text.py compares with ``to_csv``.
 
-Fixed-point formats (``"%.6f"``: reprojection.csv, observations.csv) take a faster path still,
-:func:`fixed_csv_bytes`: every field of every row is built as bytes by numpy at once, no Python object per
-value (reprojection.csv of the 30 x 180 x 160 scene: ~1.5 s of CPU per-row, ~0.2 s this way). A float's
-digits come from rounding x * 10^N to the nearest integer, which is Python's correctly rounded ``%`` text
-except where x * 10^N lies within a few units in the last place of a tie (.5): those few values, and any
-too large for the integer path or not finite, are formatted by ``%`` itself.
+Fixed-point and general formats (``"%.6f"``: reprojection.csv, observations.csv; ``"%.9g"``: trajectories.csv)
+take a faster path still, :func:`fixed_csv_bytes`: every field of every row is built as bytes by numpy at once,
+no Python object per value (reprojection.csv of the 30 x 180 x 160 scene: ~1.5 s of CPU per-row, ~0.2 s this
+way). A float's digits come from rounding x * 10^k to the nearest integer (k = N for "%.Nf"; for "%.Ng" the k
+that leaves N digits before the point), which is Python's correctly rounded ``%`` text except where x * 10^k
+lies within a few units in the last place of a tie (.5): those few values, and any too large or small for the
+integer path (or, for "%.Ng", within one unit of a power of ten, where the exponent could be off), zero and
+values that are not finite, are formatted by ``%`` itself. Digits are written two at a time from a table of
+the 100 pairs "00".."99".
 """
 
 from __future__ import annotations
@@ -29,8 +32,12 @@ import pandas as pd
 _NEEDS_QUOTES = (",", '"', "\n", "\r")
 CHUNK_ROWS = 100_000
 _FIXED = re.compile(r"%\.(\d)f")  # "%.Nf", N = 0..9: the formats fixed_csv_bytes writes itself
+_GENERAL = re.compile(r"%\.([1-9]|1[0-5])g")  # "%.Ng", N = 1..15: the same (N digits stay below 2^50)
 _EXACT_BELOW = 2.0**50  # |x| * 10^N below this: the integer path (int64, and room for the tie test)
 _PAIRS = np.array([[48 + i // 10, 48 + i % 10] for i in range(100)], np.uint8)  # "00" .. "99"
+_PAIRS16 = _PAIRS.view(np.uint16).ravel()  # each pair's two bytes as one uint16: one gather writes two digits
+_POW10 = 10 ** np.arange(19, dtype=np.int64)
+_POW10_F = 10.0 ** np.arange(23)  # exact in float64 up to 10^22
 
 
 def csv_text(table: pd.DataFrame, float_format: str) -> str:
@@ -67,15 +74,26 @@ def csv_text(table: pd.DataFrame, float_format: str) -> str:
         [template % row for row in zip(*columns, strict=True)])
 
 
+def _all_digits(n: np.ndarray, width: int) -> np.ndarray:
+    """(rows, width) uint8: the decimal digits of the non-negative int64 ``n`` < 10^width, leading zeros
+    included ("0042"), two at a time by :data:`_PAIRS16`."""
+    half = (width + 1) // 2
+    out = np.empty((len(n), half), np.uint16)
+    rest = n
+    for j in range(half - 1, -1, -1):
+        q = rest // 100
+        out[:, j] = _PAIRS16[rest - 100 * q]
+        rest = q
+    return out.view(np.uint8)[:, 2 * half - width:]
+
+
 def _digits(n: np.ndarray) -> np.ndarray:
     """(rows, width) uint8: the decimal digits of the non-negative int64 ``n``, right-aligned, with 0 bytes
     (dropped later) in place of leading zeros."""
     width = len(str(int(n.max()))) if len(n) else 1
-    out = np.empty((len(n), width), np.uint8)
-    rest = n.copy()
-    for k in range(width):  # k-th digit from the right
-        out[:, width - 1 - k] = np.where((n >= 10**k) | (k == 0), rest % 10 + 48, 0)
-        rest //= 10
+    out = _all_digits(n, width)
+    for k in range(1, width):  # the k-th digit from the right exists where n >= 10^k
+        out[:, width - 1 - k] = np.where(n >= _POW10[k], out[:, width - 1 - k], 0)
     return out
 
 
@@ -91,7 +109,6 @@ def _right_aligned(texts: list[bytes], width: int) -> np.ndarray:
 def _fixed_field(x: np.ndarray, decimals: int, float_format: str) -> np.ndarray:
     """(rows, width) uint8 of ``float_format % x`` ("%.{decimals}f"), NaN as an empty field (pandas)."""
     scale = 10**decimals
-    nan = np.isnan(x)
     with np.errstate(over="ignore", invalid="ignore"):  # inf, NaN and huge values go to the slow path
         y = np.abs(x) * scale
         near_tie = np.abs(y - np.floor(y) - 0.5) <= 4 * np.spacing(y)
@@ -101,22 +118,67 @@ def _fixed_field(x: np.ndarray, decimals: int, float_format: str) -> np.ndarray:
     sign = np.where(np.signbit(x) & fast, ord("-"), 0).astype(np.uint8)[:, None]
     pieces = [sign, _digits(whole)]
     if decimals:
-        frac = np.empty((len(x), decimals), np.uint8)
-        for k in range(decimals - 2, -1, -2):  # two digits per step, from the right, by table
-            frac[:, k:k + 2] = _PAIRS[part % 100]
-            part //= 100
-        if decimals % 2:
-            frac[:, 0] = part + 48
-        pieces += [np.full((len(x), 1), ord("."), np.uint8), frac]
-    field = np.concatenate(pieces, axis=1)
-    field[~fast] = 0  # NaN: empty; the rest below
-    slow = np.flatnonzero(~fast & ~nan)
+        pieces += [np.full((len(x), 1), ord("."), np.uint8), _all_digits(part, decimals)]
+    return _with_slow_values(np.concatenate(pieces, axis=1), x, fast, float_format)
+
+
+def _with_slow_values(field: np.ndarray, x: np.ndarray, fast: np.ndarray, float_format: str) -> np.ndarray:
+    """``field`` (rows, width) with the rows not ``fast`` replaced: NaN by an empty field (pandas), the others
+    by ``float_format % x`` (right-aligned; the field widened if one is longer)."""
+    field[~fast] = 0
+    slow = np.flatnonzero(~fast & ~np.isnan(x))
     if len(slow):
         texts = [(float_format % v).encode() for v in x[slow].tolist()]
         width = max(field.shape[1], max(map(len, texts)))
         field = np.concatenate([np.zeros((len(x), width - field.shape[1]), np.uint8), field], axis=1)
         field[slow] = _right_aligned(texts, width)
     return field
+
+
+def _general_field(x: np.ndarray, precision: int, float_format: str) -> np.ndarray:
+    """(rows, width) uint8 of ``float_format % x`` ("%.{precision}g"), NaN as an empty field (pandas).
+
+    Python's %g: the value rounded to ``precision`` significant digits d0.d1d2... x 10^e; written as a fixed
+    number when -4 <= e < precision, else as d0.d1...e+XX (two exponent digits at least); trailing zeros of
+    the fraction, and a point with no fraction after it, left out. Here n = rint(|x| * 10^(precision - 1 - e))
+    holds the digits, e from log10 (module docstring for the values left to ``%``).
+    """
+    p = precision
+    rows = len(x)
+    with np.errstate(all="ignore"):  # zero, inf and NaN go to the slow path
+        a = np.abs(x)
+        e = np.floor(np.log10(a))
+        fast = np.isfinite(e) & (np.abs(p - 1 - e) <= 22)
+        e = np.where(fast, e, 0).astype(np.int64)
+        k = p - 1 - e  # a * 10^k has p digits before the point
+        y = np.where(k >= 0, a * _POW10_F[np.clip(k, 0, 22)], a / _POW10_F[np.clip(-k, 0, 22)])
+        # not within a unit of 10^(p-1) or 10^p (e from log10 could be one off there; a carry changes e)
+        fast &= (y >= _POW10_F[p - 1] + 1) & (y < _POW10_F[p] - 1)
+        fast &= np.abs(y - np.floor(y) - 0.5) > 4 * np.spacing(y)
+    n = np.rint(np.where(fast, y, _POW10_F[p - 1] + 1)).astype(np.int64)
+    digits = _all_digits(n, p)  # (rows, p): d0 .. d(p-1), d0 != "0"
+    n_sig = p - np.argmax(digits[:, ::-1] != ord("0"), axis=1)  # digits up to the last non-zero one
+    fixed = (e >= -4) & (e < p)
+    # digits written: every significant one, and in a fixed number every one before the point
+    n_written = np.where(fixed & (e >= 0), np.maximum(n_sig, e + 1), n_sig)
+    point_after = np.where(fixed, e, 0)  # the digit the point follows (none when e < 0: "0.00ddd")
+    cols = [np.where(np.signbit(x), ord("-"), 0)]
+    lead = fixed & (e < 0)  # "0." and -e - 1 zeros before the digits
+    cols += [np.where(lead, ord("0"), 0), np.where(lead, ord("."), 0)]
+    cols += [np.where(lead & (j < -e - 1), ord("0"), 0) for j in range(3)]
+    for j in range(p):
+        cols.append(np.where(j < n_written, digits[:, j], 0))
+        if j < p - 1:
+            cols.append(np.where((point_after == j) & (n_written > j + 1), ord("."), 0))
+    sci = ~fixed
+    exp_digits = _all_digits(np.abs(e), 3)
+    cols += [np.where(sci, ord("e"), 0), np.where(sci, np.where(e < 0, ord("-"), ord("+")), 0),
+             np.where(sci & (np.abs(e) >= 100), exp_digits[:, 0], 0),
+             np.where(sci, exp_digits[:, 1], 0), np.where(sci, exp_digits[:, 2], 0)]
+    field = np.empty((rows, len(cols)), np.uint8)
+    for j, c in enumerate(cols):
+        field[:, j] = c
+    return _with_slow_values(field, x, fast, float_format)
 
 
 def _label_field(col: pd.Series) -> np.ndarray | None:
@@ -133,11 +195,11 @@ def _label_field(col: pd.Series) -> np.ndarray | None:
 
 
 def fixed_csv_bytes(table: pd.DataFrame, float_format: str, header: bool = True) -> bytes | None:
-    """The UTF-8 bytes of ``csv_text(table, float_format)`` for a fixed-point ``float_format`` ("%.Nf"), built by
+    """The UTF-8 bytes of ``csv_text(table, float_format)`` for a ``float_format`` "%.Nf" or "%.Ng", built by
     numpy (module docstring); None where this path does not apply (another format, a column type or text
     that :func:`csv_text` hands to pandas), for the caller to use csv_text."""
-    found = _FIXED.fullmatch(float_format)
-    if found is None or len(table) == 0 or len(table.columns) == 0:
+    fixed, general = _FIXED.fullmatch(float_format), _GENERAL.fullmatch(float_format)
+    if (fixed is None and general is None) or len(table) == 0 or len(table.columns) == 0:
         return None
     names = [str(name) for name in table.columns]
     if any(c in name or "\0" in name for name in names for c in _NEEDS_QUOTES):
@@ -148,7 +210,9 @@ def fixed_csv_bytes(table: pd.DataFrame, float_format: str, header: bool = True)
         col = table[name]
         kind = col.dtype.kind if isinstance(col.dtype, np.dtype) else None
         if kind == "f":
-            field = _fixed_field(col.to_numpy(np.float64), int(found.group(1)), float_format)
+            x = col.to_numpy(np.float64)
+            field = (_fixed_field(x, int(fixed.group(1)), float_format) if fixed
+                     else _general_field(x, int(general.group(1)), float_format))
         elif kind in ("i", "u"):
             v = col.to_numpy()
             if len(v) and (v.min() < -(2**62) or v.max() > 2**62):
@@ -164,8 +228,7 @@ def fixed_csv_bytes(table: pd.DataFrame, float_format: str, header: bool = True)
             return None
         fields += [field, comma]
     fields[-1] = np.full((len(table), 1), ord("\n"), np.uint8)
-    rows = np.concatenate(fields, axis=1).ravel()
-    body = rows[rows != 0].tobytes()
+    body = np.concatenate(fields, axis=1).tobytes().translate(None, b"\0")  # the padding out (1.4x a mask)
     return (",".join(names) + "\n").encode("utf-8") + body if header else body
 
 

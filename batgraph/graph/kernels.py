@@ -433,28 +433,48 @@ def _observe(P, c, x, y, z, u_obs, v_obs, J):  # pragma: no cover  (compiled)
     return u_obs - u, v_obs - v
 
 
-def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, A_out, Sigma) -> None:
-    """Weighted Gauss-Newton triangulation of every (frame, marker) point (batgraph.pixel_noise._gauss_newton).
+def weighted_triangulation(P, uv, W, use, xyz, iters, r_out, h_out, Sigma) -> None:
+    """Weighted Gauss-Newton triangulation of every (frame, marker) point (batgraph.pixel_noise.estimate_pixel_sigma).
 
     P (C, 3, 4) projection matrices to ideal pixels; uv (C, F, M, 2) ideal pixels; W (C, F, M, 2, 2) each
     observation's information [1/px^2]; use (C, F, M) bool; xyz (F, M, 3) [m], refined in place where
     finite (``iters`` steps, each kept only where it lowers the point's cost sum r^T W r; a point whose
     residuals all vanish, i.e. behind every camera, keeps its start). Writes r_out (C, F, M, 2) = uv - pi(p)
-    and A_out (C, F, M, 3, 3) = J^T W J at the final points (zero where not used or behind the camera) and
-    Sigma (F, M, 3, 3) = (sum_c J^T W J)^-1 where it is invertible (left as given elsewhere).
+    at the final points, Sigma (F, M, 3, 3) = (sum_c J^T W J)^-1 where it is invertible (left as given
+    elsewhere) and h_out (C, F, M) = sum(A * Sigma'), each used observation's leverage with A = J^T W J
+    (zero behind the camera) and Sigma' = Sigma with its non-finite entries as 0 (left as given where not used).
+    The sum runs in numpy's order for ``np.sum(A * Sigma', axis=(-2, -1))`` (:func:`_leverage`), so h_out is
+    that expression's, bit for bit, without its (C, F, M, 3, 3) arrays (62 MB each at 30 x 180 x 160).
     """
     F, M = use.shape[1:]
     _split(F, -(-MIN_PART_BLOCKS // max(M, 1)),
-           lambda f0, f1: _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, A_out, Sigma))
+           lambda f0, f1: _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, h_out, Sigma))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, A_out, Sigma):  # pragma: no cover  (compiled)
+def _leverage(A, S):  # pragma: no cover  (compiled)
+    """sum(A * S') over the 9 entries of 3x3 A and S (S' = S, non-finite entries as 0), added in numpy's
+    pairwise order for a contiguous 9-element sum: ((p0 + p1) + (p2 + p3)) + ((p4 + p5) + (p6 + p7)), then p8."""
+    p0, p1, p2 = _entry(A, S, 0, 0), _entry(A, S, 0, 1), _entry(A, S, 0, 2)
+    p3, p4, p5 = _entry(A, S, 1, 0), _entry(A, S, 1, 1), _entry(A, S, 1, 2)
+    p6, p7, p8 = _entry(A, S, 2, 0), _entry(A, S, 2, 1), _entry(A, S, 2, 2)
+    return (((p0 + p1) + (p2 + p3)) + ((p4 + p5) + (p6 + p7))) + p8
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _entry(A, S, i, j):  # pragma: no cover  (compiled)
+    """A[i, j] * S[i, j], with a non-finite S[i, j] as 0."""
+    return A[i, j] * (S[i, j] if np.isfinite(S[i, j]) else 0.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, h_out, Sigma):  # pragma: no cover  (compiled)
     """:func:`weighted_triangulation` of frames f0..f1-1."""
     C, F, M = use.shape
     J = np.empty((2, 3))
     H, Hr, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     g, step, trial = np.empty(3), np.empty(3), np.empty(3)
+    A = np.empty((C, 3, 3))  # each camera's J^T W J at the final point
     for f in range(f0, f1):
         for m in range(M):
             if not (np.isfinite(xyz[f, m, 0]) and np.isfinite(xyz[f, m, 1]) and np.isfinite(xyz[f, m, 2])):
@@ -481,10 +501,13 @@ def _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, A_out, Sigma):
                             a0 = w00 * J[0, i] + w01 * J[1, i]
                             a1 = w01 * J[0, i] + w11 * J[1, i]
                             for j in range(3):
-                                A_out[c, f, m, i, j] = a0 * J[0, j] + a1 * J[1, j]
+                                A[c, i, j] = a0 * J[0, j] + a1 * J[1, j]
                 if it == iters:
                     if abs(np.linalg.det(H)) > 0:
                         _inverse(H, Sigma[f, m], work)
+                    for c in range(C):
+                        if use[c, f, m]:
+                            h_out[c, f, m] = _leverage(A[c], Sigma[f, m])
                     break
                 for i in range(3):
                     for j in range(3):
