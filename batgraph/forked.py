@@ -84,7 +84,10 @@ class Pending:
     def cancel(self) -> None:
         """Stop the child if it still runs (the parent failed; its staging folder is about to go)."""
         if self._process is not None:
-            self._process.terminate()
+            # SIGKILL, not SIGTERM: a library may handle SIGTERM (pycolmap's glog crash handler prints a
+            # backtrace), and a child signalled between fork and malloc's reinitialisation then deadlocks
+            # in that handler (seen once in the test suite, the parent waiting on it for ever)
+            self._process.kill()
             self._process.join()
             self._conn.close()
             self._process = None
