@@ -126,23 +126,23 @@ class Axes:
             lo, hi = (lo / 2, lo * 2) if log else (lo - pad, hi + pad)
         return lo, hi
 
+    @staticmethod
+    def _fraction(v, lim: tuple[float, float], log: bool) -> np.ndarray:
+        """Data values v -> their fraction of the axis range lim (0 at lim[0], 1 at lim[1]; log10 scale if log)."""
+        v = np.asarray(v, float)
+        lo, hi = lim
+        if log:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v, lo, hi = np.log10(v), math.log10(lo), math.log10(hi)
+        return (v - lo) / (hi - lo)
+
     def px(self, x) -> np.ndarray:
         """Data x -> figure px (array)."""
-        x = np.asarray(x, float)
-        lo, hi = self.xlim
-        if self.xlog:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x, lo, hi = np.log10(x), math.log10(lo), math.log10(hi)
-        return self.box[0] + (x - lo) / (hi - lo) * self.box[2]
+        return self.box[0] + self._fraction(x, self.xlim, self.xlog) * self.box[2]
 
     def py(self, y) -> np.ndarray:
         """Data y -> figure px (array)."""
-        y = np.asarray(y, float)
-        lo, hi = self.ylim
-        if self.ylog:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                y, lo, hi = np.log10(y), math.log10(lo), math.log10(hi)
-        frac = (y - lo) / (hi - lo)
+        frac = self._fraction(y, self.ylim, self.ylog)
         return self.box[1] + (frac if self.y_down else 1.0 - frac) * self.box[3]
 
     # --- drawing (data coordinates)
