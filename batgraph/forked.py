@@ -86,7 +86,7 @@ class Pending:
         if self._process is not None:
             # SIGKILL, not SIGTERM: a library may handle SIGTERM (pycolmap's glog crash handler prints a
             # backtrace), and a child signalled between fork and malloc's reinitialisation then deadlocks
-            # in that handler (seen once in the test suite, the parent waiting on it for ever)
+            # in that handler (the test suite hung so on test_forked, the parent waiting on it for ever)
             self._process.kill()
             self._process.join()
             self._conn.close()
