@@ -40,6 +40,27 @@ def test_tridiagonal_kernels_equal_dense_linear_algebra(d):
         np.testing.assert_allclose(Sigma[k], Hinv[:, k * d:(k + 1) * d, k * d:(k + 1) * d], rtol=1e-9, atol=1e-13)
 
 
+@pytest.mark.parametrize("d", [3, 6, 9])
+def test_motion_trace_equals_dense_trace(d):
+    """tridiagonal_motion_trace: log det H and tr(H^-1 H_m) for a block-tridiagonal H_m of diagonal blocks
+    AtQiA (frames 0..F-2) + Qi (1..F-1) and sub-diagonal blocks B, against dense inverses (to rounding)."""
+    rng = np.random.default_rng(10 + d)
+    F, M = 7, 4
+    D, B, H = _tridiagonal(rng, F, M, d)
+    X, Y = rng.normal(size=(2, M, d, d))
+    AtQiA, Qi = X @ np.swapaxes(X, -1, -2), Y @ np.swapaxes(Y, -1, -2)
+    ld, tr = kernels.tridiagonal_motion_trace(D, B, AtQiA, Qi)
+    for m in range(M):
+        Hm = np.zeros((F * d, F * d))
+        for k in range(F - 1):
+            a, b = slice(k * d, (k + 1) * d), slice((k + 1) * d, (k + 2) * d)
+            Hm[a, a] += AtQiA[m]
+            Hm[b, b] += Qi[m]
+            Hm[b, a], Hm[a, b] = B[m], B[m].T
+        np.testing.assert_allclose(tr[m], np.trace(np.linalg.solve(H[m], Hm)), rtol=1e-10)
+        np.testing.assert_allclose(ld[m], np.linalg.slogdet(H[m])[1], rtol=1e-12)
+
+
 @pytest.mark.parametrize("g, b", [(2, 3), (3, 6), (14, 18)])  # d = 6 (loops), 18 and 252 (BLAS / LAPACK)
 def test_block_diagonal_B_equals_the_dense_one(g, b):
     """A segment group's B, block-diagonal (its members' motions are independent), given as its blocks

@@ -357,6 +357,24 @@ def tridiagonal_marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.
     return Sigma, ld
 
 
+def tridiagonal_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarray, Qi: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """log det H (M,) and tr(H^-1 H_m) (M,) of every marker's block-tridiagonal H, where H_m is its motion part:
+    the block-tridiagonal matrix with diagonal blocks AtQiA (frames 0..F-2) plus Qi (frames 1..F-1) and
+    sub-diagonal blocks B (batgraph.graph.fast.motion_trace, the gradient of the evidence in the noise level).
+
+    D (F, M, d, d); B, AtQiA, Qi (M, d, d). With Sigma = H^-1 from the backward recursion (as
+    :func:`tridiagonal_marginals`) and the lag-one blocks Sigma_{k,k+1} = -G_k Sigma_{k+1}, the trace is
+    sum_k tr(Sigma_k M_k) + 2 sum_k tr(Sigma_{k,k+1} B); only two frames' Sigma are kept (memory O(F d^2) per
+    thread for the forward sweep's inverses).
+    """
+    ld, tr = np.empty(D.shape[1]), np.empty(D.shape[1])
+    Bb = _blocks(np.ascontiguousarray(B))
+    AtQiA, Qi = np.ascontiguousarray(AtQiA), np.ascontiguousarray(Qi)
+    _markers_split(D, lambda m0, m1: _motion_trace_markers(m0, m1, D, Bb, AtQiA, Qi, ld, tr))
+    return ld, tr
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve_markers(m0, m1, D, B, rhs, out):  # pragma: no cover  (compiled)
     """:func:`tridiagonal_solve` for markers m0..m1-1, into out (F, M, d, r)."""
@@ -414,6 +432,39 @@ def _marginals_markers(m0, m1, D, B, Sigma, ld):  # pragma: no cover  (compiled)
                 for j in range(i + 1, d):
                     s = 0.5 * (Sigma[k, m, i, j] + Sigma[k, m, j, i])
                     Sigma[k, m, i, j] = Sigma[k, m, j, i] = s
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _motion_trace_markers(m0, m1, D, B, AtQiA, Qi, ld, tr):  # pragma: no cover  (compiled)
+    """:func:`tridiagonal_motion_trace` for markers m0..m1-1 (B (M, 1, d, d)), into ld and tr (M,)."""
+    F, d = D.shape[0], D.shape[2]
+    Sinv = np.empty((F, d, d))
+    L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    G, GS, nxt, cur = np.empty((d, d)), np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    for m in range(m0, m1):
+        ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L, True)
+        Bm = B[m, 0]
+        nxt[:] = Sinv[F - 1]
+        t = 0.0
+        if F > 1:
+            for i in range(d):
+                for j in range(d):
+                    t += nxt[i, j] * Qi[m, j, i]
+        for k in range(F - 2, -1, -1):
+            _matmul(Sinv[k], Bm.T, G)
+            _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
+            _matmul(GS, G.T, S)
+            for i in range(d):
+                for j in range(d):
+                    cur[i, j] = Sinv[k, i, j] + S[i, j]
+            for i in range(d):
+                for j in range(d):
+                    t -= 2.0 * GS[i, j] * Bm[j, i]
+                    t += cur[i, j] * AtQiA[m, j, i]
+                    if k > 0:
+                        t += cur[i, j] * Qi[m, j, i]
+            nxt[:] = cur
+        tr[m] = t
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
