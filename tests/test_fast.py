@@ -299,13 +299,15 @@ def test_fast_equals_gtsam(scene, model, robust):
 
 
 def _assert_same_levels(a: dict, b: dict) -> None:
-    """Two smoothers' info chose the same q and j per marker, to rounding: 1e-7 relative (the search's
-    parabolic steps follow the scores, which two solvers of one cost reach to rounding, and the evidence's flat
-    peak magnifies that: measured 2e-10 .. 3e-8)."""
+    """Two smoothers' info chose the same q and j per marker, to rounding: 1e-6 relative (the search's
+    secant steps follow the slopes, corrected by the scores' differences over points 0.05-0.2 decade apart,
+    which two solvers of one cost reach to rounding (~1e-6 nats: the two solvers stop ~1e-7 m apart in weak
+    directions), and the evidence's flat peak magnifies that: measured up to 1.5e-7; 3e-8 with Brent's
+    search on the scores alone)."""
     for key in ("accel_psd_m2_s3", "jerk_psd_m2_s5"):
         x, y = a.get(key) or {}, b.get(key) or {}
         assert x.keys() == y.keys()
-        np.testing.assert_allclose([x[k] for k in x], [y[k] for k in x], rtol=1e-7)
+        np.testing.assert_allclose([x[k] for k in x], [y[k] for k in x], rtol=1e-6)
 
 
 @pytest.mark.parametrize(("model", "robust", "bound_cov"), [("random_walk", "none", 1e-6),
