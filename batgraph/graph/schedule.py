@@ -81,7 +81,8 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
     p_start, v_start, a_start = p_init, v_init, None  # where the next solve starts (a warm start after cleaning)
     if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
         clean, q0 = cleaning_motion(model, sigma_m, q, session)
-        xyz0, _, info0 = solve_fast(rig, ideal, p_init, clean, q0, fps, spec.CLEANING_LOSS, k, v_init=v_init)
+        xyz0, _, info0 = solve_fast(rig, ideal, p_init, clean, q0, fps, spec.CLEANING_LOSS, k, v_init=v_init,
+                                    covariances=False)  # only its positions are used
         excluded = _rejected(rig, ideal, xyz0)
         p_start = xyz0
         v_start = v_init if info0["velocity"] is None else info0["velocity"]
