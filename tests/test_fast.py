@@ -465,17 +465,23 @@ def test_rejects_bad_input(scene):
 def test_solve_levels_equals_solve_fast_per_candidate(scene, model):
     """The noise search's batch (candidates x markers as one Levenberg-Marquardt run, no covariances) gives
     each candidate what solve_fast gives alone with that row of noise levels: positions to 1e-8 m, cost
-    and log det to 1e-8 relative (the columns are independent; only rounding differs, measured <= 1e-12)."""
+    and log det to 1e-8 relative, and with ``slope`` the evidence's slope (fast.evidence_slope) to 1e-8
+    relative and the same log det (the columns are independent; only rounding differs, measured <= 1e-12)."""
     session, dense, ideal, p_init = scene
     M = p_init.shape[1]
     s = _level(model) / ACCEL_PSD
     levels = s * np.array([[ACCEL_PSD] * M, [2.0] * M, np.geomspace(0.5, 500.0, M)])
-    batch = fast.solve_levels(session.rig, ideal, p_init, model, levels, FPS, "huber", 2.0)
+    batch = fast.solve_levels(session.rig, ideal, p_init, model, levels, FPS, "huber", 2.0, slope=True)
     small = fast.solve_levels(session.rig, ideal, p_init, model, levels, FPS, "huber", 2.0, max_rows=1)
+    assert small["slope"] is None
     for k, row in enumerate(levels):
         xyz, cov, info = fast.solve_fast(session, ideal, p_init, model, row, FPS, "huber", 2.0,
                                          covariances=False)
-        assert cov is None
+        assert cov is None and info["slope_per_marker"] is None
+        _, _, sloped = fast.solve_fast(session, ideal, p_init, model, row, FPS, "huber", 2.0, covariances=False,
+                                       slope=True)
+        np.testing.assert_allclose(sloped["logdet_per_marker"], info["logdet_per_marker"], rtol=1e-12)
+        np.testing.assert_allclose(batch["slope"][k], sloped["slope_per_marker"], rtol=1e-8, atol=1e-8)
         for got in (batch, small):  # one group of 3 candidates, and one candidate per group
             np.testing.assert_allclose(got["position"][k], xyz, rtol=0, atol=1e-8)
             for key in ("velocity", "acceleration"):

@@ -221,3 +221,33 @@ def test_slope_search_finds_every_maximum_to_the_tolerance():
     assert np.abs(x - truth).max() <= tol
     np.testing.assert_array_equal(f, score(x))
     assert evaluations / M < 6.9 + 5
+
+
+def test_slope_search_steps_back_from_points_without_a_score():
+    """Levels past a marker's cliff have no score (-inf, NaN slope: the solve ran into a camera centre, as a
+    single-view wing tip does when its motion prior is loose): the search closes its bracket there and still
+    finds the maximum below the cliff to the tolerance, also when the first point is past it."""
+    rng = np.random.default_rng(1)
+    M, tol = 400, noise.LOG10_Q_TOL
+    lo, hi = noise.LOG10_Q_RANGE
+    peak = rng.uniform(-1.5, 3.0, M)
+    cliff = peak + rng.uniform(0.1, 1.5, M)  # some below the first point (1.0)
+
+    def score(x):
+        return np.where(x > cliff, -np.inf, -50.0 * (x - peak) ** 2)
+
+    def slope(x):
+        return np.where(x > cliff, np.nan, -100.0 * (x - peak))
+
+    x0 = np.full(M, 1.0)
+    search = noise.SlopeSearch(x0, lo, hi)
+    search.lower_end(score(np.full(M, lo)), slope(np.full(M, lo)))
+    search.update(x0, score(x0), slope(x0))
+    for _ in range(fast.SLOPE_MAX_STEPS - 1):
+        if search.done().all():
+            break
+        v = search.next()
+        search.update(v, score(v), slope(v))
+    assert search.done().all()
+    x, f = search.answer
+    assert np.all(np.isfinite(f)) and np.abs(x - peak).max() <= tol

@@ -418,7 +418,7 @@ class SlopeSearch:
         bad = live & ~ok
         first = bad & ~np.isfinite(self.fm)  # no point of this marker has a score yet: try a stiffer level
         self._put(bad & (u > self.m) | first, b=u, gb=np.nan)
-        self._put(bad & (u < self.m), a=u, ga=np.nan)
+        self._put(bad & (u < self.m) & ~first, a=u, ga=np.nan)
         # the bracket from the scores (a worse point is an end on its side of m; a better one makes m the end
         # on m's side), then from the slope at the new best point (on which side of it the maximum lies)
         better = ok & (fu > self.fm)
