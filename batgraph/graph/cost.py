@@ -265,12 +265,17 @@ def whitened_sq_residuals(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray)
     """|r|^2 = d^T cov^-1 d of every observation, d = pi_c(xyz) - uv_ideal (plain Gaussian whitening).
 
     xyz_m: positions (F, M, 3) [m, world]. Returns (C, F, M); NaN where unseen or xyz is NaN.
+    The 2x2 inverse in closed form over the dense arrays, (c d0^2 - 2 b d0 d1 + a d1^2) / (a c - b^2) for
+    cov = [[a, b], [b, c]]: at 30 x 180 x 160 ~0.03 s against ~0.2 s for gathering the seen entries and
+    np.linalg.solve on each (the same values to ~1e-9 relative); the smoother calls it 4 times.
     """
     d = rig.project(xyz_m, distort=False) - ideal.uv_px  # (C, F, M, 2)
-    ok = np.isfinite(d).all(axis=-1)
-    out = np.full(ok.shape, np.nan)
-    out[ok] = np.einsum("ni,ni->n", d[ok], np.linalg.solve(ideal.cov_px2[ok], d[ok][..., None])[..., 0])
-    return out
+    cov = ideal.cov_px2
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    d0, d1 = d[..., 0], d[..., 1]
+    with np.errstate(all="ignore"):  # unseen entries: NaN or a zero covariance, masked below
+        r2 = (c * d0 * d0 - 2.0 * b * d0 * d1 + a * d1 * d1) / (a * c - b * b)
+    return np.where(np.isfinite(d0) & np.isfinite(d1), r2, np.nan)
 
 
 def outlier_flags(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
