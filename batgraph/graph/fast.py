@@ -791,8 +791,9 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     Constant velocity and constant acceleration scored by the evidence (the default): :func:`_slope_search`,
     the evidence's values and slopes (:func:`evidence_slope`) by noise.SlopeSearch, from log10 level
     SLOPE_START[model] and the range's lower end (one batched solve), then one solve_fast of the markers
-    still searching per step. On 8 simulated scenes it chose q within 0.04 decade of the grid + Brent search
-    below (evidence -0.6..+0.06 nats; BENCHMARKS.md) in 0.5-0.9x its time.
+    still searching per step. On 7 simulated scenes it chose q within 0.04 decade of the grid + Brent search
+    below (evidence -0.6..+0.06 nats) in 0.5-0.9x its time, and j within 0.024 decade but for one wing tip
+    whose evidence is ragged beside a camera centre (0.086 decade, -4.4 nats; BENCHMARKS.md).
 
     Otherwise (the "loo" rule, the oscillating model): the grid over noise.LOG10_RANGE[model], every
     noise.LOG10_GRID_STEP decades, is ONE batched solve

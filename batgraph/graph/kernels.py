@@ -368,6 +368,8 @@ def tridiagonal_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarray, Qi
     sum_k tr(Sigma_k M_k) + 2 sum_k tr(Sigma_{k,k+1} B); only two frames' Sigma are kept (memory O(F d^2) per
     thread for the forward sweep's inverses).
     """
+    if B.ndim != 3:  # a block-diagonal B (segment groups) is not supported here: the search runs without them
+        raise ValueError(f"B must be one (d, d) block per marker, shape (M, d, d), got {B.shape}")
     ld, tr = np.empty(D.shape[1]), np.empty(D.shape[1])
     Bb = _blocks(np.ascontiguousarray(B))
     AtQiA, Qi = np.ascontiguousarray(AtQiA), np.ascontiguousarray(Qi)

@@ -341,21 +341,22 @@ class SlopeSearch:
     values and slopes (batgraph.graph.fast.evidence_slope's, per decade here): Brent's search with
     derivatives (Numerical Recipes' dbrent, written here vectorised for the reason :class:`Bracket` gives).
 
-    The maximum lies in the bracket [a, b] that the slopes' signs give (a: the largest point with a rising
-    score, b: the smallest with a falling one; the range's ends lo, hi before that). m is the best point by
-    score, w the second. The next point is the zero of the slope's secant through (m, w), or through the
-    last two points, whichever is shorter, when it lies inside the bracket, on m's uphill side and shorter
-    than half the step before last; else the middle between m and the bracket's end uphill (a first step
-    of FIRST_STEP_DECADES towards an end whose slope is not known yet, or that end itself when it is
-    nearer). Every step is at least tol / 2. The slope leaves out how the projection blocks move with the
-    solution (~1 % of its scale), so a secant through two points at most BIAS_SPAN_DECADES apart is
-    corrected by their scores: the mean slope of the scores over the pair minus the slopes' mean (the two
-    agree for a quadratic score). A marker is done when such a corrected secant step is under tol / 2 (the
-    zero located to it), when the bracket is at most tol wide, or when the slope at an end of the range
-    points out of it (the maximum is there). The answer is each marker's best point evaluated
-    (:attr:`answer`). A point without a score (-inf: the solve ran into a camera centre) closes the bracket
-    on its side of m. Unimodality is assumed inside the search (as by :class:`Bracket`); the range's lower
-    end is scored beside the first point (:meth:`lower_end`), which catches a second maximum there.
+    m is the best point by score, w the second. The maximum lies in the bracket [a, b] (the range's ends lo, hi
+    at first): a worse point is an end on its side of m, a better one makes the old m the end on its own side,
+    and the slope at the new best point says on which side of it the maximum lies (a bracket from the slopes'
+    signs alone lost m where slopes and scores disagreed, on a ragged evidence). The next point is the zero of
+    the slope's secant through (m, w), or through the last two points, whichever is shorter, when it lies inside
+    the bracket, on m's uphill side and shorter than half the step before last; else the middle between m and
+    the bracket's end uphill (a first step of FIRST_STEP_DECADES towards an end whose slope is not known yet, or
+    that end itself when it is nearer). Every step is at least tol / 2. The slope leaves out how the projection
+    blocks move with the solution (~1 % of its scale), so a secant through two points at most BIAS_SPAN_DECADES
+    apart is corrected by their scores: the mean slope of the scores over the pair minus the slopes' mean (the
+    two agree for a quadratic score). A marker is done when such a corrected secant step is under tol / 2 (the
+    zero located to it), when the bracket is at most tol wide, or when the slope at an end of the range points
+    out of it (the maximum is there). The answer is each marker's best point evaluated (:attr:`answer`). A point
+    without a score (-inf: the solve ran into a camera centre) closes the bracket on its side of m. Unimodality
+    is assumed inside the search (as by :class:`Bracket`); the range's lower end is scored beside the first
+    point (:meth:`lower_end`), which catches a second maximum there.
     """
 
     x: np.ndarray
@@ -455,9 +456,9 @@ class SlopeSearch:
             z = np.where(change < 0, x - (gx + bias) / change, np.nan)  # a concave secant only
         return z, close
 
-    def _propose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(next point, the step before it was made at least tol / 2, whether it is an accepted secant step,
-        whether that secant was bias-corrected)."""
+    def _propose(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(next point, its distance from m before it was made at least tol / 2, whether it is an accepted
+        secant step, whether that secant was bias-corrected)."""
         a, b, m, g, t = self.a, self.b, self.m, self.gm, self.tol
         z1, c1 = self._secant(m, self.fm, g, self.w, self.fw, self.gw)
         z2, c2 = self._secant(self.last, self.f_last, self.g_last, self.prev, self.f_prev, self.g_prev)
