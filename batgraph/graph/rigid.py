@@ -89,7 +89,8 @@ class _Segments:
         c = 0.5 * float(np.sum(r * r))
         return c if np.isfinite(c) else np.inf
 
-    def system(self, x: np.ndarray, L: np.ndarray, D: np.ndarray, g: np.ndarray, exact: bool = False):
+    def system(self, x: np.ndarray, L: np.ndarray, D: np.ndarray, g: np.ndarray, exact: bool = False,
+               near: bool = False):
         """The group's bordered Gauss-Newton system from its members' blocks D (F, g, d, d) and gradient
         g (F, g, d): returns T (F, n, n), gx (F, n), C (F, n, s), E (s, s), gL (s,), n = g d.
 
@@ -97,7 +98,12 @@ class _Segments:
         |p_a - p_b|, where r > 0 (clamped at 0 so that the system stays positive semi-definite, as the
         robust losses' own curvature is): across the segment it is all the curvature a single-view marker
         at a track end has besides its weak motion prior, and without it the iteration crept there (110
-        iterations measured); the marginals use Gauss-Newton's, as GTSAM's do."""
+        iterations measured); the marginals use Gauss-Newton's, as GTSAM's do. ``near`` (with ``exact``;
+        near the minimum, NEAR_STEP_M) adds it where r < 0 too: the full Hessian, with which the last
+        iterations converge quadratically. Clamped there, the missing curvature left them converging
+        linearly (step ratio 0.57 per iteration, ~20 iterations from 1e-4 to 1e-9 m, on the 5-camera
+        flight's 14-marker group); a step the full curvature spoils is rejected and retried with
+        Gauss-Newton's, as for the robust losses."""
         F, gm, d = g.shape
         n = gm * d
         T = np.zeros((F, n, n))
@@ -109,7 +115,7 @@ class _Segments:
         C = np.zeros((F, n, len(self.local)))
         uu = u[..., :, None] * u[..., None, :] / s2  # (F, s, 3, 3)
         if exact:
-            bend = (np.maximum(r, 0.0) / (self.sigma * dist))[..., None, None]  # clamped: stays PSD
+            bend = ((r if near else np.maximum(r, 0.0)) / (self.sigma * dist))[..., None, None]
             uu = uu + bend * (np.eye(3) - s2 * uu)
         for j, (a, b) in enumerate(self.local):
             pa, pb = slice(a * d, a * d + 3), slice(b * d, b * d + 3)
@@ -124,6 +130,12 @@ class _Segments:
         E = np.eye(len(self.local)) * (F / s2)
         gL = -r.sum(axis=0) / self.sigma
         return T, gx, C, E, gL
+
+
+# Near the minimum, where the segments' full curvature is used (Segments.system's ``near``): the last accepted
+# step's largest component below this [m]. On 9 simulated scenes (3 generators x 3 seeds) the final solves took
+# 0.3-0.8x the iterations of the clamped curvature, the same minimiser to 2e-7 m.
+NEAR_STEP_M = 1e-3
 
 
 def _block_diag(B: np.ndarray, g: int) -> np.ndarray:
@@ -158,10 +170,12 @@ def _levenberg_marquardt(prob, obs, x: np.ndarray, mu0: np.ndarray, L: np.ndarra
     diag_x, diag_L = np.arange(gm * d), np.arange(len(L))
     lam = lam_x = np.float64(0.0)
     exact, converged, at_camera, iters = False, False, False, 0
+    last_step = np.inf  # the last accepted step's largest component [m]
     eps = np.finfo(float).eps
     while iters < max_iterations:
         iters += 1
-        T, gx, C, E, gL = seg.system(x, L, *prob.system(x, mu0, lin, exact), exact=exact)
+        T, gx, C, E, gL = seg.system(x, L, *prob.system(x, mu0, lin, exact), exact=exact,
+                                     near=last_step < NEAR_STEP_M)
         damping = lam_x if exact and robust else lam
         T[:, diag_x, diag_x] *= 1.0 + damping
         E[diag_L, diag_L] *= 1.0 + damping
@@ -177,6 +191,7 @@ def _levenberg_marquardt(prob, obs, x: np.ndarray, mu0: np.ndarray, L: np.ndarra
         flat = not ok and gain <= fast.ROUNDING_EPS * eps * cost
         if ok:
             x, L, lin, cost, cost_m = xn, Ln, lin_new, cost_new, cost_mn
+            last_step = step
         stuck = lam > 1e12
         at_camera = ok and bool((near_new > limit).any())
         lam, lam_x = fast.next_damping(exact and robust, ok, damping, lam, lam_x, robust)
