@@ -90,7 +90,7 @@ class _Segments:
         return c if np.isfinite(c) else np.inf
 
     def system(self, x: np.ndarray, L: np.ndarray, D: np.ndarray, g: np.ndarray, exact: bool = False,
-               near: bool = False):
+               full: bool = False):
         """The group's bordered Gauss-Newton system from its members' blocks D (F, g, d, d) and gradient
         g (F, g, d): returns T (F, n, n), gx (F, n), C (F, n, s), E (s, s), gL (s,), n = g d.
 
@@ -98,7 +98,7 @@ class _Segments:
         |p_a - p_b|, where r > 0 (clamped at 0 so that the system stays positive semi-definite, as the
         robust losses' own curvature is): across the segment it is all the curvature a single-view marker
         at a track end has besides its weak motion prior, and without it the iteration crept there (110
-        iterations measured); the marginals use Gauss-Newton's, as GTSAM's do. ``near`` (with ``exact``;
+        iterations measured); the marginals use Gauss-Newton's, as GTSAM's do. ``full`` (with ``exact``;
         near the minimum, NEAR_STEP_M) adds it where r < 0 too: the full Hessian, with which the last
         iterations converge quadratically. Clamped there, the missing curvature left them converging
         linearly (step ratio 0.57 per iteration, ~20 iterations from 1e-4 to 1e-9 m, on the 5-camera
@@ -115,7 +115,7 @@ class _Segments:
         C = np.zeros((F, n, len(self.local)))
         uu = u[..., :, None] * u[..., None, :] / s2  # (F, s, 3, 3)
         if exact:
-            bend = ((r if near else np.maximum(r, 0.0)) / (self.sigma * dist))[..., None, None]
+            bend = ((r if full else np.maximum(r, 0.0)) / (self.sigma * dist))[..., None, None]
             uu = uu + bend * (np.eye(3) - s2 * uu)
         for j, (a, b) in enumerate(self.local):
             pa, pb = slice(a * d, a * d + 3), slice(b * d, b * d + 3)
@@ -132,7 +132,7 @@ class _Segments:
         return T, gx, C, E, gL
 
 
-# Near the minimum, where the segments' full curvature is used (Segments.system's ``near``): the last accepted
+# Near the minimum, where the segments' full curvature is used (_Segments.system's ``full``): the last accepted
 # step's largest component below this [m]. On 9 simulated scenes (3 generators x 3 seeds) the final solves took
 # 0.3-0.8x the iterations of the clamped curvature, the same minimiser to 2e-7 m.
 NEAR_STEP_M = 1e-3
@@ -175,7 +175,7 @@ def _levenberg_marquardt(prob, obs, x: np.ndarray, mu0: np.ndarray, L: np.ndarra
     while iters < max_iterations:
         iters += 1
         T, gx, C, E, gL = seg.system(x, L, *prob.system(x, mu0, lin, exact), exact=exact,
-                                     near=last_step < NEAR_STEP_M)
+                                     full=last_step < NEAR_STEP_M)
         damping = lam_x if exact and robust else lam
         T[:, diag_x, diag_x] *= 1.0 + damping
         E[diag_L, diag_L] *= 1.0 + damping
