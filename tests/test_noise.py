@@ -251,3 +251,11 @@ def test_slope_search_steps_back_from_points_without_a_score():
     assert search.done().all()
     x, f = search.answer
     assert np.all(np.isfinite(f)) and np.abs(x - peak).max() <= tol
+    # no level scored at all (every solve into a camera): done at the lower end after a few tries, score -inf
+    nothing = noise.SlopeSearch(np.full(3, 1.0), lo, hi)
+    nothing.lower_end(np.full(3, -np.inf), np.full(3, np.nan))
+    tries = 0
+    while not nothing.done().all() and tries < fast.SLOPE_MAX_STEPS:
+        nothing.update(nothing.next(), np.full(3, -np.inf), np.full(3, np.nan))
+        tries += 1
+    assert nothing.done().all() and tries <= 3 and np.all(nothing.answer[1] == -np.inf)

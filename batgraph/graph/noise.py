@@ -442,7 +442,8 @@ class SlopeSearch:
         at_edge = ok & (((u <= self.lo) & (gu <= 0)) | ((u >= self.hi) & (gu > 0))) & (u == self.m)
         converged = ok & secant_ok & corrected & (raw_step < t / 2)
         narrow = self.b - self.a <= t * (1 + 1e-9)
-        self._done |= live & (at_edge | converged | narrow)
+        hopeless = first & (u <= self.lo)  # no level scored down to the range's lower end: -inf stays the answer
+        self._done |= live & (at_edge | converged | narrow | hopeless)
         # Brent's guard: a secant step must be under half the step before last (after any other step, free)
         self._put(live, e=np.where(secant_ok, self.step, np.inf), step=np.abs(p - self.m), _next=p)
 
