@@ -971,7 +971,8 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     """
     F, Mm = p0.shape[:2]
     lo, hi = noise.LOG10_RANGE[model]
-    search = noise.SlopeSearch(np.full(Mm, SLOPE_START[model]), lo, hi)
+    x0 = np.full(Mm, SLOPE_START[model])
+    search = noise.SlopeSearch(x0, lo, hi)
     dt = 1.0 / fps
 
     def scores(info_cost, info_logdet, at_camera, level):
@@ -986,9 +987,9 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
                          a_start=start[2], rows=rows, slope=True)
     f2 = scores(first["cost"], first["logdet"], first["at_camera"], levels)
     search.lower_end(f2[0], first["slope"][0] * math.log(10.0))
-    search.update(np.full(Mm, SLOPE_START[model]), f2[1], first["slope"][1] * math.log(10.0))
+    search.update(x0, f2[1], first["slope"][1] * math.log(10.0))
     last = tuple(None if first[k] is None else first[k][1] for k in ("position", "velocity", "acceleration"))
-    last_x, n_solves = np.full(Mm, SLOPE_START[model]), 1
+    last_x, n_solves = x0.copy(), 1
     bar.update()
     for _ in range(SLOPE_MAX_STEPS - 1):
         live = ~search.done()

@@ -88,8 +88,9 @@ NOISE_UNIT = {"random_walk": "sigma_m", "constant_velocity": "accel_psd_m2_s3",
 # sigma_m [m] in 10^-4 (0.1 mm: a body's bob seen through a few pixels of noise) .. 10^-1 (a wing tip), searched
 # jointly with the trend's q on a grid of decades of sigma_m x every LOG10_GRID_STEP decades of q, then refined.
 OSC_LOG10_SIGMA_RANGE = (-4.0, -1.0)
-# The per-marker search's grid (batgraph.graph.fast.choose_noise_per_marker): every LOG10_GRID_STEP decades of the
-# level (q, j, and the oscillating model's q), then Brent's search within a step of the grid's best point. Every
+# The per-marker grid of the "loo" rule and the oscillating model (batgraph.graph.fast.choose_noise_per_marker; the
+# evidence's q and j use SlopeSearch, no grid): every LOG10_GRID_STEP decades of the level, then Brent's search
+# within a step of the grid's best point. Every
 # 2 decades instead of every decade: the chosen q moved <= 0.022 decade (the search's tolerance is LOG10_Q_TOL),
 # each marker's evidence -0.07..+0.05 nats, on 8 simulated and hold-out scenes (BENCHMARKS.md), in 0.6-0.8x the time.
 LOG10_GRID_STEP = 2.0
