@@ -58,6 +58,12 @@ PRIOR_SIGMA_V_MPS = spec.PRIOR_VELOCITY_SIGMA_MPS  # weak gauge prior on v[m, 0]
 # rounding level) costs one or two more quadratically convergent iterations and lands on the minimiser.
 REL_COST_TOL = 1e-15
 STEP_TOL_M = 1e-10  # largest step component [m]
+# The noise search's and the cleaning solve's step tolerance [m]. Their solutions serve a score (the evidence,
+# its slope) or a residual test, not the output: at the minimum the cost is flat, so a position off by
+# 1e-7 m moves a marker's cost by ~(1e-7 / 1e-3 m posterior std)^2 ~ 1e-8 nats and the slope's motion term
+# by ~1e-4 of a per-frame motion residual; Gauss-Newton's quadratic convergence makes the step after a
+# 1e-7 m one ~1e-12 m, so a strict tolerance costs one more iteration (of ~4-5 a search solve needs).
+LOOSE_STEP_TOL_M = 1e-7
 # A step whose predicted decrease (from the quadratic model) is below a few rounding units of the
 # marker's cost cannot be judged by comparing costs (their sums differ by rounding, ~10-30 eps measured
 # on 10^4-term costs); such a step is ~1e-9 m or less and the marker is at its minimiser to rounding.
@@ -460,7 +466,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
                v_init: np.ndarray | None = None, p_start: np.ndarray | None = None, max_iterations: int = 200,
                covariances: bool = True, a_init: np.ndarray | None = None, loo: bool = False,
                oscillation: spec.Oscillation | None = None, rows: _Observations | None = None,
-               slope: bool = False) -> tuple[np.ndarray, np.ndarray | None, dict]:
+               slope: bool = False, step_tol_m: float = STEP_TOL_M) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Minimise the smoother's cost for a fixed rig; positions, marginal covariances and figures.
 
     session_or_rig: the rig (or a session, whose rig is used); camera pose covariances are ignored.
@@ -485,11 +491,12 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     rows: every observation of every marker of ``ideal`` (:func:`observation_rows`), for a caller that solves
         the same observations many times (the noise search: building them cost ~36 ms a solve at 30 x 180 x 160);
         default built here.
+    step_tol_m: the step tolerance below [m]; :data:`LOOSE_STEP_TOL_M` for a solve that only scores.
 
     Levenberg-Marquardt per marker (vectorised: all markers step together, each with its own damping
     lambda * diag(H), a step accepted only when that marker's cost does not increase) until the
-    largest step is < 1e-10 m, the relative cost decrease < 1e-15, or a rejected step's predicted
-    decrease is below the cost's rounding (4 eps; such steps are ~1e-9 m). The first step, and a step
+    largest step is < ``step_tol_m`` (default 1e-10 m), the relative cost decrease < 1e-15, or a rejected
+    step's predicted decrease is below the cost's rounding (4 eps; such steps are ~1e-9 m). The first step, and a step
     after a rejected one, use the IRLS curvature (it majorises the robust loss); the others the robust
     loss's own curvature (see ``_Problem.evaluate``), so robust problems converge in a few iterations.
 
@@ -517,7 +524,7 @@ def solve_fast(session_or_rig: Session | Rig, ideal: IdealObservations, p_init: 
     prob = _Problem(model, level if level.ndim == 0 else level[ms], fps, robust, robust_k, osc)
     obs = _observations(rig, ideal, estimated) if rows is None else _rows_of(rows, estimated)
     x, mu0 = _start(prob, p_init, v_init, p_start, ms, fps, a_init)
-    x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations)
+    x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs, x, mu0, max_iterations, step_tol_m)
     D, _ = prob.system(x, mu0, lin, exact=False)
     covariances = covariances or loo
     slope_e = None
@@ -613,8 +620,8 @@ def _derivatives(x: np.ndarray, dt: float, hz: float | None = None) -> tuple[np.
 
 
 def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, mu0: np.ndarray,
-                         max_iterations: int):
-    """Levenberg-Marquardt per marker column from x (F, M', d) (see :func:`solve_fast`).
+                         max_iterations: int, step_tol_m: float = STEP_TOL_M):
+    """Levenberg-Marquardt per marker column from x (F, M', d) (see :func:`solve_fast`; step_tol_m [m]).
 
     Returns (x, cost (M',), linearisation at x, iterations (M',), converged (M',) bool, at_camera (M',)
     bool: stopped because an accepted iterate put an observed point at a depth below
@@ -663,7 +670,7 @@ def _levenberg_marquardt(prob: _Problem, obs_all: _Observations, x: np.ndarray, 
         stuck = lam[act] > 1e12  # IRLS steps (which majorise the loss) rejected even when tiny
         pupil = ok & (near_new > limit[act])  # accepted into a camera centre: no minimum in front of it
         at_camera[act] = pupil
-        done = (ok & (rel < REL_COST_TOL)) | (step < STEP_TOL_M) | flat | stuck | pupil
+        done = (ok & (rel < REL_COST_TOL)) | (step < step_tol_m) | flat | stuck | pupil
         converged[act] = done & ~stuck & ~pupil
         iters[act] += 1
         cost[act] = np.where(ok, cost_new, cost[act])
@@ -694,7 +701,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
                  fps: float, robust: str = "huber", robust_k: float = 2.0, v_start: np.ndarray | None = None,
                  p_start: np.ndarray | None = None, max_iterations: int = 200, max_rows: int = MAX_BATCH_ROWS,
                  a_start: np.ndarray | None = None, loo: bool = False, oscillation: spec.Oscillation | None = None,
-                 rows: _Observations | None = None, slope: bool = False) -> dict:
+                 rows: _Observations | None = None, slope: bool = False, step_tol_m: float = STEP_TOL_M) -> dict:
     """:func:`solve_fast` at K noise levels at once, without covariances: the search over q in one batch.
 
     levels: (K, M) noise levels (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]), one row per candidate. The K copies of
@@ -704,7 +711,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
     repeated per candidate, in groups of candidates of at most ``max_rows`` rows in all.
     v_start, p_start, a_start: one start (F, M, 3) for every candidate, or one per candidate (K, F, M, 3).
     oscillation: the "oscillating" model's, its sigma_m one per candidate and marker (K, M).
-    rows: as solve_fast's.
+    rows, step_tol_m: as solve_fast's.
     Returns a dict of per-candidate arrays: cost (K, M), logdet (K, M) (spec units, as solve_fast's
     logdet_per_marker), position (K, F, M, 3), velocity and acceleration (K, F, M, 3) or None,
     iterations (K, M), converged (K, M), at_camera (K, M) (as solve_fast's), and with ``loo`` the
@@ -743,7 +750,7 @@ def solve_levels(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: 
         x = np.concatenate([s[0] for s in starts], axis=1)
         mu0 = np.concatenate([s[1] for s in starts])
         x, cost, lin, iters, converged, at_camera = _levenberg_marquardt(prob, obs.tile(len(ks)), x, mu0,
-                                                                         max_iterations)
+                                                                         max_iterations, step_tol_m)
         D, _ = prob.system(x, mu0, lin, exact=False)
         if loo:
             Sigma, ld = marginals(D, prob.B)
@@ -848,7 +855,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         p = p0 if live is None else np.where(live[None, :, None], p0, np.nan)
         _, _, info = solve_fast(rig, sub, p, model, level, fps, robust, robust_k, v_init=from_[1],
                                 p_start=from_[0], a_init=from_[2], covariances=False, loo=loo, oscillation=osc,
-                                rows=rows)
+                                rows=rows, step_tol_m=LOOSE_STEP_TOL_M)
         score = evidence(info["cost_per_marker"], info["logdet_per_marker"], level, info["loo_per_marker"], osc)
         score = np.where(info["at_camera"], -np.inf, score)  # no mode in front of the camera: no Laplace score
         new = (info["position"], info["velocity"], info["acceleration"])
@@ -884,7 +891,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         if osc_model else None
     sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
                        v_start=start[1], p_start=start[0], a_start=start[2], loo=loo, oscillation=osc_grid,
-                       rows=rows)
+                       rows=rows, step_tol_m=LOOSE_STEP_TOL_M)
     n_solves += 1
     bar.update()
     scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"], osc_grid)  # (len(grid), markers)
@@ -984,7 +991,7 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     # the first point and the range's lower end, one batched solve from the start
     levels = 10.0 ** np.repeat(np.array([[lo], [SLOPE_START[model]]]), Mm, axis=1)
     first = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k, v_start=start[1], p_start=start[0],
-                         a_start=start[2], rows=rows, slope=True)
+                         a_start=start[2], rows=rows, slope=True, step_tol_m=LOOSE_STEP_TOL_M)
     f2 = scores(first["cost"], first["logdet"], first["at_camera"], levels)
     search.lower_end(f2[0], first["slope"][0] * math.log(10.0))
     search.update(x0, f2[1], first["slope"][1] * math.log(10.0))
@@ -1001,7 +1008,7 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
                       for l_, s_ in zip(last, start, strict=True))
         _, _, info = solve_fast(rig, sub, np.where(live[None, :, None], p0, np.nan), model, 10.0**u, fps, robust,
                                 robust_k, v_init=from_[1], p_start=from_[0], a_init=from_[2], covariances=False,
-                                rows=rows, slope=True)
+                                rows=rows, slope=True, step_tol_m=LOOSE_STEP_TOL_M)
         n_solves += 1
         bar.update()
         score = np.where(live, scores(info["cost_per_marker"], info["logdet_per_marker"], info["at_camera"], 10.0**u),

@@ -22,7 +22,7 @@ from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import cost as spec
 from . import noise, rigid
-from .fast import choose_model_per_marker, one_blas_thread, solve_fast
+from .fast import LOOSE_STEP_TOL_M, choose_model_per_marker, one_blas_thread, solve_fast
 
 
 def _rejected(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> np.ndarray:
@@ -82,7 +82,7 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
     if reject:  # steps 1-2: Cauchy from the initial track at q0, D at its solution
         clean, q0 = cleaning_motion(model, sigma_m, q, session)
         xyz0, _, info0 = solve_fast(rig, ideal, p_init, clean, q0, fps, spec.CLEANING_LOSS, k, v_init=v_init,
-                                    covariances=False)  # only its positions are used
+                                    covariances=False, step_tol_m=LOOSE_STEP_TOL_M)  # only its positions are used
         excluded = _rejected(rig, ideal, xyz0)
         p_start = xyz0
         v_start = v_init if info0["velocity"] is None else info0["velocity"]
