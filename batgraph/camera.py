@@ -103,7 +103,7 @@ class Camera:
     def undistort_normalized(self, uv_px: np.ndarray) -> np.ndarray:
         """Raw pixels (..., 2) -> undistorted normalised coordinates (x/z, y/z), shape (..., 2).
 
-        See :func:`batgraph.geometry.distortion.undistort_normalized` (OpenCV, then two Newton steps).
+        See :func:`batgraph.geometry.distortion.undistort_normalized` (OpenCV, then three Newton steps).
         NaN in, NaN out.
         """
         return undistort_normalized(pinhole.normalized_from_pixels(np.asarray(uv_px, dtype=float), self._K_inv),

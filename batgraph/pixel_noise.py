@@ -74,7 +74,10 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     P = np.stack([cam.P for cam in rig])
     uv = np.ascontiguousarray(np.nan_to_num(ideal_unit.uv_px))
     Wu = np.zeros(seen.shape + (2, 2))
-    Wu[seen] = np.linalg.inv(ideal_unit.cov_px2[seen])
+    cov = ideal_unit.cov_px2[seen]  # its 2x2 inverse in closed form: ~5x np.linalg.inv on 5e5 blocks
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    det = a * c - b * b
+    Wu[seen] = np.stack([np.stack([c, -b], axis=-1), np.stack([-b, a], axis=-1)], axis=-2) / det[:, None, None]
     sigma2 = np.ones(C)
     for _ in range(max_rounds):
         # leverage h = tr(W J Sigma J^T) = sum(J^T W J * Sigma) (Sigma symmetric), W = Wu / sigma_c^2

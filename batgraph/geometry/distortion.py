@@ -10,9 +10,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-# OpenCV's undistortPoints: fixed-point iterations and tolerance before the Newton polish
-_CV_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
-NEWTON_STEPS = 2
+# OpenCV's undistortPoints (its default 5 fixed-point iterations) starts the Newton polish; measured on a
+# GoPro-like lens (k = -0.28, 0.09, -0.012) out to its fold: 5 + 3 Newton steps leave < 3e-11 px, at half
+# the time of 50 iterations + 2 Newton steps (5 + 2 left 1e-4 px).
+_CV_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 5, 1e-14)
+NEWTON_STEPS = 3
 
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -73,7 +75,7 @@ def max_valid_radius(dist: np.ndarray) -> float:
 def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Distorted normalised coordinates (..., 2) -> undistorted normalised coordinates (..., 2).
 
-    OpenCV's ``undistortPoints`` gives the starting point; two Newton steps on the exact Jacobian
+    OpenCV's ``undistortPoints`` gives the starting point; three Newton steps on the exact Jacobian
     polish it, because OpenCV's fixed-point iteration stalls at ~1e-3 px near the edge of a strongly
     distorted (GoPro-like) lens. NaN in, NaN out; the identity when ``dist`` is all zero.
     """
@@ -84,15 +86,15 @@ def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray) -> np.ndarray:
         target = flat[ok]
         xy = cv2.undistortPoints(target.reshape(-1, 1, 2), np.eye(3), np.asarray(dist, dtype=float),
                                  criteria=_CV_CRITERIA).reshape(-1, 2)
+        resid = distort_normalized(xy, dist) - target
         for _ in range(NEWTON_STEPS):
-            resid = distort_normalized(xy, dist) - target
-            J = distortion_jacobian(xy, dist)
             with np.errstate(all="ignore"):
-                step = xy - solve_2x2(J, resid)
-                better = np.linalg.norm(distort_normalized(step, dist) - target, axis=-1)
-            # A noisy pixel just beyond the lens's largest distorted radius has no preimage and
-            # OpenCV stops near the fold, where J is singular: keep only steps that help.
-            xy = np.where((better < np.linalg.norm(resid, axis=-1))[:, None], step, xy)
+                step = xy - solve_2x2(distortion_jacobian(xy, dist), resid)
+                resid_step = distort_normalized(step, dist) - target
+                # A noisy pixel just beyond the lens's largest distorted radius has no preimage and
+                # OpenCV stops near the fold, where J is singular: keep only steps that help.
+                better = (np.einsum("ij,ij->i", resid_step, resid_step) < np.einsum("ij,ij->i", resid, resid))[:, None]
+            xy, resid = np.where(better, step, xy), np.where(better, resid_step, resid)
         out[ok] = xy
     elif ok.any():
         out[ok] = flat[ok]
