@@ -56,9 +56,9 @@ def _image_grid(cam: Camera, n: int = 41) -> np.ndarray:
 def test_undistort_round_trip_whole_image(skew):
     """raw -> undistort -> distort -> raw over the whole GoPro image, corners included.
 
-    Measured max 4.5e-13 px (OpenCV's 5 fixed-point iterations + 3 Newton steps; 50 + 2 gave the same); bound
-    1e-9 px. Also
-    undistort(project(x)) == project(x, distort=False) for world points: measured 9.1e-13 px, bound 1e-9.
+    Measured max 4.5e-13 px (OpenCV's 5 fixed-point iterations + 3 Newton steps; 50 + 2 gave the same);
+    bound 1e-9 px. Also undistort(project(x)) == project(x, distort=False) for world points: measured
+    9.1e-13 px, bound 1e-9.
     """
     cam = _gopro(skew)
     raw = _image_grid(cam)
