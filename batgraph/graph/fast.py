@@ -827,7 +827,9 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     half-decade grid on the hold-out scenes in docs/accuracy.md).
 
     Returns the level (M,) (NaN for markers not in ``markers``) and info: per_marker {index: level},
-    rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others); oscillating: sigma_m (M,).
+    rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others), solution: the solve at
+    that level, (positions, velocities, accelerations) (F, M, 3) or None, NaN for the other markers and those
+    with no scored level; oscillating: sigma_m (M,).
     """
     markers = np.asarray(markers, int)
     F, M = p_init.shape[:2]
@@ -868,11 +870,11 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         return math.ceil(math.log(noise.LOG10_Q_TOL / width) / math.log(noise._GOLDEN)) + 2
 
     if not loo and model in SLOPE_START:
-        level, ev, n_solves = _slope_search(rig, sub, rows, p0, start, model, fps, robust, robust_k, progress)
+        level, ev, n_solves, at = _slope_search(rig, sub, rows, p0, start, model, fps, robust, robust_k, progress)
         lv, evm = np.full(M, np.nan), np.full(M, np.nan)
         lv[markers], evm[markers] = level, ev
         return lv, {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(lv[m]) for m in markers},
-                    "n_solves": n_solves, "log_evidence": evm}
+                    "n_solves": n_solves, "log_evidence": evm, "solution": _full_width(at, markers, M)}
     osc_model = model == spec.OSCILLATING
     if osc_model and oscillation_hz is None:
         raise ValueError("the oscillating model needs the wingbeat frequency (oscillation_hz)")
@@ -901,6 +903,8 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     x_best, y_best, s_best = grid[best], sig_grid[best], scores[best, cols]  # log10 q, log10 sigma_m, score
     state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][best, :, cols].transpose(1, 0, 2))
                   for key in ("position", "velocity", "acceleration"))
+    kept = _BestState(len(markers))
+    kept.offer(x_best, s_best, state)
 
     def oscillation(log10_sigma: np.ndarray) -> spec.Oscillation | None:
         return spec.Oscillation(oscillation_hz, 10.0**log10_sigma) if osc_model else None
@@ -911,6 +915,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         nonlocal state, x_best, y_best, s_best
         x, y = (x_best, values) if along_sigma else (values, y_best)
         s, state = solve(10.0**x, state, oscillation(y), live)
+        kept.offer(x, s, state)
         better = s > s_best
         x_best, y_best, s_best = np.where(better, x, x_best), np.where(better, y, y_best), np.where(better, s, s_best)
         bar.update()
@@ -950,7 +955,8 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     level, ev = np.full(M, np.nan), np.full(M, np.nan)
     level[markers], ev[markers] = 10.0**x_best, s_best
     info = {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(level[m]) for m in markers},
-            "n_solves": n_solves, "log_evidence": ev}
+            "n_solves": n_solves, "log_evidence": ev,
+            "solution": _full_width(kept.at(x_best), markers, M)}
     if osc_model:
         info["sigma_m"] = np.full(M, np.nan)
         info["sigma_m"][markers] = 10.0**y_best
@@ -960,6 +966,41 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 
 choose_accel_psd_per_marker = choose_noise_per_marker  # the constant-velocity q per marker (its default model)
 
+def _full_width(state: tuple, markers: np.ndarray, M: int) -> tuple:
+    """Arrays (F, M', 3) of the searched ``markers`` (or None) as (F, M, 3), NaN for the other markers."""
+    def widen(a):
+        if a is None:
+            return None
+        out = np.full((a.shape[0], M, 3), np.nan)
+        out[:, markers] = a
+        return out
+    return tuple(widen(a) for a in state)
+
+
+class _BestState:
+    """Each searched marker's best-scoring solution so far, (positions, velocities, accelerations) (F, M', 3)
+    or None, with its score and log10 level: the final solve's start (the search solved each marker at the
+    level it chooses, on the same observations, so that solve starts at its answer)."""
+
+    def __init__(self, n: int):
+        self.score, self.x, self.state = np.full(n, -np.inf), np.full(n, np.nan), None
+
+    def offer(self, x: np.ndarray, score: np.ndarray, state: tuple) -> None:
+        """Keep the solutions ``state`` at log10 levels x (M',) where their scores beat the best so far."""
+        better = score > self.score
+        if self.state is None:
+            self.state = tuple(None if s_ is None else np.where(better[None, :, None], s_, np.nan) for s_ in state)
+        else:
+            self.state = tuple(None if n_ is None else np.where(better[None, :, None], n_, b_)
+                               for n_, b_ in zip(state, self.state, strict=True))
+        self.x, self.score = np.where(better, x, self.x), np.where(better, score, self.score)
+
+    def at(self, x: np.ndarray) -> tuple:
+        """The kept solutions of the markers whose best level is x (M',), NaN for the others."""
+        same = (self.x == x)[None, :, None]
+        return tuple(None if s_ is None else np.where(same, s_, np.nan) for s_ in self.state)
+
+
 # Where the slope search starts (log10 of q [m^2/s^3], j [m^2/s^5]): a wing's q (~10; bodies ~0.03-1, tips
 # ~50 on the simulated flight) and the middle of the jerk PSD's range.
 SLOPE_START = {"constant_velocity": 1.0, "constant_acceleration": 5.0}
@@ -967,9 +1008,11 @@ SLOPE_MAX_STEPS = 24
 
 
 def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.ndarray, start: tuple, model: str,
-                  fps: float, robust: str, robust_k: float, progress: bool) -> tuple[np.ndarray, np.ndarray, int]:
+                  fps: float, robust: str, robust_k: float, progress: bool
+                  ) -> tuple[np.ndarray, np.ndarray, int, tuple]:
     """Each marker's level of maximum Laplace evidence by noise.SlopeSearch (values and slopes from
-    :func:`solve_fast` with ``slope=True``): (level (M',), its score (M',), number of solves).
+    :func:`solve_fast` with ``slope=True``): (level (M',), its score (M',), number of solves, the solution at
+    that level: (positions, velocities, accelerations) (F, M', 3) or None, NaN for a marker without one).
 
     sub, rows: the searched markers' observations; p0: their initial track (F, M', 3) [m] (the gauge prior);
     start: (positions, velocities, accelerations) (F, M', 3) or None, where a solve starts unless it is a
@@ -995,6 +1038,10 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     f2 = scores(first["cost"], first["logdet"], first["at_camera"], levels)
     search.lower_end(f2[0], first["slope"][0] * math.log(10.0))
     search.update(x0, f2[1], first["slope"][1] * math.log(10.0))
+    best = _BestState(Mm)
+    for j, x_ in enumerate((np.full(Mm, float(lo)), x0)):
+        best.offer(x_, f2[j], tuple(None if first[k] is None else first[k][j]
+                                    for k in ("position", "velocity", "acceleration")))
     last = tuple(None if first[k] is None else first[k][1] for k in ("position", "velocity", "acceleration"))
     last_x, n_solves = x0.copy(), 1
     bar.update()
@@ -1015,12 +1062,13 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
                          -np.inf)
         search.update(u, score, info["slope_per_marker"] * math.log(10.0))
         new = (info["position"], info["velocity"], info["acceleration"])
+        best.offer(u, score, new)
         last = tuple(n_ if n_ is None or l_ is None else np.where(live[None, :, None], n_, l_)
                      for n_, l_ in zip(new, last, strict=True))
         last_x = np.where(live, u, last_x)
     bar.close()
     x, f = search.answer
-    return 10.0**x, f, n_solves
+    return 10.0**x, f, n_solves, best.at(x)
 
 
 def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
@@ -1042,7 +1090,10 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     members' evidences, searched without the segments (each member keeps its own noise level of that
     model). Returns model (M,) object array of names (None for markers not in
     ``markers``), level (M,) (that model's q [m^2/s^3] or j [m^2/s^5]; NaN elsewhere) and info:
-    {model: that search's info} plus ``log_evidence`` {model: (M,)}. The "oscillating" candidate needs the
+    {model: that search's info} plus ``log_evidence`` {model: (M,)} and ``solution``: each marker's solution at
+    its model and level, (positions [m], velocities [m/s], accelerations [m/s^2]) (F, M, 3), NaN where the
+    model has no such part or the marker none (a start for the final solve; a group's members were searched
+    without their segments). The "oscillating" candidate needs the
     wingbeat frequency ``oscillation_hz`` [Hz]; its info's sigma_m (M,) is each marker's oscillation std.
     """
     M = p_init.shape[1]
@@ -1057,13 +1108,31 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
         won[members] = np.argmax(ev_ok[:, members].sum(axis=1))
     model = np.full(M, None, dtype=object)
     level = np.full(M, np.nan)
+    F = p_init.shape[0]
+    solution = [np.full((F, M, 3), np.nan) for _ in range(3)]
     for i, name in enumerate(candidates):
         mine = np.zeros(M, bool)
         mine[markers] = won[markers] == i
         model[mine], level[mine] = name, found[name][0][mine]
+        for part, got in zip(solution, found[name][1]["solution"], strict=True):
+            if got is not None:
+                part[:, mine] = got[:, mine]
     info = {name: found[name][1] for name in candidates}
     info["log_evidence"] = {name: found[name][1]["log_evidence"] for name in candidates}
+    info["solution"] = tuple(solution)
     return model, level, info
+
+
+def searched_start(solution: tuple, p_start: np.ndarray, v_start: np.ndarray, fps: float) -> tuple:
+    """The final solve's start (positions [m], velocities [m/s], accelerations [m/s^2]) (F, M, 3): the noise
+    search's solution at each marker's chosen model and level (fast.choose_model_per_marker's ``solution``),
+    and for a marker it does not hold, ``p_start``, ``v_start`` and their accelerations by np.gradient (as
+    solve_fast's default)."""
+    has = [np.isfinite(part).all(axis=(0, 2))[None, :, None] for part in solution]
+    p = np.where(has[0], solution[0], p_start)
+    v = np.where(has[1], solution[1], v_start)
+    a = np.where(has[2], solution[2], np.gradient(v, axis=0) * fps if len(v) > 1 else 0.0)
+    return p, v, a
 
 
 def solve_per_model(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray,

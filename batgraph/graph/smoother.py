@@ -29,8 +29,9 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    velocity (q) and constant acceleration (jerk PSD j), and each marker keeps the model of larger evidence
    (fast.choose_model_per_marker); an explicit constant_acceleration searches j only. The cleaning
    solve of steps 1-2 uses constant velocity for both (fast.cleaning_motion).
-4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from the cleaning
-   solution; then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
+4. Final: the chosen loss (``robust``) on the observations not in D, warm-started from step 3's solutions
+   at the chosen levels (fast.searched_start; the cleaning solution where step 3 did not run, or found no
+   level for a marker); then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
    REJECTION_ROUNDS solves in all), D = D' and re-solve warm. Covariances come from the last
    solve's graph (D excluded); the outlier flags are, as always, |r|^2 > 13.8155 at the final
    solution over all observations (so every excluded observation is flagged when the rounds converged).
@@ -53,7 +54,7 @@ from ..triangulate import dlt_points
 from . import factors, noise, rigid
 from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, WINGBEAT, motion_model  # noqa: F401  (the schedule's constants, module docstring)
 from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
-from .fast import choose_model_per_marker
+from .fast import choose_model_per_marker, searched_start
 from .schedule import cleaning_motion
 
 MAX_ITERATIONS = 200
@@ -229,7 +230,8 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         p_start = factors.positions(start, markers, F, M)
         v_start = _velocities(start, markers, F, M, dt) if clean != "random_walk" else v_init
     models = np.full(M, None, dtype=object)
-    if model_name == "random_walk" or q is not None:  # one given noise level
+    models_chosen = not (model_name == "random_walk" or q is not None)
+    if not models_chosen:  # one given noise level
         models[markers], level = model_name, np.full(M, sigma_m if model_name == "random_walk" else q)
         info.update({"sigma_m": sigma_m} if model_name == "random_walk" else noise.q_figures(q))
         info["motion_model_per_marker"] = {dense.markers[m]: model_name for m in markers}
@@ -241,7 +243,9 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             groups=[members for members, _ in found], rule=noise.noise_rule(session, options))
         info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
-    if start is not None:  # the final solves start from the cleaning solution, in the chosen models' variables
+    if start is not None:  # the final solves start, in the chosen models' variables, from the noise search's
+        if models_chosen:  # solutions where it ran (as the fast schedule), else from the cleaning solution
+            p_start, v_start, _ = searched_start(selection["solution"], p_start, v_start, session.fps)
         cleaned, start = start, factors.initial_values(obs, model, p_start, v_start, markers)
         for c in np.flatnonzero(obs.variable):  # and its camera poses
             start.update(factors.pose_key(int(c)), cleaned.atPose3(factors.pose_key(int(c))))
