@@ -74,7 +74,7 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     P = np.stack([cam.P for cam in rig])
     uv = np.ascontiguousarray(np.nan_to_num(ideal_unit.uv_px))
     Wu = np.zeros(seen.shape + (2, 2))
-    cov = ideal_unit.cov_px2[seen]  # its 2x2 inverse in closed form: ~5x np.linalg.inv on 5e5 blocks
+    cov = ideal_unit.cov_px2[seen]  # 2x2 inverses in closed form: 0.03-0.07 s vs np.linalg.inv 0.12 s on 5e5
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     det = a * c - b * b
     Wu[seen] = np.stack([np.stack([c, -b], axis=-1), np.stack([-b, a], axis=-1)], axis=-2) / det[:, None, None]
