@@ -903,8 +903,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     x_best, y_best, s_best = grid[best], sig_grid[best], scores[best, cols]  # log10 q, log10 sigma_m, score
     state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][best, :, cols].transpose(1, 0, 2))
                   for key in ("position", "velocity", "acceleration"))
-    kept = _BestState(len(markers))
-    kept.offer(x_best, s_best, state)
+    kept = state  # the solution at each marker's best point (the final solve's start)
 
     def oscillation(log10_sigma: np.ndarray) -> spec.Oscillation | None:
         return spec.Oscillation(oscillation_hz, 10.0**log10_sigma) if osc_model else None
@@ -912,11 +911,11 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     def f(values: np.ndarray, along_sigma: bool, live: np.ndarray) -> np.ndarray:
         """The score at log10 q = values (or log10 sigma_m = values, along_sigma) and the other level at its best,
         of the ``live`` markers (-inf for the others); keeps each marker's best point."""
-        nonlocal state, x_best, y_best, s_best
+        nonlocal state, kept, x_best, y_best, s_best
         x, y = (x_best, values) if along_sigma else (values, y_best)
         s, state = solve(10.0**x, state, oscillation(y), live)
-        kept.offer(x, s, state)
         better = s > s_best
+        kept = _where_state(better, state, kept)
         x_best, y_best, s_best = np.where(better, x, x_best), np.where(better, y, y_best), np.where(better, s, s_best)
         bar.update()
         return s
@@ -956,7 +955,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     level[markers], ev[markers] = 10.0**x_best, s_best
     info = {"rule": noise.per_marker_rule(model, rule), "per_marker": {int(m): float(level[m]) for m in markers},
             "n_solves": n_solves, "log_evidence": ev,
-            "solution": _full_width(kept.at(x_best), markers, M)}
+            "solution": _full_width(_where_state(np.isfinite(s_best), kept, (np.nan,) * 3), markers, M)}
     if osc_model:
         info["sigma_m"] = np.full(M, np.nan)
         info["sigma_m"][markers] = 10.0**y_best
@@ -977,28 +976,10 @@ def _full_width(state: tuple, markers: np.ndarray, M: int) -> tuple:
     return tuple(widen(a) for a in state)
 
 
-class _BestState:
-    """Each searched marker's best-scoring solution so far, (positions, velocities, accelerations) (F, M', 3)
-    or None, with its score and log10 level: the final solve's start (the search solved each marker at the
-    level it chooses, on the same observations, so that solve starts at its answer)."""
-
-    def __init__(self, n: int):
-        self.score, self.x, self.state = np.full(n, -np.inf), np.full(n, np.nan), None
-
-    def offer(self, x: np.ndarray, score: np.ndarray, state: tuple) -> None:
-        """Keep the solutions ``state`` at log10 levels x (M',) where their scores beat the best so far."""
-        better = score > self.score
-        if self.state is None:
-            self.state = tuple(None if s_ is None else np.where(better[None, :, None], s_, np.nan) for s_ in state)
-        else:
-            self.state = tuple(None if n_ is None else np.where(better[None, :, None], n_, b_)
-                               for n_, b_ in zip(state, self.state, strict=True))
-        self.x, self.score = np.where(better, x, self.x), np.where(better, score, self.score)
-
-    def at(self, x: np.ndarray) -> tuple:
-        """The kept solutions of the markers whose best level is x (M',), NaN for the others."""
-        same = (self.x == x)[None, :, None]
-        return tuple(None if s_ is None else np.where(same, s_, np.nan) for s_ in self.state)
+def _where_state(take: np.ndarray, new: tuple, old: tuple) -> tuple:
+    """Solutions (positions, velocities, accelerations) (F, M', 3) or None: ``new``'s for the markers where
+    ``take`` (M',) holds, ``old``'s elsewhere (old may be a scalar, e.g. NaN)."""
+    return tuple(None if n_ is None else np.where(take[None, :, None], n_, o_) for n_, o_ in zip(new, old, strict=True))
 
 
 # Where the slope search starts (log10 of q [m^2/s^3], j [m^2/s^5]): a wing's q (~10; bodies ~0.03-1, tips
@@ -1038,10 +1019,9 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     f2 = scores(first["cost"], first["logdet"], first["at_camera"], levels)
     search.lower_end(f2[0], first["slope"][0] * math.log(10.0))
     search.update(x0, f2[1], first["slope"][1] * math.log(10.0))
-    best = _BestState(Mm)
-    for j, x_ in enumerate((np.full(Mm, float(lo)), x0)):
-        best.offer(x_, f2[j], tuple(None if first[k] is None else first[k][j]
-                                    for k in ("position", "velocity", "acceleration")))
+    parts = [tuple(None if first[k] is None else first[k][j] for k in ("position", "velocity", "acceleration"))
+             for j in (0, 1)]
+    kept = _where_state(search.answer[0] == lo, *parts)  # the solution at each marker's answer so far
     last = tuple(None if first[k] is None else first[k][1] for k in ("position", "velocity", "acceleration"))
     last_x, n_solves = x0.copy(), 1
     bar.update()
@@ -1062,13 +1042,12 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
                          -np.inf)
         search.update(u, score, info["slope_per_marker"] * math.log(10.0))
         new = (info["position"], info["velocity"], info["acceleration"])
-        best.offer(u, score, new)
-        last = tuple(n_ if n_ is None or l_ is None else np.where(live[None, :, None], n_, l_)
-                     for n_, l_ in zip(new, last, strict=True))
+        kept = _where_state(live & (search.answer[0] == u), new, kept)
+        last = _where_state(live, new, last)
         last_x = np.where(live, u, last_x)
     bar.close()
     x, f = search.answer
-    return 10.0**x, f, n_solves, best.at(x)
+    return 10.0**x, f, n_solves, _where_state(np.isfinite(f), kept, (np.nan,) * 3)
 
 
 def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,
