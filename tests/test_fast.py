@@ -417,6 +417,15 @@ def single_view_mislabels() -> tuple[Session, list[tuple[str, int, str]]]:
     return dataclasses.replace(session, observations=obs), [p[:3] for p in planted]
 
 
+def mislabels_with_q_from_data():
+    """:func:`single_view_mislabels` with no given q (chosen from the data): (session, planted, dense, ideal)."""
+    session, planted = single_view_mislabels()
+    session = dataclasses.replace(session, motion=dataclasses.replace(session.motion, accel_psd_m2_s3=None))
+    dense = dense_observations(session)
+    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    return session, planted, dense, ideal
+
+
 @pytest.mark.parametrize("model", ["random_walk", "constant_velocity", "auto"])
 def test_rejection_schedule_matches_run_smoother(model):
     """Default options (Huber + outlier rejection; constant velocity with q chosen from the data) on
@@ -427,10 +436,7 @@ def test_rejection_schedule_matches_run_smoother(model):
     to 1e-4 relative (measured 1.2e-5, 2.4e-7; as the Huber case above). D: 15 (random walk, which
     also drops inliers of m1 next to its gap) and 4 (the two mislabels and m2's two 40 px outliers).
     Without the schedule the answer moves by > 1 mm (measured 52 mm, 18 mm), so each check can fail."""
-    session, planted = single_view_mislabels()
-    session = dataclasses.replace(session, motion=dataclasses.replace(session.motion, accel_psd_m2_s3=None))
-    dense = dense_observations(session)
-    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    session, planted, dense, ideal = mislabels_with_q_from_data()
     opt = Options(motion_model=model, progress=False)
     a = schedule.run_smoother_fast(session, dense, ideal, opt)
     b = run_smoother(session, dense, ideal, opt)
@@ -554,10 +560,7 @@ def test_final_solve_starts_from_the_search(model, monkeypatch):
     levels (fast.searched_start), which solved the same observations: it reaches the answer the cleaning
     solution's start reaches (positions to 1e-6 m, covariances to 1e-4 relative) in fewer iterations.
     Measured on the two-mislabel scene: first round 1 against 5 iterations, with either model."""
-    session, _ = single_view_mislabels()
-    session = dataclasses.replace(session, motion=dataclasses.replace(session.motion, accel_psd_m2_s3=None))
-    dense = dense_observations(session)
-    ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
+    session, _, dense, ideal = mislabels_with_q_from_data()
     opt = Options(motion_model=model, progress=False)
     a = schedule.run_smoother_fast(session, dense, ideal, opt)
     monkeypatch.setattr(schedule, "searched_start", lambda solution, p, v, fps: (p, v, None))
