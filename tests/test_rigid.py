@@ -17,7 +17,7 @@ from test_fast import FPS, _level, _rel_cov_error, as_values, gtsam_graph, make_
 from batgraph import evaluate, pipeline, simulate
 from batgraph.camera import Rig
 from batgraph.errors import InputError
-from batgraph.graph import factors, rigid, schedule
+from batgraph.graph import dense_tridiagonal, factors, rigid, schedule
 from batgraph.graph.smoother import posterior_logdet, run_smoother
 from batgraph.result import Options
 from batgraph.session import read_session, write_session
@@ -77,11 +77,16 @@ def _gtsam_rigid(session, ideal, model, robust, pairs):
 
 @pytest.mark.parametrize("model", ["constant_velocity", "constant_acceleration"])
 @pytest.mark.parametrize("robust", ["none", "huber"])
-def test_solve_rigid_equals_gtsam(scene, model, robust):
+@pytest.mark.parametrize("path", ["kernels", "lapack"])
+def test_solve_rigid_equals_gtsam(scene, model, robust, path, monkeypatch):
     """Against GTSAM's LM (run to a standstill) on the smoother's graph plus batgraph.graph.factors'
     segment factors: positions and lengths to 1e-6 m, the fast solution no worse in GTSAM's error
     (1e-12 relative), and at the fast solution gtsam.Marginals' position and length covariances to 1e-6
-    relative and GTSAM's log det to 1e-6: the bordered Schur complement keeps the marginals exact."""
+    relative and GTSAM's log det to 1e-6: the bordered Schur complement keeps the marginals exact.
+    ``path`` "lapack": the group (3 members, 18 or 27 values a frame) is sent to
+    batgraph.graph.dense_tridiagonal, the path of groups at least MIN_DENSE wide."""
+    if path == "lapack":
+        monkeypatch.setattr(dense_tridiagonal, "MIN_DENSE", 1)
     session, dense, ideal, p_init = scene
     C, F, M = ideal.seen.shape
     models = np.array([model] * 3 + [None], dtype=object)

@@ -45,7 +45,7 @@ from ..geometry import pinhole
 from ..measurement import IdealObservations
 from ..session import Session
 from . import cost as spec
-from . import kernels, noise
+from . import dense_tridiagonal, kernels, noise
 from .cost import robust_loss  # noqa: F401  (re-exported: fast_filter and tests use it from here)
 
 MODELS = (*spec.MOTION_MODELS, spec.OSCILLATING)
@@ -408,16 +408,34 @@ def _solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     its blocks (M, g, b, b) (d = g b); rhs (F, M, d), or (F, M, d, r) for r right-hand sides at once.
     Returns dx of rhs's shape.
     One sweep over frames eliminates and substitutes forwards (S_k = D_k - L_k B^T with L_k = B S_{k-1}^-1,
-    y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes (compiled: kernels.tridiagonal_solve).
+    y_k = rhs_k - L_k y_{k-1}), one sweep back-substitutes (compiled: kernels.tridiagonal_solve; one system
+    of blocks at least dense_tridiagonal.MIN_DENSE wide, a large segment group, by LAPACK there).
     """
     many = rhs.ndim == D.ndim
-    dx = kernels.tridiagonal_solve(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]),
-                                   np.ascontiguousarray(rhs if many else rhs[..., None]))
+    rhs = rhs if many else rhs[..., None]
+    Bb = _dense_blocks(D, B)
+    if Bb is not None:
+        dx = dense_tridiagonal.solve(D[:, 0], Bb, rhs[:, 0])[:, None]
+    else:
+        dx = kernels.tridiagonal_solve(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]),
+                                       np.ascontiguousarray(rhs))
     return dx if many else dx[..., 0]
+
+
+def _dense_blocks(D: np.ndarray, B: np.ndarray) -> np.ndarray | None:
+    """The blocks (g, b, b) of B when D (F, M, d, d) is one system of blocks at least
+    dense_tridiagonal.MIN_DENSE wide (a large segment group, solved by LAPACK there), else None (the kernels)."""
+    if D.shape[1] != 1 or D.shape[-1] < dense_tridiagonal.MIN_DENSE:
+        return None
+    B = np.asarray(B)
+    return B.reshape((-1,) + B.shape[-2:]) if B.ndim >= 3 else B[None]
 
 
 def logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
     """log det H (M,) of block-tridiagonal H (see :func:`marginals`): sum_k log det S_k, forward sweep only."""
+    Bb = _dense_blocks(D, B)
+    if Bb is not None:
+        return np.array([dense_tridiagonal.logdet(D[:, 0], Bb)])
     return kernels.tridiagonal_logdet(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]))
 
 
@@ -455,8 +473,12 @@ def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns Sigma (F, M, d, d) and logdet (M,). With S_k the forward Schur complements,
     Sigma_{F-1} = S_{F-1}^-1 and Sigma_k = S_k^-1 + G_k Sigma_{k+1} G_k^T, G_k = S_k^-1 B^T
     (x_k given x_{k+1} is N(-G_k x_{k+1}, S_k^-1)); log det H = sum_k log det S_k (compiled:
-    kernels.tridiagonal_marginals).
+    kernels.tridiagonal_marginals; a large segment group by LAPACK: see :func:`_solve`).
     """
+    Bb = _dense_blocks(D, B)
+    if Bb is not None:
+        Sigma, ld = dense_tridiagonal.marginals(D[:, 0], Bb)
+        return Sigma[:, None], np.array([ld])
     return kernels.tridiagonal_marginals(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]))
 
 
