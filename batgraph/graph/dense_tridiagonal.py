@@ -80,14 +80,29 @@ def _forward(D: np.ndarray, Bb: np.ndarray, rhs: np.ndarray | None) -> tuple[np.
     return Sinv, y, logdet
 
 
-def solve(D: np.ndarray, Bb: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """dx (F, n, r) solving H dx = rhs (module docstring)."""
-    Sinv, y, _ = _forward(D, Bb, rhs)
+def solve_and_marginals(D: np.ndarray, Bb: np.ndarray, rhs: np.ndarray, covariances: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """One forward sweep for all three: dx (F, n, r) solving H dx = rhs, the diagonal blocks Sigma (F, n, n) of
+    H^-1, symmetrised (None unless ``covariances``), and log det H (log |det| where H is indefinite)."""
+    Sinv, y, ld = _forward(D, Bb, rhs)
     dx = np.empty_like(rhs)
     dx[-1] = Sinv[-1] @ y[-1]
     for k in range(D.shape[0] - 2, -1, -1):
         dx[k] = Sinv[k] @ (y[k] - _left(Bb, dx[k + 1], transpose=True))
-    return dx
+    if not covariances:
+        return dx, None, ld
+    Sigma = np.empty_like(D)
+    Sigma[-1] = Sinv[-1]
+    for k in range(D.shape[0] - 2, -1, -1):
+        G = _left(Bb, Sinv[k]).T  # S_k^-1 B^T = (B S_k^-1)^T
+        Sigma[k] = Sinv[k] + (G @ Sigma[k + 1]) @ G.T
+    _symmetrise(Sigma)
+    return dx, Sigma, ld
+
+
+def solve(D: np.ndarray, Bb: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """dx (F, n, r) solving H dx = rhs (module docstring)."""
+    return solve_and_marginals(D, Bb, rhs, covariances=False)[0]
 
 
 def logdet(D: np.ndarray, Bb: np.ndarray) -> float:
@@ -97,11 +112,5 @@ def logdet(D: np.ndarray, Bb: np.ndarray) -> float:
 
 def marginals(D: np.ndarray, Bb: np.ndarray) -> tuple[np.ndarray, float]:
     """The diagonal blocks Sigma (F, n, n) of H^-1, symmetrised, and log det H (module docstring)."""
-    Sinv, _, ld = _forward(D, Bb, None)
-    Sigma = np.empty_like(D)
-    Sigma[-1] = Sinv[-1]
-    for k in range(D.shape[0] - 2, -1, -1):
-        G = _left(Bb, Sinv[k]).T  # S_k^-1 B^T = (B S_k^-1)^T
-        Sigma[k] = Sinv[k] + (G @ Sigma[k + 1]) @ G.T
-    _symmetrise(Sigma)
+    _, Sigma, ld = solve_and_marginals(D, Bb, np.zeros(D.shape[:2] + (0,)))
     return Sigma, ld

@@ -439,6 +439,20 @@ def logdet(D: np.ndarray, B: np.ndarray) -> np.ndarray:
     return kernels.tridiagonal_logdet(np.ascontiguousarray(D), _per_marker_B(B, D.shape[1]))
 
 
+def solve_and_marginals(D: np.ndarray, B: np.ndarray, rhs: np.ndarray, covariances: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """:func:`_solve` of rhs (F, M, d, r), :func:`marginals`' Sigma (F, M, d, d) (None unless ``covariances``)
+    and log det H (M,); for a large segment group in one forward sweep (dense_tridiagonal), else as those."""
+    Bb = _dense_blocks(D, B)
+    if Bb is not None:
+        dx, Sigma, ld = dense_tridiagonal.solve_and_marginals(D[:, 0], Bb, rhs[:, 0], covariances)
+        return dx[:, None], None if Sigma is None else Sigma[:, None], np.array([ld])
+    dx = _solve(D, B, rhs)
+    if covariances:
+        return (dx, *marginals(D, B))
+    return dx, None, logdet(D, B)
+
+
 def evidence_slope(prob: _Problem, x: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(log det H (M',), d log evidence / d ln level (M',)) at the minimiser x (F, M', d) of ``prob`` whose
     Gauss-Newton diagonal blocks are D (F, M', d, d); H is in the solver's scaled state, as :func:`logdet`'s.

@@ -208,13 +208,13 @@ def _group_marginals(prob, x, mu0, lin, L, seg: _Segments, covariances: bool):
     F, gm, d = x.shape
     T, _, C, E, _ = seg.system(x, L, *prob.system(x, mu0, lin, exact=False))
     BG = _block_diag(prob.B, gm)
-    W = fast._solve(T[:, None], BG, C[:, None])[:, 0]  # T^-1 C, (F, n, s)
+    W, Sig, ld_T = fast.solve_and_marginals(T[:, None], BG, C[:, None], covariances)
+    W = W[:, 0]  # T^-1 C, (F, n, s)
     S = E - np.einsum("fns,fnt->st", C, W)
     Sinv = np.linalg.inv(S)
     ld_S = np.linalg.slogdet(S)[1]
     if not covariances:
-        return None, Sinv, float(fast.logdet(T[:, None], BG)[0] + ld_S)
-    Sig, ld_T = fast.marginals(T[:, None], BG)
+        return None, Sinv, float(ld_T[0] + ld_S)
     Sig = Sig[:, 0] + W @ Sinv @ fast._T(W)
     Sig = 0.5 * (Sig + fast._T(Sig))
     cov = np.stack([Sig[:, i * d:(i + 1) * d, i * d:(i + 1) * d] for i in range(gm)], axis=1)
