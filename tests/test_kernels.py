@@ -21,11 +21,18 @@ def _tridiagonal(rng, F, M, d):
     return D, B, H
 
 
-@pytest.mark.parametrize("d", [3, 6, 9, 18])  # 18 > SMALL_BLOCK: the BLAS / LAPACK branch
-def test_tridiagonal_kernels_equal_dense_linear_algebra(d):
+@pytest.mark.parametrize("d, indefinite", [(3, False), (6, False), (9, False), (18, False), (18, True), (40, False)])
+def test_tridiagonal_kernels_equal_dense_linear_algebra(d, indefinite):
+    """d = 18 > SMALL_BLOCK: the Cholesky inverse, or with ``indefinite`` (one frame's blocks flipped negative,
+    as an exact-curvature step can make them) LAPACK's LU for that frame; d = 40 > CHOLESKY_BLOCK: LAPACK."""
     rng = np.random.default_rng(d)
     F, M, r = 7, 4, 3
     D, B, H = _tridiagonal(rng, F, M, d)
+    if indefinite:
+        D[F // 2] *= -1.0
+        for m in range(M):
+            H[m, F // 2 * d:(F // 2 + 1) * d, F // 2 * d:(F // 2 + 1) * d] = D[F // 2, m]
+        assert (np.linalg.eigvalsh(H).min(axis=1) < 0).all()
     rhs = rng.normal(size=(F, M, d, r))
     dx = kernels.tridiagonal_solve(D, B, rhs)
     Hinv = np.linalg.inv(H)

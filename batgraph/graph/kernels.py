@@ -201,13 +201,65 @@ def _projection_rows(lo, hi, pt, cell, col, cam, P, uv, Linv, behind_px, robust,
 SMALL_BLOCK = 12
 
 
+# Blocks larger than SMALL_BLOCK and up to this size (the oscillating model's 18) are inverted by
+# :func:`_cholesky_inverse` when positive definite: 3.5 us against 9.1 us for LAPACK's inverse and log det
+# through numba at 18 x 18 (one LAPACK call costs more than the arithmetic there); larger, or indefinite, by LAPACK.
+CHOLESKY_BLOCK = 36
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _cholesky_inverse(A, out, work):  # pragma: no cover  (compiled)
+    """out = A^-1 (d, d) of a symmetric positive definite A (its lower triangle read) by Cholesky, A = L L^T
+    (L in work's lower triangle), then L^-1 (in out) and A^-1 = L^-T L^-1; returns log det A, or NaN (out
+    undefined) when a pivot is not positive (A not positive definite: the caller inverts it otherwise)."""
+    d = A.shape[0]
+    for j in range(d):
+        s = A[j, j]
+        for k in range(j):
+            s -= work[j, k] * work[j, k]
+        if not s > 0.0:
+            return np.nan
+        ljj = np.sqrt(s)
+        work[j, j] = ljj
+        for i in range(j + 1, d):
+            t = A[i, j]
+            for k in range(j):
+                t -= work[i, k] * work[j, k]
+            work[i, j] = t / ljj
+    logdet = 0.0
+    for j in range(d):
+        logdet += 2.0 * np.log(work[j, j])
+        out[j, j] = 1.0 / work[j, j]
+        for i in range(j + 1, d):
+            t = 0.0
+            for k in range(j, i):
+                t -= work[i, k] * out[k, j]
+            out[i, j] = t / work[i, i]
+    for i in range(d):  # (L^-T L^-1)[i, j] = sum_{k >= i} L^-1[k, i] L^-1[k, j] for j <= i, into work
+        for j in range(i + 1):
+            t = 0.0
+            for k in range(i, d):
+                t += out[k, i] * out[k, j]
+            work[i, j] = t
+    for i in range(d):
+        for j in range(i + 1):
+            out[i, j] = out[j, i] = work[i, j]
+    return logdet
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _inverse(A, out, work, want_logdet=True):  # pragma: no cover  (compiled)
     """out = A^-1 (d, d) by Gauss-Jordan elimination with partial pivoting (LAPACK getri's answer to
     rounding); returns log |det A| (-inf for a singular A, whose out is then inf / NaN). work: (d, d).
-    A large block's log det is a second LAPACK factorisation: skipped (0 returned) unless ``want_logdet``."""
+    A block larger than SMALL_BLOCK: by :func:`_cholesky_inverse` (A symmetric; up to CHOLESKY_BLOCK and
+    positive definite), else LAPACK, whose log det is a second factorisation: skipped (0 returned) unless
+    ``want_logdet``."""
     d = A.shape[0]
     if d > SMALL_BLOCK:
+        if d <= CHOLESKY_BLOCK:
+            logdet = _cholesky_inverse(A, out, work)
+            if not np.isnan(logdet):
+                return logdet
         out[:] = np.linalg.inv(A)
         return np.linalg.slogdet(A)[1] if want_logdet else 0.0
     for i in range(d):
