@@ -11,7 +11,8 @@ Prints a table and ratios measured in this run (medians over repeats); nothing h
 (d) how the paper's stacked EKF's time and memory grow with the number of markers;
 (e) whole commands as a user runs them (first): ``batgraph reconstruct`` of the bundled 5-camera flight
     with the default methods and with ``--methods triangulate``, ``batgraph --help``, the default
-    reconstruct of a simulated session of the scene's size (seed 3), and a batch of 16 small simulated
+    reconstruct of a simulated session of the scene's size (seed 3), ``--motion wingbeat`` on a simulated
+    5-camera flight (the accuracy study's, seed 1: 14 markers joined by its bones), and a batch of 16 small simulated
     sessions (10 cameras x 30 markers x 120 frames) with 1 and with 2 workers; each a fresh process:
     wall time, CPU time (user + system) and peak resident memory, medians over
     repeats; with ``--baseline-tree DIR`` (an older checkout, e.g. ``git worktree add /tmp/old HEAD~5``)
@@ -413,6 +414,8 @@ def bench_commands(args, batch: bool = True) -> list[tuple[str, str, str]]:
         big = f"{args.cameras} x {args.markers} x {args.frames}"
         run_process(["simulate", "flight", f"{tmp}/big", "--cameras", str(args.cameras), "--markers",
                      str(args.markers), "--frames", str(args.frames), "--seed", "3"], ROOT)
+        # the accuracy study's 5-camera flight (14 markers, 160 frames, its bones as [markers] rigid: one group)
+        run_process(["simulate", "flight", f"{tmp}/f5", "--cameras", "5", "--seed", "1"], ROOT)
         # the batch: small sessions of 10 cameras x 30 markers x 120 frames
         for seed in range(BATCH_SESSIONS if batch else 0):
             run_process(["simulate", "flight", f"{tmp}/many/s{seed:02d}", "--cameras", "10", "--markers", "30",
@@ -424,6 +427,8 @@ def bench_commands(args, batch: bool = True) -> list[tuple[str, str, str]]:
                                                               *quiet, "--methods", "triangulate"],
             "batgraph --help": ["--help"],
             f"reconstruct {big} (default methods)": ["reconstruct", f"{tmp}/big", "--out", f"{tmp}/c", *quiet],
+            "reconstruct simulated 5-camera flight --motion wingbeat": ["reconstruct", f"{tmp}/f5", "--out",
+                                                                       f"{tmp}/d", *quiet, "--motion", "wingbeat"],
         }
         if batch:
             commands.update({f"reconstruct {BATCH_SESSIONS} sessions --workers {n}": [
