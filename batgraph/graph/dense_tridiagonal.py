@@ -8,8 +8,9 @@ back: dx_{F-1} = S^-1 y, dx_k = S_k^-1 (y_k - B^T dx_{k+1}); marginals Sigma_k =
 G_k = S_k^-1 B^T), but each S_k^-1 comes from LAPACK's symmetric inverse: Cholesky (potrf + potri, ~n^3
 flops, log det from the factor's diagonal), or LU (getrf + getri, ~2 n^3, and a second factorisation for
 the log det) where S_k is not positive definite (an exact-curvature step with a robust loss can make it
-indefinite). The kernels invert by LU always: a 252-wide inverse took 1.87 ms by LU and 1.08 ms by
-Cholesky on the 2-core machine (one thread). Products with B are per member (g b^2 n, not n^3).
+indefinite). The kernels invert blocks this wide by LU (their compiled Cholesky is for blocks of at most
+kernels.CHOLESKY_BLOCK values): a 252-wide inverse took 1.87 ms by LU and 1.08 ms by Cholesky on the 2-core
+machine (one thread). Products with B are per member (g b^2 n, not n^3).
 
 The loop over frames is Python: a few numpy / LAPACK calls a frame, tens of microseconds beside one
 large inverse. :data:`MIN_DENSE` is where this beats the compiled kernels (BENCHMARKS.md).
