@@ -94,6 +94,24 @@ def _blocks(n: int, rows, r: np.ndarray, Jw: np.ndarray, weight: np.ndarray,
     return g, H
 
 
+def newton_steps(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """-H^-1 g per marker, (n, 3), for H (n, 3, 3) and g (n, 3); NaN for a marker whose H is singular to
+    LAPACK (a zero pivot), whose step the caller then rejects (its cost is not finite) and damps further.
+    Met on the simulated 5-camera flight with 5 % mislabels (seed 1): an H with eigenvalues 3.9e4 and
+    ~3e20 1/m^2 (whitened projection Jacobians of a point ~1e-7 m in front of a camera centre), where
+    np.linalg.solve raised for the whole batch and the filter stopped with a traceback."""
+    try:
+        return -np.linalg.solve(H, g[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full(g.shape, np.nan)
+        for i in range(len(H)):
+            try:
+                out[i] = -np.linalg.solve(H[i], g[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def iterated_update(mean: np.ndarray, cov: np.ndarray, rows, robust: str = "huber", robust_k: float = 2.0,
                     p_start: np.ndarray | None = None, max_iterations: int = MAX_ITERATIONS,
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -151,7 +169,7 @@ def iterated_update(mean: np.ndarray, cov: np.ndarray, rows, robust: str = "hube
         g += (Lp[act] @ (pa - mu[act])[..., None])[..., 0]
         H += Lp[act]
         H[:, diag, diag] *= 1.0 + lam[act, None]
-        dp = -np.linalg.solve(H, g[..., None])[..., 0]
+        dp = newton_steps(H, g)
         c_new, r_new, J_new = evaluate(pa + dp, sub, act)
         ok = c_new <= c[act]
         step = np.abs(dp).max(axis=1)
