@@ -1141,12 +1141,12 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 def searched_start(solution: tuple, p_start: np.ndarray, v_start: np.ndarray, fps: float) -> tuple:
     """The final solve's start (positions [m], velocities [m/s], accelerations [m/s^2]) (F, M, 3): the noise
     search's solution at each marker's chosen model and level (fast.choose_model_per_marker's ``solution``),
-    and for a marker it does not hold, ``p_start``, ``v_start`` and their accelerations by np.gradient (as
+    and for a marker it does not hold, ``p_start``, ``v_start`` and their accelerations by :func:`_gradient` (as
     solve_fast's default)."""
     has = [np.isfinite(part).all(axis=(0, 2))[None, :, None] for part in solution]
     p = np.where(has[0], solution[0], p_start)
     v = np.where(has[1], solution[1], v_start)
-    a = np.where(has[2], solution[2], np.gradient(v, axis=0) * fps if len(v) > 1 else 0.0)
+    a = np.where(has[2], solution[2], _gradient(v, fps))
     return p, v, a
 
 
