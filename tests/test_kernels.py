@@ -66,6 +66,12 @@ def test_motion_trace_equals_dense_trace(d):
             Hm[b, a], Hm[a, b] = B[m], B[m].T
         np.testing.assert_allclose(tr[m], np.trace(np.linalg.solve(H[m], Hm)), rtol=1e-10)
         np.testing.assert_allclose(ld[m], np.linalg.slogdet(H[m])[1], rtol=1e-12)
+    # the fused kernel (the noise search's surrogate): the same log det and trace, and the solve, in one sweep
+    rhs = rng.normal(size=(F, M, d, 1))
+    dx, ld2, tr2 = kernels.tridiagonal_solve_motion_trace(D, B, AtQiA, Qi, rhs)
+    np.testing.assert_allclose(ld2, ld, rtol=1e-13)
+    np.testing.assert_allclose(tr2, tr, rtol=1e-13)
+    np.testing.assert_allclose(dx, kernels.tridiagonal_solve(D, B, rhs), rtol=1e-13, atol=1e-15)
 
 
 @pytest.mark.parametrize("g, b", [(2, 3), (3, 6), (14, 18)])  # d = 6 (loops), 18 and 252 (BLAS / LAPACK)

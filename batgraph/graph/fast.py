@@ -298,8 +298,8 @@ class _Problem:
     def _motion_cost(self, e: np.ndarray) -> np.ndarray:
         """0.5 sum_k e_k^T Qi e_k per marker (M',) of the motion residuals e (F-1, M', d)."""
         if self.Qi1 is None:
-            return 0.5 * np.einsum("fmi,mij,fmj->m", e, self.Qi, e)
-        return 0.5 * self.wq * np.einsum("fmi,ij,fmj->m", e, self.Qi1, e)
+            return 0.5 * np.einsum("fmi,fmi->m", np.matmul(e.transpose(1, 0, 2), self.Qi).transpose(1, 0, 2), e)
+        return 0.5 * self.wq * np.einsum("fmi,fmi->m", e @ self.Qi1, e)  # (a three-operand einsum: 6x slower)
 
     def evaluate(self, x: np.ndarray, mu0: np.ndarray, obs: _Observations, jacobian: bool,
                  closest: np.ndarray | None = None) -> tuple[np.ndarray, _Linearization | None]:
@@ -468,15 +468,72 @@ def evidence_slope(prob: _Problem, x: np.ndarray, D: np.ndarray) -> tuple[np.nda
     """
     if prob.Qi1 is None:
         raise ValueError("the evidence's slope needs a model whose noise is one scale (not oscillating)")
-    F, M, d = D.shape[0], D.shape[1], prob.d
+    ld, tr = kernels.tridiagonal_motion_trace(np.ascontiguousarray(D), *_each(prob, D.shape[1]))
+    return ld, _slope(prob, x, tr)
 
-    def each(a):
-        return np.ascontiguousarray(np.broadcast_to(a, (M, d, d)))
 
-    ld, tr = kernels.tridiagonal_motion_trace(np.ascontiguousarray(D), each(prob.B), each(prob.AtQiA),
-                                              each(prob.Qi))
-    e_motion = prob._motion_cost(x[1:] - x[:-1] @ prob.A.T)
-    return ld, e_motion + 0.5 * tr - 0.5 * (F - 1) * d
+def _slope(prob: _Problem, x: np.ndarray, trace: np.ndarray) -> np.ndarray:
+    """:func:`evidence_slope`'s slope (M',) at x (F, M', d) from the trace tr(H^-1 H_m) (M',)."""
+    F, d = x.shape[0], prob.d
+    return prob._motion_cost(x[1:] - x[:-1] @ prob.A.T) + 0.5 * trace - 0.5 * (F - 1) * d
+
+
+def _each(prob: _Problem, M: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """prob's B, AtQiA and Qi as (M, d, d) C-contiguous (one per marker, as the kernels take them)."""
+    return tuple(np.ascontiguousarray(np.broadcast_to(a, (M, prob.d, prob.d))) for a in (prob.B, prob.AtQiA, prob.Qi))
+
+
+class _Surrogate:
+    """Each marker's Laplace evidence as a function of its noise level, with the projection factors replaced by
+    their quadratic model at a state x0 (F, M', d): their gradient g and IRLS curvature Hw there (the curvature
+    the log det and the marginals use; for Huber a majoriser of the loss); the motion and gauge-prior terms
+    exact. For a model whose motion information is one scale (constant velocity, acceleration; not "oscillating").
+
+    :meth:`evaluate` at any level is one block-tridiagonal sweep (kernels.tridiagonal_solve_motion_trace), no
+    projection: the quadratic model's minimiser there (a Gauss-Newton step from x0 at that level), its cost, log
+    det and slope (:func:`evidence_slope`'s formula, exactly the derivative of the surrogate's own score, since
+    nothing it leaves out moves). Where x0 minimises the cost at a level, the surrogate's cost, log det and slope
+    at that level are solve_fast's. Elsewhere it misses how the projections' Jacobians and weights move with
+    the solution: linearised at a solution, its maximum was within 0.05 decade of the evidence's on the accuracy
+    study's scenes but 0.12 decade off on a test scene with long weakly observed runs, so the noise search only
+    begins where it points (:func:`_slope_search`).
+    """
+
+    def __init__(self, prob: _Problem, fps: float, x0: np.ndarray, mu0: np.ndarray, obs: _Observations):
+        """Linearised at x0 (F, M', d) with prior means mu0 (M', d), the markers of ``obs``; ``prob``'s level is
+        immaterial."""
+        self.model, self.fps, self.robust, self.k = prob.model, fps, prob.robust, prob.k
+        cost, self.lin = prob.evaluate(x0, mu0, obs, jacobian=True)
+        self.x0, self.mu0 = x0, mu0
+        e0 = x0[0] - mu0
+        # the projection factors' part of the cost at x0 (M',)
+        self.e_data = cost - prob._motion_cost(x0[1:] - x0[:-1] @ prob.A.T) - 0.5 * np.einsum(
+            "mi,mi->m", e0, prob._times_P0(e0))
+
+    def take(self, cols: np.ndarray) -> _Surrogate:
+        """The surrogate of the columns ``cols`` (int or bool over M')."""
+        out = object.__new__(_Surrogate)
+        out.__dict__.update(self.__dict__)
+        out.x0, out.mu0, out.lin, out.e_data = self.x0[:, cols], self.mu0[cols], self.lin.take(cols), self.e_data[cols]
+        return out
+
+    def evaluate(self, level: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At noise levels ``level`` (M',): the surrogate's cost (M',), log det (M', spec units, as solve_fast's
+        logdet_per_marker), evidence slope per ln level (M', :func:`evidence_slope`) and minimiser x (F, M', d)."""
+        prob = _Problem(self.model, np.asarray(level, float), self.fps, self.robust, self.k)
+        D, g = prob.system(self.x0, self.mu0, self.lin, exact=False)
+        dx, ld, trace = kernels.tridiagonal_solve_motion_trace(D, *_each(prob, D.shape[1]),
+                                                               np.ascontiguousarray(-g[..., None]))
+        x = self.x0 + dx[..., 0]
+        dp = x[..., :3] - self.x0[..., :3]
+        H = self.lin.Hw  # upper triangle (00, 01, 02, 11, 12, 22) per cell
+        quad = (H[..., 0] * dp[..., 0] ** 2 + H[..., 3] * dp[..., 1] ** 2 + H[..., 5] * dp[..., 2] ** 2
+                + 2 * (H[..., 1] * dp[..., 0] * dp[..., 1] + H[..., 2] * dp[..., 0] * dp[..., 2]
+                       + H[..., 4] * dp[..., 1] * dp[..., 2]))
+        e0 = x[0] - self.mu0
+        cost = (self.e_data + np.einsum("fmi,fmi->m", self.lin.g, dp) + 0.5 * quad.sum(axis=0)
+                + prob._motion_cost(x[1:] - x[:-1] @ prob.A.T) + 0.5 * np.einsum("mi,mi->m", e0, prob._times_P0(e0)))
+        return cost, ld + 2 * x.shape[0] * spec.log_det_scale(self.model, 1.0 / self.fps), _slope(prob, x, trace), x
 
 
 def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -832,11 +889,13 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     (default p_init, v_init and solve_fast's default accelerations), e.g. the cleaning solution.
 
     Constant velocity and constant acceleration scored by the evidence (the default): :func:`_slope_search`,
-    the evidence's values and slopes (:func:`evidence_slope`) by noise.SlopeSearch, from log10 level
-    SLOPE_START[model] and the range's lower end (one batched solve), then one solve_fast of the markers
-    still searching per step. On 7 simulated scenes it chose q within 0.04 decade of the grid + Brent search
-    below (evidence -0.6..+0.06 nats) in 0.5-0.9x its time, and j within 0.024 decade but for one wing tip
-    whose evidence is ragged beside a camera centre (0.086 decade, -4.4 nats; BENCHMARKS.md).
+    the evidence's values and slopes (:func:`evidence_slope`) by noise.SlopeSearch, begun where the evidence's
+    :class:`_Surrogate` at the start peaks (the range's lower end solved only where that surrogate does not put
+    it far below), then one solve_fast of the markers still searching per step. On 7 simulated scenes the
+    search begun at SLOPE_START chose q within 0.04 decade of the grid + Brent search below (evidence
+    -0.6..+0.06 nats) in 0.5-0.9x its time, and j within 0.024 decade but for one wing tip whose evidence is
+    ragged beside a camera centre (0.086 decade, -4.4 nats); begun at the surrogate's peak, it chose the same
+    levels to 0.05 decade in about half the solves (BENCHMARKS.md).
 
     Otherwise (the "loo" rule, the oscillating model): the grid over noise.LOG10_RANGE[model], every
     noise.LOG10_GRID_STEP decades, is ONE batched solve
@@ -1024,6 +1083,20 @@ SLOPE_START = {"constant_velocity": 1.0, "constant_acceleration": 5.0}
 SLOPE_MAX_STEPS = 24
 
 
+# The search on true solves begins at the surrogate's maximum, so its first step, where the slope's secant is not
+# known yet, is this long (decades) instead of noise.SlopeSearch.FIRST_STEP_DECADES: within the span where two
+# points' scores correct their slopes' secant.
+NEAR_FIRST_STEP_DECADES = 0.1
+# A solve starts from the marker's last solution where its level is stiffer, or looser by at most this (decades);
+# from ``start`` otherwise (a stiff solution carried to a much looser level once dragged wing markers off their track).
+WARM_LOOSER_DECADES = 0.2
+# The range's lower end is solved only where the surrogate at the start puts it less than this below the surrogate's
+# maximum [nats]. That surrogate scores levels far from its linearisation too low, by 1-3x the true gap on the
+# accuracy study's scenes (2026-11-25): every marker whose evidence peaked at the lower end was within it (at 0-1.5
+# nats), and the markers it left out were 495-6100 nats worse there.
+LO_SCREEN_NATS = 1000.0
+
+
 def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.ndarray, start: tuple, model: str,
                   fps: float, robust: str, robust_k: float, progress: bool
                   ) -> tuple[np.ndarray, np.ndarray, int, tuple]:
@@ -1032,58 +1105,120 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     that level: (positions, velocities, accelerations) (F, M', 3) or None, NaN for a marker without one).
 
     sub, rows: the searched markers' observations; p0: their initial track (F, M', 3) [m] (the gauge prior);
-    start: (positions, velocities, accelerations) (F, M', 3) or None, where a solve starts unless it is a
-    stiffer level than the marker's last one (a looser solution is a safe start for a stiffer level; a stiff
-    one, carried to a looser level, once dragged wing markers off their track: then from ``start``).
+    start: (positions, velocities, accelerations) (F, M', 3) or None, where the first solve starts.
+
+    Where to begin comes from the evidence's :class:`_Surrogate` linearised at ``start``: noise.SlopeSearch on it
+    (from SLOPE_START[model] and the range's lower end; no projection in any step) gives each marker's first
+    level, and how far below its maximum it puts the lower end. Then noise.SlopeSearch on true solves: the
+    lower end where the surrogate puts it less than LO_SCREEN_NATS below (from the surrogate's minimiser
+    there), the first level (from ``start``), then one solve of the markers still searching per step, the first
+    step NEAR_FIRST_STEP_DECADES long. The surrogate alone does not decide: its slope leaves out how the
+    projections' Jacobians and weights move with the solution, as evidence_slope's does, and only true scores
+    correct that (SlopeSearch's secants; the surrogate's own maximum was 0.12 decade off on a test scene with
+    long weakly observed runs). A step starts from the marker's last solution where it is stiffer or at most
+    WARM_LOOSER_DECADES looser, else from ``start``.
     """
     F, Mm = p0.shape[:2]
     lo, hi = noise.LOG10_RANGE[model]
-    x0 = np.full(Mm, SLOPE_START[model])
-    search = noise.SlopeSearch(x0, lo, hi)
-    dt = 1.0 / fps
+    dt, per_decade = 1.0 / fps, math.log(10.0)
+    n_solves = 0
 
-    def scores(info_cost, info_logdet, at_camera, level):
-        s_ = noise.laplace_log_evidence(info_cost, info_logdet, level, dt, F - 1, model=model)
-        return np.where(at_camera, -np.inf, s_)
+    def score(cost, logdet_, x):
+        return noise.laplace_log_evidence(cost, logdet_, 10.0**x, dt, F - 1, model=model)
+
+    def solve(x, live, from_):
+        """Solves of the ``live`` markers at log10 levels x (M',): scores (-inf elsewhere and where the solve ran
+        into a camera centre), slopes per decade (NaN elsewhere) and solutions."""
+        nonlocal n_solves
+        n_solves += 1
+        bar.update()
+        _, _, info = solve_fast(rig, sub, np.where(live[None, :, None], p0, np.nan), model, 10.0**x, fps, robust,
+                                robust_k, v_init=from_[1], p_start=from_[0], a_init=from_[2], covariances=False,
+                                rows=rows, slope=True, step_tol_m=LOOSE_STEP_TOL_M)
+        f = np.where(live & ~info["at_camera"], score(info["cost_per_marker"], info["logdet_per_marker"], x), -np.inf)
+        return f, np.where(live, info["slope_per_marker"] * per_decade, np.nan), (
+            info["position"], info["velocity"], info["acceleration"])
 
     bar = tqdm(total=SLOPE_MAX_STEPS, desc=f"choosing {noise.NOISE_UNIT[model]} per marker", disable=not progress,
                leave=False)
-    # the first point and the range's lower end, one batched solve from the start
-    levels = 10.0 ** np.repeat(np.array([[lo], [SLOPE_START[model]]]), Mm, axis=1)
-    first = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k, v_start=start[1], p_start=start[0],
-                         a_start=start[2], rows=rows, slope=True, step_tol_m=LOOSE_STEP_TOL_M)
-    f2 = scores(first["cost"], first["logdet"], first["at_camera"], levels)
-    search.lower_end(f2[0], first["slope"][0] * math.log(10.0))
-    search.update(x0, f2[1], first["slope"][1] * math.log(10.0))
-    parts = [tuple(None if first[k] is None else first[k][j] for k in ("position", "velocity", "acceleration"))
-             for j in (0, 1)]
-    kept = _where_state(search.answer[0] == lo, *parts)  # the solution at each marker's answer so far
-    last = tuple(None if first[k] is None else first[k][1] for k in ("position", "velocity", "acceleration"))
-    last_x, n_solves = x0.copy(), 1
-    bar.update()
-    for _ in range(SLOPE_MAX_STEPS - 1):
+    every = np.ones(Mm, bool)
+    first = _Problem(model, 10.0 ** SLOPE_START[model], fps, robust, robust_k)
+    x_start, mu0 = _start(first, p0, start[1], start[0], np.arange(Mm), fps, start[2])
+    sur = _Surrogate(first, fps, x_start, mu0, _rows_of(rows, every))
+    x0, below = _surrogate_search(sur, np.full(Mm, SLOPE_START[model]), lo, hi, score)
+    search = noise.SlopeSearch(x0, lo, hi)
+    search.FIRST_STEP_DECADES = NEAR_FIRST_STEP_DECADES  # (this search's; the class keeps its own)
+    near_lo = below < LO_SCREEN_NATS
+    x_lo = np.full(Mm, float(lo))
+    kept = None  # the solution at each marker's answer so far
+    if near_lo.any():
+        f, g, kept = solve(x_lo, near_lo, _surrogate_start(sur, x_lo, near_lo, start, fps))
+        search.lower_end(f, g)
+    f, g, last = solve(x0, every, start)
+    search.update(x0, f, g)
+    kept = last if kept is None else _where_state(search.answer[0] != lo, last, kept)
+    last_x = x0.copy()
+    for _ in range(SLOPE_MAX_STEPS - 2):
         live = ~search.done()
         if not live.any():
             break
         u = search.next()
-        warm = live & (u <= last_x)
+        warm = live & (u <= last_x + WARM_LOOSER_DECADES)
         from_ = tuple(None if s_ is None else np.where(warm[None, :, None], l_, s_)
                       for l_, s_ in zip(last, start, strict=True))
-        _, _, info = solve_fast(rig, sub, np.where(live[None, :, None], p0, np.nan), model, 10.0**u, fps, robust,
-                                robust_k, v_init=from_[1], p_start=from_[0], a_init=from_[2], covariances=False,
-                                rows=rows, slope=True, step_tol_m=LOOSE_STEP_TOL_M)
-        n_solves += 1
-        bar.update()
-        score = np.where(live, scores(info["cost_per_marker"], info["logdet_per_marker"], info["at_camera"], 10.0**u),
-                         -np.inf)
-        search.update(u, score, info["slope_per_marker"] * math.log(10.0))
-        new = (info["position"], info["velocity"], info["acceleration"])
+        f, g, new = solve(u, live, from_)
+        search.update(u, f, g)
         kept = _where_state(live & (search.answer[0] == u), new, kept)
         last = _where_state(live, new, last)
         last_x = np.where(live, u, last_x)
     bar.close()
     x, f = search.answer
     return 10.0**x, f, n_solves, _where_state(np.isfinite(f), kept, (np.nan,) * 3)
+
+
+def _surrogate_search(sur: _Surrogate, x_from: np.ndarray, lo: float, hi: float, score
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """noise.SlopeSearch on the surrogate from log10 levels x_from (M',) and the range's lower end: each marker's
+    answer (log10 level) and how far its score lies above the lower end's (nats; 0 where it is the answer, and
+    where either has no score: nothing to screen by). score(cost, logdet, x) is the Laplace evidence at log10
+    levels x."""
+    M = len(x_from)
+    per_decade = math.log(10.0)
+
+    def scored(x, on):
+        f, g = np.full(M, -np.inf), np.full(M, np.nan)
+        cost, ld, slope, _ = sur.take(on).evaluate(10.0 ** x[on])
+        f[on], g[on] = score(cost, ld, x[on]), slope * per_decade
+        return f, g
+
+    every = np.ones(M, bool)
+    search = noise.SlopeSearch(x_from.astype(float), lo, hi)
+    f_lo, g_lo = scored(np.full(M, float(lo)), every)
+    search.lower_end(f_lo, g_lo)
+    search.update(x_from, *scored(x_from, every))
+    for _ in range(SLOPE_MAX_STEPS - 1):
+        on = ~search.done()
+        if not on.any():
+            break
+        u = search.next()
+        search.update(u, *scored(u, on))
+    x, f = search.answer
+    scored_both = np.isfinite(f) & np.isfinite(f_lo)
+    return x, np.where(scored_both, f - np.where(scored_both, f_lo, 0.0), 0.0)
+
+
+def _surrogate_start(sur: _Surrogate, x: np.ndarray, which: np.ndarray, start: tuple, fps: float) -> tuple:
+    """``start`` (positions, velocities, accelerations) (F, M', 3) or None, with the surrogate's minimiser at log10
+    levels x (M',) for the markers ``which``."""
+    p, v, a = (None if part is None else part.copy() for part in start)
+    idx = np.flatnonzero(which)
+    state = sur.take(idx).evaluate(10.0 ** x[idx])[3]
+    v_new, a_new = _derivatives(state, 1.0 / fps)
+    p[:, idx], v[:, idx] = state[..., :3], v_new
+    if a_new is not None:
+        a = _gradient(v, fps) if a is None else a
+        a[:, idx] = a_new
+    return p, v, a
 
 
 def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray,

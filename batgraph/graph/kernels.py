@@ -429,6 +429,19 @@ def tridiagonal_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarray, Qi
     return ld, tr
 
 
+def tridiagonal_solve_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarray, Qi: np.ndarray,
+                                   rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`tridiagonal_solve` and :func:`tridiagonal_motion_trace` of the same H in one forward sweep:
+    (dx (F, M, d, r), log det H (M,), tr(H^-1 H_m) (M,)); arguments as theirs (B (M, d, d))."""
+    if B.ndim != 3:
+        raise ValueError(f"B must be one (d, d) block per marker, shape (M, d, d), got {B.shape}")
+    out, ld, tr = np.empty_like(rhs), np.empty(D.shape[1]), np.empty(D.shape[1])
+    Bb = _blocks(np.ascontiguousarray(B))
+    AtQiA, Qi = np.ascontiguousarray(AtQiA), np.ascontiguousarray(Qi)
+    _markers_split(D, lambda m0, m1: _solve_trace_markers(m0, m1, D, Bb, AtQiA, Qi, rhs, out, ld, tr))
+    return out, ld, tr
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve_markers(m0, m1, D, B, rhs, out):  # pragma: no cover  (compiled)
     """:func:`tridiagonal_solve` for markers m0..m1-1, into out (F, M, d, r)."""
@@ -505,6 +518,48 @@ def _motion_trace_markers(m0, m1, D, B, AtQiA, Qi, ld, tr):  # pragma: no cover 
                 for j in range(d):
                     t += nxt[i, j] * Qi[m, j, i]
         for k in range(F - 2, -1, -1):
+            _matmul(Sinv[k], Bm.T, G)
+            _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
+            _matmul(GS, G.T, S)
+            for i in range(d):
+                for j in range(d):
+                    cur[i, j] = Sinv[k, i, j] + S[i, j]
+            for i in range(d):
+                for j in range(d):
+                    t -= 2.0 * GS[i, j] * Bm[j, i]
+                    t += cur[i, j] * AtQiA[m, j, i]
+                    if k > 0:
+                        t += cur[i, j] * Qi[m, j, i]
+            nxt[:] = cur
+        tr[m] = t
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_trace_markers(m0, m1, D, B, AtQiA, Qi, rhs, out, ld, tr):  # pragma: no cover  (compiled)
+    """:func:`tridiagonal_solve_motion_trace` for markers m0..m1-1: :func:`_solve_markers`' back-substitution
+    and :func:`_motion_trace_markers`' backward recursion in one loop after one forward sweep."""
+    F, M, d, r = rhs.shape
+    Sinv = np.empty((F, d, d))
+    y = np.empty((F, d, r))
+    L, S, work = np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    Ly, t_ = np.empty((d, r)), np.empty((d, r))
+    G, GS, nxt, cur = np.empty((d, d)), np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
+    for m in range(m0, m1):
+        ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly, True)
+        Bm = B[m, 0]
+        _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
+        nxt[:] = Sinv[F - 1]
+        t = 0.0
+        if F > 1:
+            for i in range(d):
+                for j in range(d):
+                    t += nxt[i, j] * Qi[m, j, i]
+        for k in range(F - 2, -1, -1):
+            _left(B[m], out[k + 1, m], Ly, True)
+            for i in range(d):
+                for c in range(r):
+                    t_[i, c] = y[k, i, c] - Ly[i, c]
+            _matmul(Sinv[k], t_, out[k, m])
             _matmul(Sinv[k], Bm.T, G)
             _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
             _matmul(GS, G.T, S)
