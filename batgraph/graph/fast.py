@@ -487,22 +487,25 @@ class _Surrogate:
     """Each marker's Laplace evidence as a function of its noise level, with the projection factors replaced by
     their quadratic model at a state x0 (F, M', d): their gradient g and IRLS curvature Hw there (the curvature
     the log det and the marginals use; for Huber a majoriser of the loss); the motion and gauge-prior terms
-    exact. For a model whose motion information is one scale (constant velocity, acceleration; not "oscillating").
+    exact.
 
-    :meth:`evaluate` at any level is one block-tridiagonal sweep (kernels.tridiagonal_solve_motion_trace), no
-    projection: the quadratic model's minimiser there (a Gauss-Newton step from x0 at that level), its cost, log
-    det and slope (:func:`evidence_slope`'s formula, exactly the derivative of the surrogate's own score, since
-    nothing it leaves out moves). Where x0 minimises the cost at a level, the surrogate's cost, log det and slope
-    at that level are solve_fast's. Elsewhere it misses how the projections' Jacobians and weights move with
+    :meth:`evaluate` at any level needs no projection: the quadratic model's minimiser there (a Gauss-Newton step
+    from x0 at that level), its cost and log det, and for a model whose motion information is one scale
+    (constant velocity, acceleration) its slope (:func:`evidence_slope`'s formula, exactly the derivative of the
+    surrogate's own score, since nothing it leaves out moves), all in one block-tridiagonal sweep
+    (kernels.tridiagonal_solve_motion_trace); the "oscillating" model (levels q and sigma_m) takes a solve and a
+    log det. Where x0 minimises the cost at a level, the surrogate's cost, log det and slope at that level are
+    solve_fast's. Elsewhere it misses how the projections' Jacobians and weights move with
     the solution: linearised at a solution, its maximum was within 0.05 decade of the evidence's on the accuracy
     study's scenes but 0.12 decade off on a test scene with long weakly observed runs, so the noise search only
     begins where it points (:func:`_slope_search`).
     """
 
-    def __init__(self, prob: _Problem, fps: float, x0: np.ndarray, mu0: np.ndarray, obs: _Observations):
-        """Linearised at x0 (F, M', d) with prior means mu0 (M', d), the markers of ``obs``; ``prob``'s level is
-        immaterial."""
-        self.model, self.fps, self.robust, self.k = prob.model, fps, prob.robust, prob.k
+    def __init__(self, prob: _Problem, fps: float, x0: np.ndarray, mu0: np.ndarray, obs: _Observations,
+                 hz: float | None = None):
+        """Linearised at x0 (F, M', d) with prior means mu0 (M', d), the markers of ``obs``; ``prob``'s levels are
+        immaterial. hz: the wingbeat frequency [Hz] of the "oscillating" model."""
+        self.model, self.fps, self.robust, self.k, self.hz = prob.model, fps, prob.robust, prob.k, hz
         cost, self.lin = prob.evaluate(x0, mu0, obs, jacobian=True)
         self.x0, self.mu0 = x0, mu0
         e0 = x0[0] - mu0
@@ -517,14 +520,20 @@ class _Surrogate:
         out.x0, out.mu0, out.lin, out.e_data = self.x0[:, cols], self.mu0[cols], self.lin.take(cols), self.e_data[cols]
         return out
 
-    def evaluate(self, level: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """At noise levels ``level`` (M',): the surrogate's cost (M',), log det (M', spec units, as solve_fast's
-        logdet_per_marker), evidence slope per ln level (M', :func:`evidence_slope`) and minimiser x (F, M', d)."""
-        prob = _Problem(self.model, np.asarray(level, float), self.fps, self.robust, self.k)
+    def evaluate(self, level: np.ndarray, sigma_m: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+        """At noise levels ``level`` (M',) (and the "oscillating" model's sigma_m (M',)): the surrogate's cost
+        (M',), log det (M', spec units, as solve_fast's logdet_per_marker), evidence slope per ln level (M',
+        :func:`evidence_slope`; None for "oscillating") and minimiser x (F, M', d)."""
+        osc = None if self.hz is None else spec.Oscillation(self.hz, np.asarray(sigma_m, float))
+        prob = _Problem(self.model, np.asarray(level, float), self.fps, self.robust, self.k, osc)
         D, g = prob.system(self.x0, self.mu0, self.lin, exact=False)
-        dx, ld, trace = kernels.tridiagonal_solve_motion_trace(D, *_each(prob, D.shape[1]),
-                                                               np.ascontiguousarray(-g[..., None]))
-        x = self.x0 + dx[..., 0]
+        if prob.Qi1 is None:
+            x, ld, trace = self.x0 + _solve(D, prob.B, -g), logdet(D, prob.B), None
+        else:
+            dx, ld, trace = kernels.tridiagonal_solve_motion_trace(D, *_each(prob, D.shape[1]),
+                                                                   np.ascontiguousarray(-g[..., None]))
+            x = self.x0 + dx[..., 0]
         dp = x[..., :3] - self.x0[..., :3]
         H = self.lin.Hw  # upper triangle (00, 01, 02, 11, 12, 22) per cell
         quad = (H[..., 0] * dp[..., 0] ** 2 + H[..., 3] * dp[..., 1] ** 2 + H[..., 5] * dp[..., 2] ** 2
@@ -533,7 +542,8 @@ class _Surrogate:
         e0 = x[0] - self.mu0
         cost = (self.e_data + np.einsum("fmi,fmi->m", self.lin.g, dp) + 0.5 * quad.sum(axis=0)
                 + prob._motion_cost(x[1:] - x[:-1] @ prob.A.T) + 0.5 * np.einsum("mi,mi->m", e0, prob._times_P0(e0)))
-        return cost, ld + 2 * x.shape[0] * spec.log_det_scale(self.model, 1.0 / self.fps), _slope(prob, x, trace), x
+        slope = None if trace is None else _slope(prob, x, trace)
+        return cost, ld + 2 * x.shape[0] * spec.log_det_scale(self.model, 1.0 / self.fps), slope, x
 
 
 def marginals(D: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -916,10 +926,14 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 
     The "oscillating" model (wingbeat frequency ``oscillation_hz`` [Hz]) has two noise levels per marker: the
     trend's q and the oscillation's sigma_m. Its grid is q every noise.LOG10_GRID_STEP decades times sigma_m
-    every decade of noise.OSC_LOG10_SIGMA_RANGE (one batched solve: each of its 18-wide blocks costs ~27 times a
-    constant-velocity one); Brent's search then on log10 q within a grid step of the best point, at its
+    every decade of noise.OSC_LOG10_SIGMA_RANGE; scored by the evidence, every grid point is scored first by the
+    evidence's :class:`_Surrogate` at the start (no projection) and only each marker's GRID_TOP best are solved
+    (one batched solve: each of its 18-wide blocks costs ~27 times a constant-velocity one), the same chosen
+    levels as solving all 20 on six scenes (2026-11-25, BENCHMARKS.md) in 0.4-0.9x the search's time; with
+    the "loo" rule all are solved. Brent's search then on log10 q within a grid step of the best point, at its
     sigma_m, and last on log10 sigma_m within a decade, at that q (coordinate-wise: measured against the full
-    half-decade grid on the hold-out scenes in docs/accuracy.md).
+    half-decade grid on the hold-out scenes in docs/accuracy.md); a grid neighbour not solved is an end of
+    unknown score.
 
     Returns the level (M,) (NaN for markers not in ``markers``) and info: per_marker {index: level},
     rule, n_solves, log_evidence (M,) (each marker's best score; NaN for the others), solution: the solve at
@@ -986,17 +1000,33 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     levels = np.repeat(10.0 ** grid[:, None], len(markers), axis=1)
     osc_grid = spec.Oscillation(oscillation_hz, np.repeat(10.0 ** sig_grid[:, None], len(markers), axis=1)) \
         if osc_model else None
-    sol = solve_levels(rig, sub, p0, model, levels, fps, robust, robust_k,
-                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo, oscillation=osc_grid,
+    cols = np.arange(len(markers))
+    # which grid points are solved, per marker (rows of ``levels``): all of them, or (the evidence, where the
+    # surrogate at the start scores every one) the GRID_TOP it scores best
+    solved = np.repeat(np.arange(len(grid))[:, None], len(markers), axis=1)
+    if not loo:
+        first = _Problem(model, levels[0], fps, robust, robust_k, None if osc_grid is None else osc_grid.of(0))
+        x_start, mu0 = _start(first, p0, start[1], start[0], cols, fps, start[2])
+        sur = _Surrogate(first, fps, x_start, mu0, _rows_of(rows, np.ones(len(markers), bool)), oscillation_hz)
+        approx = np.stack([evidence(*sur.evaluate(levels[k], None if osc_grid is None else osc_grid.sigma_m[k])[:2],
+                                    levels[k], None, None if osc_grid is None else osc_grid.of(k))
+                           for k in range(len(grid))])
+        solved = _best_rows(approx, GRID_TOP)
+    sol = solve_levels(rig, sub, p0, model, levels[solved, cols], fps, robust, robust_k,
+                       v_start=start[1], p_start=start[0], a_start=start[2], loo=loo,
+                       oscillation=None if osc_grid is None else spec.Oscillation(oscillation_hz,
+                                                                                  osc_grid.sigma_m[solved, cols]),
                        rows=rows, step_tol_m=LOOSE_STEP_TOL_M)
     n_solves += 1
     bar.update()
-    scores = evidence(sol["cost"], sol["logdet"], levels, sol["loo"], osc_grid)  # (len(grid), markers)
-    scores = np.where(sol["at_camera"], -np.inf, scores)
-    cols = np.arange(len(markers))
-    best = np.argmax(scores, axis=0)
+    got = evidence(sol["cost"], sol["logdet"], levels[solved, cols], sol["loo"],
+                   None if osc_grid is None else spec.Oscillation(oscillation_hz, osc_grid.sigma_m[solved, cols]))
+    scores = np.full(levels.shape, np.nan)  # (len(grid), markers); NaN where not solved
+    scores[solved, cols] = np.where(sol["at_camera"], -np.inf, got)
+    j = np.argmax(np.where(np.isnan(got) | sol["at_camera"], -np.inf, got), axis=0)  # the best solved row
+    best = solved[j, cols]
     x_best, y_best, s_best = grid[best], sig_grid[best], scores[best, cols]  # log10 q, log10 sigma_m, score
-    state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][best, :, cols].transpose(1, 0, 2))
+    state = tuple(None if sol[key] is None else np.ascontiguousarray(sol[key][j, :, cols].transpose(1, 0, 2))
                   for key in ("position", "velocity", "acceleration"))
     kept = state  # the solution at each marker's best point (the final solve's start)
 
@@ -1060,6 +1090,12 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 
 choose_accel_psd_per_marker = choose_noise_per_marker  # the constant-velocity q per marker (its default model)
 
+def _best_rows(scores: np.ndarray, n: int) -> np.ndarray:
+    """The rows (n', M') of the n best scores (K, M') in each column, best first (NaN counts as the worst;
+    n' = min(n, K))."""
+    return np.argsort(-np.nan_to_num(scores, nan=-np.inf), axis=0, kind="stable")[:n]
+
+
 def _full_width(state: tuple, markers: np.ndarray, M: int) -> tuple:
     """Arrays (F, M', 3) of the searched ``markers`` (or None) as (F, M, 3), NaN for the other markers."""
     def widen(a):
@@ -1076,6 +1112,11 @@ def _where_state(take: np.ndarray, new: tuple, old: tuple) -> tuple:
     ``take`` (M',) holds, ``old``'s elsewhere (old may be a scalar, e.g. NaN)."""
     return tuple(None if n_ is None else np.where(take[None, :, None], n_, o_) for n_, o_ in zip(new, old, strict=True))
 
+
+# The grid points solved per marker where the evidence scores the grid (the oscillating model): those the surrogate
+# at the start scores best. On four scenes (2026-11-25) the grid's best solved point was the surrogate's first on
+# 41 of 56 markers and never below its fourth.
+GRID_TOP = 4
 
 # Where the slope search starts (log10 of q [m^2/s^3], j [m^2/s^5]): a wing's q (~10; bodies ~0.03-1, tips
 # ~50 on the simulated flight) and the middle of the jerk PSD's range.
