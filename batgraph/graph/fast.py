@@ -1090,6 +1090,7 @@ def choose_noise_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
 
 choose_accel_psd_per_marker = choose_noise_per_marker  # the constant-velocity q per marker (its default model)
 
+
 def _best_rows(scores: np.ndarray, n: int) -> np.ndarray:
     """The rows (n', M') of the n best scores (K, M') in each column, best first (NaN counts as the worst;
     n' = min(n, K))."""
@@ -1114,8 +1115,8 @@ def _where_state(take: np.ndarray, new: tuple, old: tuple) -> tuple:
 
 
 # The grid points solved per marker where the evidence scores the grid (the oscillating model): those the surrogate
-# at the start scores best. On four scenes (2026-11-25) the grid's best solved point was the surrogate's first on
-# 41 of 56 markers and never below its fourth.
+# at the start scores best. On four scenes (2026-11-25, from the triangulated tracks) the whole grid's best point
+# was the surrogate's best on 51 of 56 markers and never below its fourth.
 GRID_TOP = 4
 
 # Where the slope search starts (log10 of q [m^2/s^3], j [m^2/s^5]): a wing's q (~10; bodies ~0.03-1, tips

@@ -454,11 +454,17 @@ def _solve_markers(m0, m1, D, B, rhs, out):  # pragma: no cover  (compiled)
         _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly, False)
         _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
         for k in range(F - 2, -1, -1):
-            _left(B[m], out[k + 1, m], Ly, True)
-            for i in range(d):
-                for c in range(r):
-                    t_[i, c] = y[k, i, c] - Ly[i, c]
-            _matmul(Sinv[k], t_, out[k, m])
+            _back_step(B[m], Sinv[k], y[k], out[k + 1, m], out[k, m], Ly, t_)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _back_step(Bm, Sinv_k, y_k, dx_next, dx_k, Ly, t_):  # pragma: no cover  (compiled)
+    """One back-substitution step: dx_k = S_k^-1 (y_k - B^T dx_{k+1}) into dx_k (d, r); Ly, t_ (d, r) scratch."""
+    _left(Bm, dx_next, Ly, True)
+    for i in range(t_.shape[0]):
+        for c in range(t_.shape[1]):
+            t_[i, c] = y_k[i, c] - Ly[i, c]
+    _matmul(Sinv_k, t_, dx_k)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -510,28 +516,43 @@ def _motion_trace_markers(m0, m1, D, B, AtQiA, Qi, ld, tr):  # pragma: no cover 
     G, GS, nxt, cur = np.empty((d, d)), np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     for m in range(m0, m1):
         ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, _NO_RHS, Sinv, L, True)
-        Bm = B[m, 0]
         nxt[:] = Sinv[F - 1]
-        t = 0.0
-        if F > 1:
-            for i in range(d):
-                for j in range(d):
-                    t += nxt[i, j] * Qi[m, j, i]
+        t = _trace_last(nxt, Qi[m]) if F > 1 else 0.0
         for k in range(F - 2, -1, -1):
-            _matmul(Sinv[k], Bm.T, G)
-            _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
-            _matmul(GS, G.T, S)
-            for i in range(d):
-                for j in range(d):
-                    cur[i, j] = Sinv[k, i, j] + S[i, j]
-            for i in range(d):
-                for j in range(d):
-                    t -= 2.0 * GS[i, j] * Bm[j, i]
-                    t += cur[i, j] * AtQiA[m, j, i]
-                    if k > 0:
-                        t += cur[i, j] * Qi[m, j, i]
+            t = _trace_step(Sinv[k], B[m, 0], nxt, AtQiA[m], Qi[m], k > 0, G, GS, S, cur, t)
             nxt[:] = cur
         tr[m] = t
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _trace_last(Sigma_last, Qi_m):  # pragma: no cover  (compiled)
+    """The last frame's term of tr(H^-1 H_m): tr(Sigma_{F-1} Qi)."""
+    t = 0.0
+    for i in range(Qi_m.shape[0]):
+        for j in range(Qi_m.shape[0]):
+            t += Sigma_last[i, j] * Qi_m[j, i]
+    return t
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _trace_step(Sinv_k, Bm, nxt, AtQiA_m, Qi_m, with_qi, G, GS, S, cur, t):  # pragma: no cover  (compiled)
+    """One step of the backward recursion: Sigma_k into cur from Sigma_{k+1} (nxt) and S_k^-1; returns the
+    running trace t plus frame k's terms of tr(H^-1 H_m): tr(Sigma_k AtQiA) (+ tr(Sigma_k Qi) where ``with_qi``,
+    k > 0) + 2 tr(Sigma_{k,k+1} B), added term by term. G, GS, S: (d, d) scratch."""
+    d = Qi_m.shape[0]
+    _matmul(Sinv_k, Bm.T, G)
+    _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
+    _matmul(GS, G.T, S)
+    for i in range(d):
+        for j in range(d):
+            cur[i, j] = Sinv_k[i, j] + S[i, j]
+    for i in range(d):
+        for j in range(d):
+            t -= 2.0 * GS[i, j] * Bm[j, i]
+            t += cur[i, j] * AtQiA_m[j, i]
+            if with_qi:
+                t += cur[i, j] * Qi_m[j, i]
+    return t
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -546,32 +567,12 @@ def _solve_trace_markers(m0, m1, D, B, AtQiA, Qi, rhs, out, ld, tr):  # pragma: 
     G, GS, nxt, cur = np.empty((d, d)), np.empty((d, d)), np.empty((d, d)), np.empty((d, d))
     for m in range(m0, m1):
         ld[m] = _forward_sweep(D, B, m, Sinv, L, S, work, rhs, y, Ly, True)
-        Bm = B[m, 0]
         _matmul(Sinv[F - 1], y[F - 1], out[F - 1, m])
         nxt[:] = Sinv[F - 1]
-        t = 0.0
-        if F > 1:
-            for i in range(d):
-                for j in range(d):
-                    t += nxt[i, j] * Qi[m, j, i]
+        t = _trace_last(nxt, Qi[m]) if F > 1 else 0.0
         for k in range(F - 2, -1, -1):
-            _left(B[m], out[k + 1, m], Ly, True)
-            for i in range(d):
-                for c in range(r):
-                    t_[i, c] = y[k, i, c] - Ly[i, c]
-            _matmul(Sinv[k], t_, out[k, m])
-            _matmul(Sinv[k], Bm.T, G)
-            _matmul(G, nxt, GS)  # -Sigma_{k,k+1}
-            _matmul(GS, G.T, S)
-            for i in range(d):
-                for j in range(d):
-                    cur[i, j] = Sinv[k, i, j] + S[i, j]
-            for i in range(d):
-                for j in range(d):
-                    t -= 2.0 * GS[i, j] * Bm[j, i]
-                    t += cur[i, j] * AtQiA[m, j, i]
-                    if k > 0:
-                        t += cur[i, j] * Qi[m, j, i]
+            _back_step(B[m], Sinv[k], y[k], out[k + 1, m], out[k, m], Ly, t_)
+            t = _trace_step(Sinv[k], B[m, 0], nxt, AtQiA[m], Qi[m], k > 0, G, GS, S, cur, t)
             nxt[:] = cur
         tr[m] = t
 
