@@ -1126,8 +1126,8 @@ SLOPE_MAX_STEPS = 24
 
 
 # The search on true solves begins at the surrogate's maximum, so its first step, where the slope's secant is not
-# known yet, is this long (decades) instead of noise.SlopeSearch.FIRST_STEP_DECADES: within the span where two
-# points' scores correct their slopes' secant.
+# known yet, is this long (decades; noise.SlopeSearch's first_step, 1 by default): within the span where two
+# points' scores correct their slopes' secant. (A marker whose first solve has no score still steps back 2 decades.)
 NEAR_FIRST_STEP_DECADES = 0.1
 # A solve starts from the marker's last solution where its level is stiffer, or looser by at most this (decades);
 # from ``start`` otherwise (a stiff solution carried to a much looser level once dragged wing markers off their track).
@@ -1188,8 +1188,7 @@ def _slope_search(rig: Rig, sub: IdealObservations, rows: _Observations, p0: np.
     x_start, mu0 = _start(first, p0, start[1], start[0], np.arange(Mm), fps, start[2])
     sur = _Surrogate(first, fps, x_start, mu0, _rows_of(rows, every))
     x0, below = _surrogate_search(sur, np.full(Mm, SLOPE_START[model]), lo, hi, score)
-    search = noise.SlopeSearch(x0, lo, hi)
-    search.FIRST_STEP_DECADES = NEAR_FIRST_STEP_DECADES  # (this search's; the class keeps its own)
+    search = noise.SlopeSearch(x0, lo, hi, first_step=NEAR_FIRST_STEP_DECADES)
     near_lo = below < LO_SCREEN_NATS
     x_lo = np.full(Mm, float(lo))
     kept = None  # the solution at each marker's answer so far

@@ -348,7 +348,7 @@ class SlopeSearch:
     signs alone lost m where slopes and scores disagreed, on a ragged evidence). The next point is the zero of
     the slope's secant through (m, w), or through the last two points, whichever is shorter, when it lies inside
     the bracket, on m's uphill side and shorter than half the step before last; else the middle between m and
-    the bracket's end uphill (a first step of FIRST_STEP_DECADES towards an end whose slope is not known yet, or
+    the bracket's end uphill (a first step of ``first_step`` decades towards an end whose slope is not known yet, or
     that end itself when it is nearer). Every step is at least tol / 2. The slope leaves out how the projection
     blocks move with the solution (~1 % of its scale), so a secant through two points at most BIAS_SPAN_DECADES
     apart is corrected by their scores: the mean slope of the scores over the pair minus the slopes' mean (the
@@ -364,7 +364,8 @@ class SlopeSearch:
     lo: float
     hi: float
     tol: float = LOG10_Q_TOL
-    FIRST_STEP_DECADES = 1.0
+    first_step: float = 1.0  # decades: the first step towards a range end whose slope is not known yet
+    FIRST_STEP_DECADES = 1.0  # a marker with no scored point yet steps twice this towards stiffer levels
     BIAS_SPAN_DECADES = 0.2
 
     def __post_init__(self):
@@ -478,8 +479,7 @@ class SlopeSearch:
         end, end_known = np.where(up, b, a), np.where(up, np.isfinite(self.gb) | (b < self.hi),
                                                       np.isfinite(self.ga) | (a > self.lo))
         half = 0.5 * (m + end)
-        probe = np.where(np.abs(end - m) <= self.FIRST_STEP_DECADES, end,
-                         m + np.sign(end - m) * self.FIRST_STEP_DECADES)
+        probe = np.where(np.abs(end - m) <= self.first_step, end, m + np.sign(end - m) * self.first_step)
         z = np.where(secant_ok, z, np.where(end_known, half, probe))
         # at least tol / 2 from m, inside [a, b]
         d = z - m
