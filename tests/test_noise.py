@@ -270,10 +270,13 @@ def test_slope_search_finds_every_maximum_to_the_tolerance():
     assert evaluations / M < 6.9 + 5
 
 
-def test_slope_search_steps_back_from_points_without_a_score():
+@pytest.mark.parametrize("first_step", [1.0, fast.NEAR_FIRST_STEP_DECADES])
+def test_slope_search_steps_back_from_points_without_a_score(first_step):
     """Levels past a marker's cliff have no score (-inf, NaN slope: the solve ran into a camera centre, as a
     single-view wing tip does when its motion prior is loose): the search closes its bracket there and still
-    finds the maximum below the cliff to the tolerance, also when the first point is past it."""
+    finds the maximum below the cliff to the tolerance, also when the first point is past it. With the short
+    first step of the surrogate-started search too: a point without a score still steps back 2 decades (a
+    0.2-decade walk, as once when that step followed the first step's length, took 16 tries instead of 3)."""
     rng = np.random.default_rng(1)
     M, tol = 400, noise.LOG10_Q_TOL
     lo, hi = noise.LOG10_Q_RANGE
@@ -287,7 +290,7 @@ def test_slope_search_steps_back_from_points_without_a_score():
         return np.where(x > cliff, np.nan, -100.0 * (x - peak))
 
     x0 = np.full(M, 1.0)
-    search = noise.SlopeSearch(x0, lo, hi)
+    search = noise.SlopeSearch(x0, lo, hi, first_step=first_step)
     search.lower_end(score(np.full(M, lo)), slope(np.full(M, lo)))
     search.update(x0, score(x0), slope(x0))
     for _ in range(fast.SLOPE_MAX_STEPS - 1):
@@ -299,7 +302,7 @@ def test_slope_search_steps_back_from_points_without_a_score():
     x, f = search.answer
     assert np.all(np.isfinite(f)) and np.abs(x - peak).max() <= tol
     # no level scored at all (every solve into a camera): done at the lower end after a few tries, score -inf
-    nothing = noise.SlopeSearch(np.full(3, 1.0), lo, hi)
+    nothing = noise.SlopeSearch(np.full(3, 1.0), lo, hi, first_step=first_step)
     nothing.lower_end(np.full(3, -np.inf), np.full(3, np.nan))
     tries = 0
     while not nothing.done().all() and tries < fast.SLOPE_MAX_STEPS:
