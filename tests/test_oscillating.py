@@ -312,7 +312,7 @@ def test_wingbeat_model_on_a_bobbing_body(dorsal):
 def test_the_surrogate_screened_grid_chooses_what_the_whole_grid_does(dorsal, monkeypatch):
     """The oscillating model's noise search solves only the fast.GRID_TOP grid points the evidence's surrogate
     at the start scores best (of 5 q x 4 sigma_m); on the dorsal scene every marker gets the trend q and
-    sigma_m that solving the whole grid gives (measured: identical, evidence to 1e-9 nats; asserted within the
+    sigma_m that solving the whole grid gives (measured: the same levels, evidence to 2e-7 nats; asserted within the
     search's tolerance 0.05 decade and 0.05 nats). Solving the 4 the surrogate scores worst instead changes
     them (so the check can fail)."""
     from batgraph import checks
@@ -337,6 +337,7 @@ def test_the_surrogate_screened_grid_chooses_what_the_whole_grid_does(dorsal, mo
     print("whole   ", np.round(whole[0], 3), np.round(whole[1], 3))
     for a, b in zip(screened[:2], whole[:2], strict=True):
         np.testing.assert_allclose(a, b, atol=0.05)
+    print("max |evidence difference|", np.abs(screened[2] - whole[2]).max())
     np.testing.assert_allclose(screened[2], whole[2], atol=0.05)
     monkeypatch.setattr(fast, "GRID_TOP", 4)
     best_rows = fast._best_rows
