@@ -529,7 +529,8 @@ class _Surrogate:
         prob = _Problem(self.model, np.asarray(level, float), self.fps, self.robust, self.k, osc)
         D, g = prob.system(self.x0, self.mu0, self.lin, exact=False)
         if prob.Qi1 is None:
-            x, ld, trace = self.x0 + _solve(D, prob.B, -g), logdet(D, prob.B), None
+            dx, _, ld = solve_and_marginals(D, prob.B, -g[..., None], covariances=False)
+            x, trace = self.x0 + dx[..., 0], None
         else:
             dx, ld, trace = kernels.tridiagonal_solve_motion_trace(D, *_each(prob, D.shape[1]),
                                                                    np.ascontiguousarray(-g[..., None]))
@@ -1250,10 +1251,12 @@ def _surrogate_search(sur: _Surrogate, x_from: np.ndarray, lo: float, hi: float,
 
 def _surrogate_start(sur: _Surrogate, x: np.ndarray, which: np.ndarray, start: tuple, fps: float) -> tuple:
     """``start`` (positions, velocities, accelerations) (F, M', 3) or None, with the surrogate's minimiser at log10
-    levels x (M',) for the markers ``which``."""
+    levels x (M',) for the markers ``which`` (where that minimiser is finite: a singular system keeps ``start``)."""
     p, v, a = (None if part is None else part.copy() for part in start)
     idx = np.flatnonzero(which)
     state = sur.take(idx).evaluate(10.0 ** x[idx])[3]
+    finite = np.isfinite(state).all(axis=(0, 2))
+    idx, state = idx[finite], state[:, finite]
     v_new, a_new = _derivatives(state, 1.0 / fps)
     p[:, idx], v[:, idx] = state[..., :3], v_new
     if a_new is not None:
