@@ -1,4 +1,5 @@
-"""Compiled inner loops of the fast smoother (numba): the projection factors' sums and block-tridiagonal solves.
+"""Compiled inner loops (numba): the fast smoother's projection sums and block-tridiagonal solves, the pixel
+noise's weighted triangulation and the fast filter's per-marker updates.
 
 Why compiled code and not numpy: both loops are small dense work repeated many times. In numpy, the
 projection sums make ~20 temporary arrays of the observation rows per evaluation, and the
@@ -137,43 +138,16 @@ def _projection_rows(lo, hi, pt, cell, col, cam, P, uv, Linv, behind_px, robust,
     kk = k * k
     for i in range(lo, hi):
         c, cm, mk = cell[i], cam[i], col[i]
-        x, y, z = pt[0, c], pt[1, c], pt[2, c]
-        depth = P[8, cm] * x + P[9, cm] * y + P[10, cm] * z + P[11, cm]
-        inv = 1.0 / depth if depth != 0.0 else np.inf
-        front = inv > 0.0 and inv < np.inf
-        u = v = 0.0
-        if front:
-            u = (P[0, cm] * x + P[1, cm] * y + P[2, cm] * z + P[3, cm]) * inv
-            v = (P[4, cm] * x + P[5, cm] * y + P[6, cm] * z + P[7, cm]) * inv
-            e0, e1 = u - uv[0, i], v - uv[1, i]
-        else:
-            inv = 0.0
-            e0 = e1 = behind_px[cm]
+        r0, r1, inv, W00, W01, W02, W10, W11, W12 = _whitened_row(
+            P, cm, pt[0, c], pt[1, c], pt[2, c], uv[0, i], uv[1, i], Linv[0, i], Linv[1, i], Linv[2, i],
+            behind_px[cm], jacobian)
         if inv > closest[mk]:
             closest[mk] = inv
-        a, b, cc = Linv[0, i], Linv[1, i], Linv[2, i]
-        r0, r1 = a * e0, b * e0 + cc * e1
         d2 = r0 * r0 + r1 * r1
-        if robust == 0:
-            rho, w = 0.5 * d2, 1.0
-        elif robust == 1:
-            rn = np.sqrt(d2)
-            if rn <= k:
-                rho, w = 0.5 * d2, 1.0
-            else:
-                rho, w = k * rn - 0.5 * kk, k / rn
-        else:
-            rho, w = 0.5 * kk * np.log1p(d2 / kk), kk / (kk + d2)
+        rho, w = _rho_w(d2, robust, k, kk)
         total[mk] += rho
         if not jacobian:
             continue
-        J00 = J01 = J02 = J10 = J11 = J12 = 0.0
-        if front:
-            J00, J01 = (P[0, cm] - u * P[8, cm]) * inv, (P[1, cm] - u * P[9, cm]) * inv
-            J02, J10 = (P[2, cm] - u * P[10, cm]) * inv, (P[4, cm] - v * P[8, cm]) * inv
-            J11, J12 = (P[5, cm] - v * P[9, cm]) * inv, (P[6, cm] - v * P[10, cm]) * inv
-        W00, W01, W02 = a * J00, a * J01, a * J02
-        W10, W11, W12 = b * J00 + cc * J10, b * J01 + cc * J11, b * J02 + cc * J12
         jr0, jr1, jr2 = W00 * r0 + W10 * r1, W01 * r0 + W11 * r1, W02 * r0 + W12 * r1
         g[c, 0] += w * jr0
         g[c, 1] += w * jr1
@@ -185,15 +159,68 @@ def _projection_rows(lo, hi, pt, cell, col, cam, P, uv, Linv, behind_px, robust,
         Hw[c, 3] += w * (W01 * W01 + W11 * W11)
         Hw[c, 4] += w * (W01 * W02 + W11 * W12)
         Hw[c, 5] += w * (W02 * W02 + W12 * W12)
-        if robust == 0 or d2 <= 0.0 or (robust == 1 and d2 <= kk):
+        a = _curvature_a(d2, robust, kk)
+        if a == 0.0:
             continue
-        wa = w * (1.0 if robust == 1 else min(1.0, 2 * d2 / (kk + d2))) / d2
+        wa = w * a / d2
         Hc[c, 0] += wa * jr0 * jr0
         Hc[c, 1] += wa * jr0 * jr1
         Hc[c, 2] += wa * jr0 * jr2
         Hc[c, 3] += wa * jr1 * jr1
         Hc[c, 4] += wa * jr1 * jr2
         Hc[c, 5] += wa * jr2 * jr2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _whitened_row(P, cm, x, y, z, u_obs, v_obs, a, b, cc, behind, jacobian):  # pragma: no cover  (compiled)
+    """One projection row at the point (x, y, z) [m] seen by camera cm (P (12, C) as in projection_sums):
+    (r0, r1, inv, W00, W01, W02, W10, W11, W12), the whitened residual r = L^-1 (pi(p) - uv) with
+    L^-1 = [[a, 0], [b, cc]], the inverse depth [1/m] (0 behind the camera) and, if ``jacobian``, the
+    whitened Jacobian L^-1 d pi / dp [1/m] row-major (zeros otherwise). Behind the camera (depth <= 0, or
+    not a number) r = L^-1 (behind, behind) with a zero Jacobian (GTSAM's cheirality exception)."""
+    depth = P[8, cm] * x + P[9, cm] * y + P[10, cm] * z + P[11, cm]
+    inv = 1.0 / depth if depth != 0.0 else np.inf
+    front = inv > 0.0 and inv < np.inf
+    u = v = 0.0
+    if front:
+        u = (P[0, cm] * x + P[1, cm] * y + P[2, cm] * z + P[3, cm]) * inv
+        v = (P[4, cm] * x + P[5, cm] * y + P[6, cm] * z + P[7, cm]) * inv
+        e0, e1 = u - u_obs, v - v_obs
+    else:
+        inv = 0.0
+        e0 = e1 = behind
+    r0, r1 = a * e0, b * e0 + cc * e1
+    J00 = J01 = J02 = J10 = J11 = J12 = 0.0
+    if jacobian and front:
+        J00, J01 = (P[0, cm] - u * P[8, cm]) * inv, (P[1, cm] - u * P[9, cm]) * inv
+        J02, J10 = (P[2, cm] - u * P[10, cm]) * inv, (P[4, cm] - v * P[8, cm]) * inv
+        J11, J12 = (P[5, cm] - v * P[9, cm]) * inv, (P[6, cm] - v * P[10, cm]) * inv
+    return (r0, r1, inv, a * J00, a * J01, a * J02,
+            b * J00 + cc * J10, b * J01 + cc * J11, b * J02 + cc * J12)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rho_w(d2, robust, k, kk):  # pragma: no cover  (compiled)
+    """(rho, w): the robust loss (ROBUST_CODE ``robust``, threshold k, kk = k^2) of a squared whitened norm
+    d2 and its IRLS weight (batgraph.graph.cost.robust_loss)."""
+    if robust == 0:
+        return 0.5 * d2, 1.0
+    if robust == 1:
+        rn = np.sqrt(d2)
+        if rn <= k:
+            return 0.5 * d2, 1.0
+        return k * rn - 0.5 * kk, k / rn
+    return 0.5 * kk * np.log1p(d2 / kk), kk / (kk + d2)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _curvature_a(d2, robust, kk):  # pragma: no cover  (compiled)
+    """a of the robust loss's curvature term w a (Jw^T r)(Jw^T r)^T / |r|^2 (0 where there is none: no
+    robust loss, |r| = 0, or inside Huber's k): a = 1 beyond Huber's k, Cauchy's a = min(1, 2 d2 / (k^2 + d2))
+    (clamped so that the block stays positive semi-definite)."""
+    if robust == 0 or d2 <= 0.0 or (robust == 1 and d2 <= kk):
+        return 0.0
+    return 1.0 if robust == 1 else min(1.0, 2 * d2 / (kk + d2))
 
 
 # Blocks up to this size are multiplied and inverted by plain loops (a BLAS / LAPACK call costs more than
@@ -262,6 +289,14 @@ def _inverse(A, out, work, want_logdet=True):  # pragma: no cover  (compiled)
                 return logdet
         out[:] = np.linalg.inv(A)
         return np.linalg.slogdet(A)[1] if want_logdet else 0.0
+    return _gauss_jordan(A, out, work)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _gauss_jordan(A, out, work):  # pragma: no cover  (compiled)
+    """:func:`_inverse` of a small block (plain loops, no LAPACK: quick to compile): out = A^-1, returns
+    log |det A| (-inf for a singular A)."""
+    d = A.shape[0]
     for i in range(d):
         for j in range(d):
             work[i, j] = A[i, j]
@@ -297,11 +332,17 @@ def _inverse(A, out, work, want_logdet=True):  # pragma: no cover  (compiled)
 @njit(cache=True, nogil=True, error_model="numpy")
 def _matmul(A, B, out):  # pragma: no cover  (compiled)
     """out = A @ B for (a, q) and (q, b) arrays (either may be a transposed view)."""
-    a, q = A.shape
-    b = B.shape[1]
-    if q > SMALL_BLOCK:
+    if A.shape[1] > SMALL_BLOCK:
         out[:] = np.dot(A, B)
         return
+    _loop_matmul(A, B, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _loop_matmul(A, B, out):  # pragma: no cover  (compiled)
+    """:func:`_matmul` by plain loops (no BLAS: quick to compile)."""
+    a, q = A.shape
+    b = B.shape[1]
     for i in range(a):
         for j in range(b):
             t = 0.0
@@ -686,3 +727,217 @@ def _triangulate_frames(f0, f1, P, uv, W, use, xyz, iters, r_out, h_out, Sigma):
                     new_cost += W[c, f, m, 0, 0] * r0 * r0 + 2 * W[c, f, m, 0, 1] * r0 * r1 + W[c, f, m, 1, 1] * r1 * r1
                 if new_cost < cost and nonzero:
                     xyz[f, m] = trial
+
+
+# ----- the fast filter (batgraph.graph.fast_filter) ---------------------------------------------------------
+# Markers per thread at least: a marker's whole filter (every frame's update) is ~10-100 us.
+MIN_FILTER_MARKERS = 16
+
+
+def filter_markers(f0, f1, join, tri, A, Q, P0, bounds, cam, P, uv, Linv, behind_px, robust, k, max_iterations,
+                   step_tol, rel_tol, mean, cov, xyz, cov_out, iterations, discarded) -> None:
+    """Frames f0..f1-1 of the fast filter (batgraph.graph.fast_filter), every marker independently, in place.
+
+    join (M,) int: each marker's joining frame (-1: never); tri (M, 3) [m] its triangulation there. A, Q,
+    P0 (d, d): transition, process noise and joining prior (fast_filter.motion_matrices). The rows (camera
+    cam, ideal pixels uv (2, n), whitening Linv (3, n) as (a, b, c) of [[a, 0], [b, c]]; P (12, C) and
+    behind_px (C,) as in :func:`projection_sums`) are sorted by (marker, frame): those of marker m on frame
+    f are bounds[m F + f]..bounds[m F + f + 1]-1 (bounds (M F + 1,)). robust ROBUST_CODE, k its threshold.
+    mean (M, d), cov (M, d, d): each joined marker's state after frame f0 - 1 (the joining prior at its
+    joining frame replaces it), updated to after frame f1 - 1. Writes xyz (F, M, 3) and cov_out (F, M, 3, 3)
+    of frames f0..f1-1 from each marker's joining frame on (left as given before it), raises
+    iterations (M,) to the most Levenberg-Marquardt iterations a marker's update took and adds to
+    discarded (M,) its updates discarded because their posterior information is singular to rounding
+    (:func:`_filter_update`: the marker keeps its prediction on that frame).
+    Each update is batgraph.graph.fast_filter's (its module docstring); tests/test_fast_filter.py checks it
+    against a textbook iterated extended Kalman filter and against iSAM2.
+    """
+    _split(len(join), MIN_FILTER_MARKERS, lambda m0, m1: _filter_markers(
+        m0, m1, f0, f1, join, tri, A, Q, P0, bounds, cam, P, uv, Linv, behind_px, robust, k, max_iterations,
+        step_tol, rel_tol, mean, cov, xyz, cov_out, iterations, discarded))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _filter_markers(m0, m1, f0, f1, join, tri, A, Q, P0, bounds, cam, P, uv, Linv, behind_px, robust, k,
+                    max_iterations, step_tol, rel_tol, mean, cov, xyz, cov_out, iterations,
+                    discarded):  # pragma: no cover  (compiled)
+    """:func:`filter_markers` of markers m0..m1-1 (compiled; plain loops throughout, which compile quickly)."""
+    F, d = xyz.shape[0], A.shape[0]
+    rows = np.empty((2, 10, max(behind_px.shape[0], 1)))  # two buffers of rows: r0, r1, inv, W (6), d2
+    AP, scratch = np.empty((d, d)), np.empty((d, d))
+    AT = np.ascontiguousarray(A.T)
+    x = np.empty(d)
+    for m in range(m0, m1):
+        j = join[m]
+        if j < 0:
+            continue
+        for f in range(max(f0, j), f1):
+            if f == j:
+                for i in range(d):
+                    mean[m, i] = tri[m, i] if i < 3 else 0.0
+                    for q in range(d):
+                        cov[m, i, q] = P0[i, q]
+            else:  # predict: A mean, A cov A^T + Q
+                for i in range(d):
+                    t = 0.0
+                    for q in range(d):
+                        t += A[i, q] * mean[m, q]
+                    x[i] = t
+                mean[m] = x
+                _loop_matmul(A, cov[m], AP)
+                _loop_matmul(AP, AT, scratch)
+                for i in range(d):
+                    for q in range(d):
+                        cov[m, i, q] = scratch[i, q] + Q[i, q]
+            lo, hi = bounds[m * F + f], bounds[m * F + f + 1]
+            it, dropped = _filter_update(mean[m], cov[m], lo, hi, cam, P, uv, Linv, behind_px, robust, k,
+                                         max_iterations, step_tol, rel_tol, rows)
+            iterations[m] = max(iterations[m], it)
+            discarded[m] += dropped
+            for i in range(3):
+                xyz[f, m, i] = mean[m, i]
+                for q in range(3):
+                    cov_out[f, m, i, q] = cov[m, i, q]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _filter_cost(p, mu, Lp, lo, hi, cam, P, uv, Linv, behind_px, robust, k, out):  # pragma: no cover
+    """0.5 (p - mu)^T Lp (p - mu) + sum rho over rows lo..hi-1 at p (inf if not a number), with each row's
+    r0, r1, inverse depth, whitened Jacobian (6) and d2 into out[:, i - lo] (10, n)."""
+    kk = k * k
+    total = 0.0
+    for i in range(3):
+        for q in range(3):
+            total += 0.5 * (p[i] - mu[i]) * Lp[i, q] * (p[q] - mu[q])
+    for i in range(lo, hi):
+        cm = cam[i]
+        r0, r1, inv, W00, W01, W02, W10, W11, W12 = _whitened_row(
+            P, cm, p[0], p[1], p[2], uv[0, i], uv[1, i], Linv[0, i], Linv[1, i], Linv[2, i], behind_px[cm], True)
+        n = i - lo
+        out[0, n], out[1, n], out[2, n] = r0, r1, inv
+        out[3, n], out[4, n], out[5, n], out[6, n], out[7, n], out[8, n] = W00, W01, W02, W10, W11, W12
+        d2 = r0 * r0 + r1 * r1
+        out[9, n] = d2
+        total += _rho_w(d2, robust, k, kk)[0]
+    return np.inf if np.isnan(total) else total
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _filter_system(rows, n, robust, k, curvature, g, H):  # pragma: no cover  (compiled)
+    """The observations' part of the update's Gauss-Newton system from rows (10, n) (:func:`_filter_cost`'s):
+    g = sum w Jw^T r and H = sum w (Jw^T Jw - curvature a (Jw^T r)(Jw^T r)^T / |r|^2), w the IRLS weights,
+    a the robust loss's curvature (:func:`_curvature_a`); curvature 1.0 (a Newton-type step) or 0.0 (IRLS)."""
+    kk = k * k
+    jr = np.empty(3)
+    g[:] = 0.0
+    H[:] = 0.0
+    for i in range(n):
+        r0, r1, d2 = rows[0, i], rows[1, i], rows[9, i]
+        w = _rho_w(d2, robust, k, kk)[1]
+        for q in range(3):
+            jr[q] = rows[3 + q, i] * r0 + rows[6 + q, i] * r1
+            g[q] += w * jr[q]
+        a = curvature * _curvature_a(d2, robust, kk)
+        wa = w * a / d2 if a != 0.0 else 0.0
+        for q in range(3):
+            for s in range(q, 3):
+                H[q, s] += w * (rows[3 + q, i] * rows[3 + s, i] + rows[6 + q, i] * rows[6 + s, i]) - wa * jr[q] * jr[s]
+    for q in range(3):
+        for s in range(q):
+            H[q, s] = H[s, q]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _filter_update(mean, cov, lo, hi, cam, P, uv, Linv, behind_px, robust, k, max_iterations, step_tol, rel_tol,
+                   rows):  # pragma: no cover  (compiled)
+    """The update of one marker (batgraph.graph.fast_filter's module docstring; state mean (d,), cov (d, d),
+    updated in place) with its
+    rows lo..hi-1; rows (2, 10, >= hi - lo) scratch (the current point's rows and a trial's). Returns the
+    iterations taken and whether the update was discarded (state left as given): its posterior information
+    is singular to rounding, so that its inverse is not finite. Met where mislabels drove a point to within
+    1e-10 m of a camera centre: that camera's Jacobian, ~1e11 px/m, makes the information ~1e23 1/m^2 along
+    its rows and the rest is lost to rounding."""
+    d = mean.shape[0]
+    n = hi - lo
+    mu, p, g, dp, trial = mean[:3].copy(), mean[:3].copy(), np.empty(3), np.empty(3), np.empty(3)
+    Ppp, Lp, S, work, H = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    for i in range(3):
+        for q in range(3):
+            Ppp[i, q] = cov[i, q]
+    _gauss_jordan(Ppp, Lp, work)
+    cur = 0
+    c = _filter_cost(p, mu, Lp, lo, hi, cam, P, uv, Linv, behind_px, robust, k, rows[cur])
+    lam, newton, it = 0.0, False, 0
+    for _ in range(max_iterations):
+        _filter_system(rows[cur], n, robust, k, 1.0 if newton else 0.0, g, H)
+        for i in range(3):  # + the prior's terms, then Levenberg-Marquardt's damping
+            for q in range(3):
+                g[i] += Lp[i, q] * (p[q] - mu[q])
+                H[i, q] += Lp[i, q]
+        for i in range(3):
+            H[i, i] *= 1.0 + lam
+        singular = _gauss_jordan(H, S, work) == -np.inf  # a zero pivot: a NaN step, rejected and damped further
+        step, finite = 0.0, True
+        for i in range(3):
+            dp[i] = np.nan if singular else -(S[i, 0] * g[0] + S[i, 1] * g[1] + S[i, 2] * g[2])
+            trial[i] = p[i] + dp[i]
+            if np.isnan(dp[i]):
+                finite = False
+            elif abs(dp[i]) > step:
+                step = abs(dp[i])
+        c_new = _filter_cost(trial, mu, Lp, lo, hi, cam, P, uv, Linv, behind_px, robust, k, rows[1 - cur])
+        ok = c_new <= c
+        rel = (c - c_new) / max(c, 2.2250738585072014e-308)  # the smallest normal double
+        done = (ok and rel < rel_tol) or (finite and step < step_tol) or lam > 1e12  # 1e12: stuck
+        it += 1
+        if ok:
+            p[:] = trial
+            cur = 1 - cur
+            c = c_new
+            lam = lam / 10 if lam > 1e-9 else 0.0
+        elif not newton:  # a rejected curvature step is retried as an IRLS step before damping grows
+            lam = max(lam * 10, 1e-6)
+        newton = ok
+        if done:
+            break
+    # the covariance: (Lp + sum w Jw^T Jw)^-1 at the final point with the IRLS weights
+    _filter_system(rows[cur], n, robust, k, 0.0, g, H)
+    for i in range(3):
+        for q in range(3):
+            H[i, q] += Lp[i, q]
+    _gauss_jordan(H, S, work)
+    if not np.isfinite(S).all():  # information singular to rounding: the update is discarded
+        return it, True
+    for i in range(3):
+        for q in range(i):
+            S[i, q] = S[q, i] = 0.5 * (S[i, q] + S[q, i])
+    if d > 3:  # the rest of the state from the prior's conditional
+        e = d - 3
+        G, GS, Puu = np.zeros((e, 3)), np.zeros((e, 3)), np.empty((e, e))
+        for i in range(e):  # G = P_up Lp, GS = G S
+            for j in range(3):
+                for q in range(3):
+                    G[i, j] += cov[3 + i, q] * Lp[q, j]
+        for i in range(e):
+            for j in range(3):
+                for q in range(3):
+                    GS[i, j] += G[i, q] * S[q, j]
+        for i in range(e):  # Puu = P_uu - G P_pu + GS G^T
+            for j in range(e):
+                t = cov[3 + i, 3 + j]
+                for q in range(3):
+                    t += GS[i, q] * G[j, q] - G[i, q] * cov[q, 3 + j]
+                Puu[i, j] = t
+        for i in range(e):
+            mean[3 + i] += G[i, 0] * (p[0] - mu[0]) + G[i, 1] * (p[1] - mu[1]) + G[i, 2] * (p[2] - mu[2])
+            for j in range(3):
+                cov[3 + i, j] = cov[j, 3 + i] = GS[i, j]
+        for i in range(e):
+            for j in range(e):
+                cov[3 + i, 3 + j] = 0.5 * (Puu[i, j] + Puu[j, i])
+    for i in range(3):
+        mean[i] = p[i]
+        for q in range(3):
+            cov[i, q] = S[i, q]
+    return it, False
+
