@@ -1,7 +1,7 @@
-"""The fast filter (batgraph.graph.fast_filter) against a textbook iterated extended Kalman filter (the same
-MAP and covariance without a robust loss) and against the iSAM2 filter (batgraph.graph.filter.run_filter) on a small scene with gaps, a
-never-triangulated marker and planted outliers: same joining rule (NaN pattern), same outlier flags,
-positions and covariances per frame within stated tolerances.
+"""The fast filter (batgraph.graph.fast_filter) against a textbook iterated extended Kalman filter (the
+same MAP and covariance without a robust loss) and against the iSAM2 filter (batgraph.graph.filter.run_filter)
+on a small scene with gaps, a never-triangulated marker and planted outliers: same joining rule (NaN pattern),
+same outlier flags, positions and covariances per frame within stated tolerances.
 """
 
 from __future__ import annotations
