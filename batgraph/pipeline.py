@@ -195,18 +195,22 @@ def report_standby() -> forked.Standby:
 
 def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | None,
                  report: forked.Standby) -> list[Path]:
-    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``; report.html by
-    ``report`` (the slowest output), beside this process's writing of the others."""
+    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``: the two CSV tables
+    by a child forked here (batgraph.forked.Standby) and report.html by ``report``, beside this process's writing
+    of the others (at 30 x 180 x 160 the CSVs take 1.3 s, the rest ~0.8 s)."""
     from .formats.c3d_trc import write_c3d, write_trc
 
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
     report_path = out_dir / "report.html"
-    try:
-        pending = report.run(report_path, s, result.trajectories, result.reprojection, result.summary)
-        files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
+    files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
+    def write_tables():
         write_csv(files[0], result.trajectories, "%.9g")
         write_csv(files[1], result.reprojection, "%.6f")
+
+    tables = forked.Standby(lambda: write_tables, "CSV tables").run()  # a child forked now: nothing is pickled
+    try:
+        pending = report.run(report_path, s, result.trajectories, result.reprojection, result.summary)
         atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
         method = export_method(result)
         one = result.trajectories[result.trajectories["method"] == method]
@@ -221,9 +225,11 @@ def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | 
         for name, write in tqdm(steps, desc=f"{s.name}: writing", disable=not progress, leave=False):
             write(out_dir / name)
             files.append(out_dir / name)
+        tables.wait()
         pending.wait()
-    finally:
-        report.cancel()  # the parent failed: the child must not write into a staging folder being removed
+    finally:  # the parent failed: no child may write into a staging folder being removed
+        tables.cancel()
+        report.cancel()
     files.insert(3, report_path)
     return files
 
