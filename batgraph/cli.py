@@ -130,6 +130,18 @@ def summary_lines(summary: dict) -> list[str]:
     return lines
 
 
+def _compile_note(args) -> None:
+    """One line before a run that will first compile batgraph's inner loops (batgraph.graph.kernels), so that
+    a minute of silence after an install is explained; not with --quiet."""
+    if args.quiet or args.solver != "fast":
+        return
+    from .graph import kernels
+
+    if kernels.needs_compiling():
+        print("batgraph: compiling its inner loops for this machine (once after an install or update; 1-2 min on "
+              "2 cores, cached on disk after)", file=sys.stderr)
+
+
 def _cmd_reconstruct(args) -> int:
     from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
     from .pipeline import parse_methods, reconstruct
@@ -147,6 +159,7 @@ def _cmd_reconstruct(args) -> int:
         from .viewer import display_available
         viewer = "spawn" if display_available() and not batch else "save"
     if batch:
+        _compile_note(args)
         items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
                                  n_workers=args.workers, progress=_progress_bars(args), viewer=viewer,
                                  calibration=args.calibration, validate=args.validate)
@@ -161,6 +174,7 @@ def _cmd_reconstruct(args) -> int:
         else:
             print(format_batch_table(items, verbose=args.verbose))
         return exit_code(items)
+    _compile_note(args)
     result = reconstruct(args.sessions[0], args.out, methods, options, viewer=viewer, calibration=args.calibration,
                          validate=args.validate, validate_workers=args.workers)
     for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong

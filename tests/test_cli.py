@@ -105,3 +105,26 @@ def test_command_line_runs_blas_on_one_thread_unless_the_user_chose():
     chosen = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_NUM_THREADS": "2"}, capture_output=True,
                             text=True, check=True)
     assert chosen.stdout.strip() == "2"
+
+
+def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
+    """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 min on 2
+    cores), none when they are cached or with --quiet; and kernels.needs_compiling() is False once a kernel has
+    run in this process (it compiled and cached them, or loaded them)."""
+    import numpy as np
+
+    from batgraph import cli
+    from batgraph.graph import kernels
+    kernels.tridiagonal_logdet(np.ones((2, 1, 1, 1)) * 2.0, np.zeros((1, 1, 1)))  # anything that runs a kernel
+    kernels.projection_sums(np.zeros((3, 1)), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
+                            np.tile(np.array([[1.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 3]]).T, (1, 1)), np.zeros((2, 1)),
+                            np.ones((3, 1)), np.ones(1), 1, 2.0, False, np.zeros(1), np.zeros(1), np.zeros((1, 6)),
+                            np.zeros((1, 6)), np.zeros((1, 3)), np.zeros(1))
+    assert kernels.needs_compiling() is False
+    for compiling, quiet in ((True, False), (True, True), (False, False)):
+        monkeypatch.setattr(kernels, "needs_compiling", lambda c=compiling: c)
+        out = tmp_path / f"out{compiling}{quiet}"
+        assert cli.main(["reconstruct", str(SAMPLE), "--methods", "triangulate", "--viewer", "none", "--out", str(out),
+                         *(["--quiet"] if quiet else [])]) == 0
+        said = "compiling its inner loops" in capsys.readouterr().err
+        assert said == (compiling and not quiet)

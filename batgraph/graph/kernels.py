@@ -64,6 +64,16 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
 
 
+def needs_compiling() -> bool:
+    """Whether the next run compiles the kernels (~1-2 min on a 2-core machine; the first run after an install
+    or an update): numba's on-disk cache holds no compiled copy of the projection sums for this source.
+    Reads numba's cache index through its internals; False where that fails (a newer numba: no note, no harm)."""
+    try:
+        return len(_projection_chunks._cache._cache_file._load_index()) == 0
+    except Exception:  # noqa: BLE001  (private numba API: say nothing rather than fail)
+        return False
+
+
 def threads() -> int:
     """How many threads the kernels use (>= 1)."""
     return _threads
