@@ -204,6 +204,7 @@ def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | 
     s = result.session
     report_path = out_dir / "report.html"
     files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
+
     def write_tables():
         write_csv(files[0], result.trajectories, "%.9g")
         write_csv(files[1], result.reprojection, "%.6f")
