@@ -1,6 +1,7 @@
 """End to end through the real command line: the contract's commands, files, exit codes and messages."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -109,13 +110,17 @@ def test_command_line_runs_blas_on_one_thread_unless_the_user_chose():
 
 def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
     """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 min on 2
-    cores), none when they are cached or with --quiet; and kernels.needs_compiling() is False once a kernel has
-    run in this process (it compiled and cached them, or loaded them)."""
+    cores), none when they are cached or with --quiet. kernels.needs_compiling() is True against an empty numba
+    cache (a fresh process with NUMBA_CACHE_DIR there: nothing is compiled by asking) and False once the
+    projection sums have run in this process (compiled and cached, or loaded)."""
     import numpy as np
 
     from batgraph import cli
     from batgraph.graph import kernels
-    kernels.tridiagonal_logdet(np.ones((2, 1, 1, 1)) * 2.0, np.zeros((1, 1, 1)))  # anything that runs a kernel
+    ask = "from batgraph.graph import kernels; print(kernels.needs_compiling())"
+    fresh = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")})
+    assert fresh.stdout.strip() == "True", fresh.stderr
     kernels.projection_sums(np.zeros((3, 1)), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
                             np.tile(np.array([[1.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 3]]).T, (1, 1)), np.zeros((2, 1)),
                             np.ones((3, 1)), np.ones(1), 1, 2.0, False, np.zeros(1), np.zeros(1), np.zeros((1, 6)),
