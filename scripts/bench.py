@@ -24,10 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import gc
-import os
-import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +35,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchproc import BATCH_SESSIONS, ROOT, SAMPLE, machine, run_process, simulate_sessions  # noqa: E402
+
 from batgraph.graph import factors, fast, noise, rigid, schedule  # noqa: E402
 from batgraph.measurement import IdealObservations, ideal_observations  # noqa: E402
 from batgraph.result import Options  # noqa: E402
@@ -46,22 +45,6 @@ from batgraph.simulate import simulate_flight  # noqa: E402
 from batgraph.triangulate import dlt_points, triangulate_ideal  # noqa: E402
 
 EKF_MARKERS = (10, 20, 45, 90, 180)
-
-
-def machine() -> dict:
-    """nproc, CPU model and RAM of this machine, from /proc."""
-    cpu = platform.processor() or "?"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        mem_kb = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
-                      if line.startswith("MemTotal"))
-    except OSError:
-        mem_kb = 0
-    return {"nproc": os.cpu_count(), "cpu": cpu, "ram_gib": mem_kb / 2**20, "python": platform.python_version(),
-            "numpy": np.__version__}
 
 
 def timed(fn, repeats: int):
@@ -366,43 +349,6 @@ def bench_ekf(args) -> list[tuple[str, str, str]]:
     return rows
 
 
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data" / "samples" / "flight_5cam"
-BATCH_SESSIONS = 16
-
-
-# The command runs in a child that writes its own peak resident memory (VmHWM of /proc/self/status: the
-# high-water mark of its address space after exec) on exit; rusage's ru_maxrss would include the pages
-# the child shared with this process at fork.
-_CHILD = ("import atexit, os, runpy, sys\n"
-          "def _hwm():\n"
-          "    with open('/proc/self/status') as f, open(os.environ['BENCH_HWM'], 'w') as out:\n"
-          "        out.write(next(l.split()[1] for l in f if l.startswith('VmHWM')))\n"
-          "atexit.register(_hwm)\n"
-          "sys.argv = ['batgraph', *sys.argv[1:]]\n"
-          "runpy.run_module('batgraph.cli', run_name='__main__', alter_sys=True)\n")
-
-
-def run_process(cli: list[str], cwd: Path) -> dict:
-    """``python -m batgraph.cli *cli`` in a fresh process from ``cwd`` (so that tree's batgraph is imported):
-    wall [s], CPU = user + system [s] (rusage of the child), peak resident memory [MiB] (its VmHWM)."""
-    with tempfile.NamedTemporaryFile(suffix=".hwm") as hwm:
-        env = {**os.environ, "BENCH_HWM": hwm.name}
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", _CHILD, *cli], cwd=cwd, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        err = proc.stderr.read().decode(errors="replace")
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        proc.stderr.close()
-        code = os.waitstatus_to_exitcode(status)
-        proc.returncode = code
-        if code != 0:
-            raise RuntimeError(f"batgraph {' '.join(cli)} in {cwd} failed ({code}): {err[-2000:]}")
-        peak_kib = float(Path(hwm.name).read_text() or "nan")
-    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss": peak_kib / 1024}
-
-
 def bench_commands(args, batch: bool = True) -> list[tuple[str, str, str]]:
     """(e): whole commands, fresh processes, medians; against ``--baseline-tree`` when given (alternating);
     ``batch``: also the 16-session batch with 1 and 2 workers."""
@@ -412,14 +358,8 @@ def bench_commands(args, batch: bool = True) -> list[tuple[str, str, str]]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         big = f"{args.cameras} x {args.markers} x {args.frames}"
-        run_process(["simulate", "flight", f"{tmp}/big", "--cameras", str(args.cameras), "--markers",
-                     str(args.markers), "--frames", str(args.frames), "--seed", "3"], ROOT)
         # the accuracy study's 5-camera flight (14 markers, 160 frames, its bones as [markers] rigid: one group)
-        run_process(["simulate", "flight", f"{tmp}/f5", "--cameras", "5", "--seed", "1"], ROOT)
-        # the issue's batch: small sessions of 10 cameras x 30 markers x 120 frames
-        for seed in range(BATCH_SESSIONS if batch else 0):
-            run_process(["simulate", "flight", f"{tmp}/many/s{seed:02d}", "--cameras", "10", "--markers", "30",
-                         "--frames", "120", "--seed", str(seed)], ROOT)
+        simulate_sessions(tmp, (args.cameras, args.markers, args.frames), batch=batch, wingbeat=True)
         quiet = ["--viewer", "none", "--quiet"]
         commands = {
             "reconstruct flight_5cam (default methods)": ["reconstruct", str(SAMPLE), "--out", f"{tmp}/a", *quiet],
