@@ -1,14 +1,20 @@
-"""Many sessions at once: one ``reconstruct`` per Dask task, each failure reported, never stopping the rest.
+"""Many sessions at once: one ``reconstruct`` per worker process at a time, each failure reported, never
+stopping the rest.
 
-What it does: expands session folders and globs, runs :func:`batgraph.pipeline.reconstruct` for each on a
-local ``distributed`` cluster (or an existing one at ``scheduler``), gathers one :class:`BatchItem` per
-session and writes ``batch_summary.csv``. What it deliberately does not do: split one session across
+What it does: expands session folders and globs, runs :func:`batgraph.pipeline.reconstruct` for each in
+worker processes forked from this one (batgraph.forked.stream_jobs, on Linux), or on a local Dask
+``distributed`` cluster where forking is not possible (macOS, Windows, ``BATGRAPH_FORK=0``), or on an existing
+Dask cluster at ``scheduler``; gathers one :class:`BatchItem` per session and writes ``batch_summary.csv``.
+Forked workers start with batgraph already imported: 16 small sessions on 2 cores took 21.1 s with 2
+forked workers against 29.2 s on a local Dask cluster of 2 (whose spawned workers each import Python, Dask
+and batgraph afresh; BENCHMARKS.md). What it deliberately does not do: split one session across
 workers, retry a session, or copy files between machines (with a remote scheduler, the session and output
 folders must be on a file system that every worker sees, and the workers need batgraph installed).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import glob
 import logging
@@ -22,9 +28,9 @@ from pathlib import Path
 import pandas as pd
 from tqdm.auto import tqdm
 
+from . import forked
 from . import methods as methods_registry
 from .errors import InputError
-from .forked import usable_cores
 from .formats.csv_text import write_csv
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
@@ -42,10 +48,10 @@ class BatchItem:
     status: "ok", "input error" (bad session files; ``message`` names file, row/key and problem) or
       "failed" (any other exception; ``message`` is "ExceptionType: first line", ``traceback`` the full text).
     runtime_s: wall time of the session's reconstruct call [s]; for a session whose worker died, the time
-      from submission to the failure.
+      from its start (a Dask cluster: from its submission) to the failure.
     summary: the session's summary.json content when ok, else None.
     files: the files written when ok.  warnings: the session's input warnings when ok.
-    pid: id of the process that ran it (the caller's own for a single session without a cluster).
+    pid: id of the process that ran it (the caller's own for a single session without workers).
     kernel_threads: the threads the compiled kernels had there when ok (batgraph.graph.kernels).
     """
 
@@ -77,6 +83,7 @@ def _one_line(text: str) -> str:
 
 
 def _failure_message(e: BaseException) -> str:
+    """"ExceptionType: first line" of ``e``; Dask's KilledWorker in a sentence a user can act on."""
     if type(e).__name__ == "KilledWorker":  # Dask's own text is a paragraph about task keys and addresses
         return "KilledWorker: the worker process died while running this session (a crash in native code, " \
                "or out of memory)"
@@ -87,7 +94,7 @@ def _failure_message(e: BaseException) -> str:
 def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: Options,
                 viewer: str = "save", calibration: Path | None = None, validate: bool = False,
                 kernel_threads: int | None = None) -> BatchItem:
-    """One session -> BatchItem; every exception becomes a status (this is the Dask task).
+    """One session -> BatchItem; every exception becomes a status (the job of a worker: forked, or a Dask task).
 
     Module-level so that workers import it by name; returns only the small summary, never the
     arrays, because the result travels back to the client. kernel_threads: the threads of the compiled
@@ -202,7 +209,7 @@ def _run_on_cluster(client, jobs: list[tuple[Path, Path]], methods: list[str], o
     first = [f for f in (submit_next() for _ in range(max_in_flight or len(jobs))) if f is not None]
     finished = as_completed(first, loop=client.loop)
     items: list[BatchItem | None] = [None] * len(jobs)
-    with tqdm(total=len(jobs), desc="sessions", unit="session", disable=not progress) as bar:
+    with _progress_bar(len(jobs), progress) as bar:
         for fut in finished:
             i, t_submit = index.pop(fut)
             s, o = jobs[i]
@@ -224,21 +231,22 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
                      scheduler: str | None = None, n_workers: int | None = None,
                      progress: bool = True, viewer: str = "save",
                      calibration: str | Path | None = None, validate: bool = False) -> list[BatchItem]:
-    """``reconstruct`` on many sessions in parallel on Dask; one BatchItem per session, in input order.
+    """``reconstruct`` on many sessions in parallel (worker processes); one BatchItem per session, in input order.
 
     session_dirs: folders and/or glob patterns (see :func:`expand_sessions`).
     out_root: None -> each SESSION/out; else out_root/<session folder name>, plus out_root/batch_summary.csv.
-    scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None -> a local cluster of
-      ``n_workers`` worker processes (default min(n sessions, cores); one task each, compiled kernels on
-      cores // n threads) bound to 127.0.0.1, without dashboards. A single session without ``scheduler``
-      runs in this process (no cluster start-up).
+    scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None -> ``n_workers`` worker
+      processes (default min(n sessions, cores); one session at a time each, compiled kernels on cores // n
+      threads) forked from this one, or where forking is not possible (module docstring) a local Dask
+      cluster of as many, bound to 127.0.0.1, without dashboards. A single session without ``scheduler``
+      runs in this process (no workers).
     progress: a bar over finished sessions; the per-method bars inside workers are always off.
     viewer: "save" (recording.rrd in each output folder) or "none"; "spawn" (a live window) only for a
       single session without a scheduler.
     calibration: one calibration.toml for every session instead of each folder's own (e.g. the day's
       wand calibration); a worker must be able to read it.
     validate: also run each session's leave-one-camera-out validation (see batgraph.validate; its folds
-      run serially inside a Dask worker, in parallel processes for a single session run here).
+      run serially inside a worker, in parallel processes for a single session run here).
 
     Raises InputError for bad arguments (unknown method, glob matching nothing, duplicate session names
     under out_root, n_workers < 1 or given with scheduler, viewer "spawn" with a cluster, unreachable
@@ -258,21 +266,62 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
         raise InputError(f"--workers: must be a positive integer, got {n_workers}")
     if viewer not in ("save", "spawn", "none"):
         raise InputError(f"--viewer: expected save, spawn or none, got {viewer!r}")
-    use_cluster = len(jobs) > 1 or scheduler is not None
-    if viewer == "spawn" and use_cluster:
+    in_workers = len(jobs) > 1 or scheduler is not None
+    if viewer == "spawn" and in_workers:
         raise InputError("--viewer spawn: streams one session live, so it needs a single session and no "
                          "--scheduler (use --viewer save to get each session's recording.rrd)")
 
-    if not use_cluster:
+    if not in_workers:
         # The common case: no cluster start-up; the method bars of this one session stay as the caller chose.
         one = dataclasses.replace(options, progress=options.progress and progress)
         items = [run_session(*jobs[0], methods, one, viewer, calibration, validate)]
     else:
         options = dataclasses.replace(options, progress=False)  # no nested bars from inside workers
-        items = _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress, validate)
+        if scheduler is None and forked.can_fork(min_cores=1):
+            items = _run_forked(jobs, methods, options, viewer, calibration, n_workers, progress, validate)
+        else:
+            items = _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress,
+                                   validate)
 
     if out_root is not None:
         write_batch_summary(items, Path(out_root) / SUMMARY_FILE)
+    return items
+
+
+def _workers_and_threads(n_workers: int | None, n_jobs: int) -> tuple[int, int]:
+    """(worker processes, compiled-kernel threads of each): ``n_workers`` (default the usable cores) but no more
+    than the sessions, and the cores shared out between them."""
+    n = min(n_workers or forked.usable_cores(), n_jobs)
+    return n, max(1, forked.usable_cores() // n)
+
+
+def _progress_bar(n: int, progress: bool):
+    return tqdm(total=n, desc="sessions", unit="session", disable=not progress)
+
+
+def _run_forked(jobs: list[tuple[Path, Path]], methods: list[str], options: Options, viewer: str,
+                calibration: Path | None, n_workers: int | None, progress: bool, validate: bool
+                ) -> list[BatchItem]:
+    """Each session in one of ``n_workers`` forked worker processes (:func:`batgraph.forked.stream_jobs`); a
+    session whose worker dies becomes a "failed" item and a new worker takes up the rest."""
+    n, threads = _workers_and_threads(n_workers, len(jobs))
+
+    def one(i: int) -> BatchItem:  # absolute paths in messages, as from a Dask worker (see _run_on_cluster)
+        s, o = jobs[i]
+        cal = None if calibration is None else calibration.absolute()
+        return run_session(s.absolute(), o.absolute(), methods, options, viewer, cal, validate, threads)
+
+    def lost(i: int, why: str, seconds: float) -> BatchItem:
+        return BatchItem(*jobs[i], "failed", _one_line(f"{why} while running this session (a crash in native "
+                                                       "code, or out of memory)"), seconds)
+
+    items: list[BatchItem | None] = [None] * len(jobs)
+    with _progress_bar(len(jobs), progress) as bar, \
+            contextlib.closing(forked.stream_jobs(one, len(jobs), n, lost)) as results:
+        for i, item in results:
+            items[i] = item = dataclasses.replace(item, session_dir=jobs[i][0], out_dir=jobs[i][1])  # as given
+            bar.set_postfix_str(f"{item.name}: {item.status}", refresh=False)
+            bar.update()
     return items
 
 
@@ -290,10 +339,9 @@ def _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_wor
         with client:
             return _run_on_cluster(client, jobs, methods, options, viewer, calibration, progress, validate=validate)
 
-    n = min(n_workers or usable_cores(), len(jobs))
     # the cores shared out: each worker's compiled kernels get cores // n threads (a worker of a remote
     # scheduler keeps its own default, BATGRAPH_THREADS or its machine's cores)
-    threads = max(1, usable_cores() // n)
+    n, threads = _workers_and_threads(n_workers, len(jobs))
     # allowed-failures 0: a session that kills its worker (e.g. a native crash) fails once instead of
     # killing three more workers on retries; safe because only one session per worker is in flight.
     # memory_limit 0: a session is one indivisible task, so Dask's spill/pause machinery cannot help it,

@@ -79,8 +79,8 @@ def _add_reconstruct(sub):
                    help="Rerun: stream the filter live to a viewer window and save recording.rrd (spawn, the "
                         "default with a display), only write recording.rrd (save, the default without one), or none")
     p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run the sessions on an existing Dask cluster (default: a local cluster for several)")
-    p.add_argument("--workers", type=positive_int, help="local Dask workers (default: one per core)")
+                   help="run the sessions on an existing Dask cluster (default: worker processes here)")
+    p.add_argument("--workers", type=positive_int, help="worker processes for several sessions (default: one per core)")
     p.add_argument("--verbose", action="store_true", help="with several sessions: tracebacks of crashed ones")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary table")
     p.add_argument("--validate", action="store_true",

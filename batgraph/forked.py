@@ -11,6 +11,9 @@ each taking the next undone index (the costly jobs first, where the caller order
 (processes, not threads: most of their work holds the GIL). A child sees this process's memory as it
 was at the fork, so nothing is pickled on the way in; results come back pickled.
 
+:func:`stream_jobs` hands jobs to forked children only and yields each result as it comes, a dead child's job
+reported and the child replaced: a batch's sessions (batgraph.batch), which must not stop each other.
+
 The work runs in this process instead where a child would not help or cannot be made: not Linux (no
 ``fork`` on Windows; on macOS it is unsafe), a daemonic process (a Dask worker: it may not have children,
 and a batch already uses the cores), one usable core, or ``BATGRAPH_FORK=0`` (validation's fold workers
@@ -27,8 +30,10 @@ import os
 import pickle
 import struct
 import sys
+import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from multiprocessing.connection import wait as wait_for
 
 ENV = "BATGRAPH_FORK"  # "0": never fork (run the work in this process)
 
@@ -38,12 +43,12 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def can_fork() -> bool:
-    """Whether work runs in forked children (:class:`Standby`, :func:`map_jobs`): on Linux (macOS's system
-    libraries are not safe to use after a fork, which is why Python's default there is spawn), this process
-    may have children, it has >= 2 cores and ``BATGRAPH_FORK`` is not "0"."""
+def can_fork(min_cores: int = 2) -> bool:
+    """Whether work runs in forked children (:class:`Standby`, :func:`map_jobs`, :func:`stream_jobs`): on Linux
+    (macOS's system libraries are not safe to use after a fork, which is why Python's default there is spawn),
+    this process may have children, it has >= ``min_cores`` cores and ``BATGRAPH_FORK`` is not "0"."""
     return (os.environ.get(ENV, "").strip() != "0" and sys.platform.startswith("linux")
-            and not multiprocessing.current_process().daemon and usable_cores() >= 2)
+            and not multiprocessing.current_process().daemon and usable_cores() >= min_cores)
 
 
 class Pending:
@@ -238,3 +243,89 @@ def map_jobs(fn: Callable[[int], object], n: int, workers: int | None = None) ->
     if len(pairs) != n or len(results) != n:  # each index taken exactly once
         raise RuntimeError(f"map_jobs: {len(pairs)} results for {len(results)} of {n} jobs")
     return [results[i] for i in range(n)]
+
+
+def stream_jobs(fn: Callable[[int], object], n: int, workers: int,
+                lost: Callable[[int, str, float], object]) -> Iterator[tuple[int, object]]:
+    """``(i, fn(i))`` for every i in range(n), as they finish, each computed in one of ``workers`` forked
+    children; this process only hands out indices (the dispenser pipe of :func:`map_jobs`) and collects, so
+    that its caller can show progress. For jobs that must each come back whatever befalls the others (a
+    batch's sessions): a child that dies on job i (a native crash, the out-of-memory killer) or whose ``fn``
+    raises gives ``(i, lost(i, why, seconds on it))``, and where it died a new child takes its place.
+    The children are daemonic, so they fork none of their own (:func:`can_fork` is False in them): each runs
+    its jobs' work in turn, the cores being shared out between the children. Use it in a ``with
+    contextlib.closing(...)`` (or exhaust it): closing stops the children still running. Needs
+    :func:`can_fork` (``min_cores=1``); ``n`` at most MAX_JOBS.
+
+    Why not Dask's local cluster (which batgraph.batch keeps for ``--scheduler`` and where forking is not
+    possible): its workers are spawned, so each one imports Python, Dask and batgraph afresh and loads the
+    compiled kernels; 16 sessions took 29.2 s with 2 workers there and 21.1 s so (BENCHMARKS.md).
+    """
+    if n > MAX_JOBS:
+        raise ValueError(f"stream_jobs takes at most {MAX_JOBS} jobs, got {n}")
+    if n == 0:
+        return
+    ctx = multiprocessing.get_context("fork")
+    tickets, fill = os.pipe()
+    os.write(fill, b"".join(_INDEX.pack(i) for i in range(n)))
+    os.close(fill)
+    children: dict = {}  # connection -> [process, index of the job it is on (None between jobs), its start time]
+
+    def start():
+        recv, send = ctx.Pipe(duplex=False)
+        process = ctx.Process(target=_stream_child, args=(fn, tickets, send), name="batgraph worker", daemon=True)
+        process.start()
+        send.close()
+        children[recv] = [process, None, 0.0]
+
+    done: set[int] = set()
+    try:
+        for _ in range(min(workers, n)):
+            start()
+        while len(done) < n and children:
+            for conn in wait_for(list(children)):
+                entry = children[conn]
+                try:
+                    msg = conn.recv()
+                except EOFError:  # the child is gone: at the end of the indices, or dead on the job it was on
+                    del children[conn]
+                    conn.close()
+                    entry[0].join()
+                    if entry[1] is not None:
+                        i, seconds = entry[1], time.perf_counter() - entry[2]
+                        done.add(i)
+                        yield i, lost(i, f"its worker process died (exit code {entry[0].exitcode})", seconds)
+                        start()  # it found the dispenser empty at once if every other job is taken
+                    continue
+                if msg[0] == "start":
+                    entry[1], entry[2] = msg[1], time.perf_counter()
+                    continue
+                i, seconds, entry[1] = msg[1], time.perf_counter() - entry[2], None
+                done.add(i)
+                yield i, (msg[2] if msg[0] == "done" else lost(i, msg[2], seconds))
+        for i in range(n):  # taken by a child that died before it could say so (never seen; not to be lost)
+            if i not in done:
+                yield i, lost(i, "its worker process died", 0.0)
+    finally:
+        for conn, (process, _, _) in children.items():
+            process.kill()
+            process.join()
+            conn.close()
+        os.close(tickets)
+
+
+def _stream_child(fn: Callable[[int], object], tickets: int, conn) -> None:
+    """A :func:`stream_jobs` child: ("start", i) when it takes job i, then ("done", i, result) or
+    ("failed", i, the exception's type and message), until the dispenser is empty."""
+    try:
+        while len(b := os.read(tickets, _INDEX.size)) == _INDEX.size:
+            i = _INDEX.unpack(b)[0]
+            conn.send(("start", i))
+            try:
+                result = fn(i)
+            except Exception as e:  # noqa: BLE001 - the job failed, not this child: on to the next
+                conn.send(("failed", i, f"{type(e).__name__}: {e}"))
+            else:
+                conn.send(("done", i, result))
+    finally:
+        conn.close()

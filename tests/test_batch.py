@@ -1,4 +1,5 @@
-"""Many sessions at once (batgraph.batch): a real two-worker Dask cluster, one deliberately broken session."""
+"""Many sessions at once (batgraph.batch): two real worker processes (forked, and a Dask cluster), one
+deliberately broken session, one whose worker dies."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pandas as pd
 import psutil
 import pytest
 
+from batgraph import forked
 from batgraph.batch import (
     SUMMARY_COLUMNS,
     SUMMARY_FILE,
@@ -35,32 +37,46 @@ def break_u(folder: Path, row: int = BAD_ROW) -> Path:
     return path
 
 
-def spawned_children() -> list[psutil.Process]:
-    """This process's multiprocessing children except the resource tracker (which lives as long as we do)."""
+def worker_children() -> list[psutil.Process]:
+    """This process's child processes except multiprocessing's resource tracker (which lives as long as we do)."""
     out = []
     for p in psutil.Process().children(recursive=True):
         try:
-            if "spawn_main" in " ".join(p.cmdline()):
+            if "resource_tracker" not in " ".join(p.cmdline()) and p.status() != psutil.STATUS_ZOMBIE:
                 out.append(p)
         except psutil.NoSuchProcess:
             pass
     return out
 
 
-def test_three_sessions_on_two_worker_cluster(make_session_folder, tmp_path, monkeypatch):
-    """Two good sessions and one with a non-numeric u on a two-worker local cluster.
+ENGINES = ["forked", "dask"]
+
+
+def use_engine(engine: str, monkeypatch) -> None:
+    """Forked workers (the default on Linux) or a local Dask cluster (where batgraph cannot fork: here by
+    ``BATGRAPH_FORK=0``)."""
+    if engine == "dask":
+        monkeypatch.setenv("BATGRAPH_FORK", "0")
+    elif not forked.can_fork(min_cores=1):
+        pytest.skip("no fork here")
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_three_sessions_on_two_workers(make_session_folder, tmp_path, monkeypatch, engine):
+    """Two good sessions and one with a non-numeric u on two worker processes.
 
     The broken one is reported as "input error" naming the file and line; it does not stop the others,
     whose outputs are written; both worker processes ran sessions and are gone afterwards. Sessions are
     given relative to the working directory, as on a command line.
-    Measured 8-19 s on the shared 2-core machine (cluster start ~1.5 s, close ~0.3 s; each session 1.5-5 s,
-    mostly report.html); no time is asserted.
+    Measured 8-19 s on the shared 2-core machine with Dask (cluster start ~1.5 s, close ~0.3 s; each session
+    1.5-5 s, mostly report.html); no time is asserted.
     """
+    use_engine(engine, monkeypatch)
     good = [make_session_folder("flight_a", seed=1), make_session_folder("flight_c", seed=2)]
     bad = make_session_folder("flight_b", seed=3)
     bad_file = break_u(bad)
     out_root = tmp_path / "results"
-    before = {p.pid for p in spawned_children()}
+    before = {p.pid for p in worker_children()}
     monkeypatch.chdir(tmp_path)
     given = [Path(f.name) for f in (good[0], bad, good[1])]
 
@@ -86,7 +102,7 @@ def test_three_sessions_on_two_worker_cluster(make_session_folder, tmp_path, mon
     pids = {it.pid for it in items}
     assert os.getpid() not in pids and len(pids) == 2
     assert not any(psutil.pid_exists(p) for p in pids)
-    assert {p.pid for p in spawned_children()} <= before
+    assert {p.pid for p in worker_children()} <= before
 
     table = pd.read_csv(out_root / SUMMARY_FILE, keep_default_na=False)
     assert list(table.columns) == SUMMARY_COLUMNS
@@ -98,9 +114,11 @@ def test_three_sessions_on_two_worker_cluster(make_session_folder, tmp_path, mon
     assert text.splitlines()[-1] == "2 of 3 sessions ok, 1 input error"
 
 
-def test_one_calibration_for_every_session_reaches_the_workers(make_session_folder, tmp_path):
-    """`--calibration FILE` replaces each session's own calibration.toml, inside the Dask workers too: a
+@pytest.mark.parametrize("engine", ENGINES)
+def test_one_calibration_for_every_session_reaches_the_workers(make_session_folder, tmp_path, monkeypatch, engine):
+    """`--calibration FILE` replaces each session's own calibration.toml, inside the workers too: a
     file whose first camera is renamed makes both (otherwise good) sessions input errors naming that file."""
+    use_engine(engine, monkeypatch)
     sessions = [make_session_folder("flight_a", seed=1), make_session_folder("flight_b", seed=2)]
     day = tmp_path / "day.toml"
     day.write_text((sessions[0] / "calibration.toml").read_text().replace('name = "cam1"', 'name = "camX"', 1))
@@ -110,6 +128,34 @@ def test_one_calibration_for_every_session_reaches_the_workers(make_session_fold
     assert [it.status for it in items] == ["input error", "input error"]
     assert all(str(day) in it.message and "'cam1'" in it.message for it in items), [it.message for it in items]
     assert os.getpid() not in {it.pid for it in items}
+
+
+def test_a_session_whose_worker_dies_is_failed_and_the_rest_run(make_session_folder, tmp_path, monkeypatch):
+    """Forked workers: the second of three sessions kills its worker process (SIGKILL, as the out-of-memory
+    killer would). It is "failed", saying so in one line; a new worker takes up the third; no worker is left."""
+    import batgraph.batch
+
+    if not forked.can_fork(min_cores=1):
+        pytest.skip("no fork here")
+    sessions = [make_session_folder(name, seed=i + 1) for i, name in enumerate(("a", "b", "c"))]
+    real = batgraph.batch.reconstruct
+
+    def dies_on_b(session_dir, *args, **kwargs):
+        if Path(session_dir).name == "b":
+            os.kill(os.getpid(), 9)
+        return real(session_dir, *args, **kwargs)
+
+    monkeypatch.setattr(batgraph.batch, "reconstruct", dies_on_b)  # the workers are forked: they see it
+    before = {p.pid for p in worker_children()}
+    items = reconstruct_many(sessions, tmp_path / "out", ["triangulate"], n_workers=1, progress=False,
+                             viewer="none")
+    assert [it.status for it in items] == ["ok", "failed", "ok"]
+    assert items[1].message == ("its worker process died (exit code -9) while running this session (a crash in "
+                                "native code, or out of memory)")
+    assert items[0].pid != items[2].pid  # the dead worker was replaced
+    assert (tmp_path / "out" / "c" / "trajectories.csv").is_file() and not (tmp_path / "out" / "b").exists()
+    assert exit_code(items) == 1
+    assert {p.pid for p in worker_children()} <= before
 
 
 def test_single_session_runs_here_and_a_crash_is_reported(make_session_folder, tmp_path, monkeypatch):

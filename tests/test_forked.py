@@ -213,3 +213,65 @@ def test_standby_calls_here_what_cannot_be_pickled(tmp_path):
     pending = standby.run(target, {"n": 5, "odd": lambda: None})
     pending.wait()
     assert not pending.forked and target.read_text() == f"5 {os.getpid()}"
+
+
+needs_fork_one_core = pytest.mark.skipif(not forked.can_fork(min_cores=1), reason="no fork here (daemonic or no fork)")
+
+
+def _lost(i, why, seconds):
+    return ("lost", i, why, seconds)
+
+
+@needs_fork_one_core
+def test_stream_jobs_gives_every_result_once_from_children_only():
+    def job(i):
+        time.sleep(0.02 * (i % 3))  # finishing out of order
+        return i * i, os.getpid(), forked.can_fork(min_cores=1)
+
+    got = list(forked.stream_jobs(job, 10, 3, _lost))
+    assert sorted(i for i, _ in got) == list(range(10))
+    assert all(v == i * i for i, (v, _, _) in got)
+    pids = {pid for _, (_, pid, _) in got}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 3
+    assert not any(inner for _, (_, _, inner) in got)  # daemonic: a worker forks no workers of its own
+    assert list(forked.stream_jobs(job, 0, 3, _lost)) == []
+    with pytest.raises(ValueError, match="at most 16384"):
+        list(forked.stream_jobs(job, forked.MAX_JOBS + 1, 2, _lost))
+
+
+@needs_fork_one_core
+def test_stream_jobs_reports_a_failed_job_and_a_dead_child_and_goes_on():
+    """Job 2 raises; job 5 kills its process (SIGKILL, as the out-of-memory killer would): each comes back
+    through ``lost``, the dead child is replaced, and every other job is done, also with one worker."""
+    def job(i):
+        if i == 2:
+            raise ValueError("bad job 2\nsecond line")
+        if i == 5:
+            os.kill(os.getpid(), 9)
+        time.sleep(0.01)
+        return i
+
+    for workers in (1, 2):
+        got = dict(forked.stream_jobs(job, 9, workers, _lost))
+        assert sorted(got) == list(range(9))
+        assert got[2][:3] == ("lost", 2, "ValueError: bad job 2\nsecond line")
+        assert got[5][:3] == ("lost", 5, "its worker process died (exit code -9)") and got[5][3] >= 0
+        assert all(got[i] == i for i in range(9) if i not in (2, 5))
+
+
+@needs_fork_one_core
+def test_stream_jobs_closed_early_stops_its_children(tmp_path):
+    import contextlib
+
+    import psutil
+
+    def job(i):
+        time.sleep(0.2 if i == 0 else 30)
+        return os.getpid()
+
+    with contextlib.closing(forked.stream_jobs(job, 4, 2, _lost)) as results:
+        i, pid = next(results)
+        children = {p.pid for p in psutil.Process().children()}
+        assert i == 0 and pid in children
+    time.sleep(0.1)
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in children)
