@@ -27,6 +27,7 @@ test: install
 bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
+	$(BIN)/python scripts/bench_cores.py --skip reconstruct --repeats 1
 	test -x .venv-bench/bin/python || ($(PYTHON) -m venv .venv-bench && .venv-bench/bin/python -m pip install --quiet aniposelib)
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
 	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib/points.npz bench_out/aniposelib/calibration.toml
