@@ -28,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import signal
 import struct
 import sys
 import time
@@ -316,9 +317,12 @@ def stream_jobs(fn: Callable[[int], object], n: int, workers: int,
 
 def _stream_child(fn: Callable[[int], object], tickets: int, conn) -> None:
     """A :func:`stream_jobs` child: ("start", i) when it takes job i, then ("done", i, result) or
-    ("failed", i, the exception's type and message), until the dispenser is empty."""
+    ("failed", i, the exception's type and message), until the dispenser is empty or the parent is gone.
+    Ctrl-C is the parent's to handle (it stops the children): a child ignores it, and prints no traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
     try:
-        while len(b := os.read(tickets, _INDEX.size)) == _INDEX.size:
+        while os.getppid() == parent and len(b := os.read(tickets, _INDEX.size)) == _INDEX.size:
             i = _INDEX.unpack(b)[0]
             conn.send(("start", i))
             try:

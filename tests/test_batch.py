@@ -256,3 +256,32 @@ def test_existing_scheduler_address(make_session_folder, tmp_path):
     with dask.config.set({"distributed.comm.timeouts.connect": "1s"}), \
             pytest.raises(InputError, match=f"--scheduler {nowhere}: cannot connect"):
         reconstruct_many([bad], None, ["triangulate"], scheduler=nowhere, progress=False)
+
+
+def test_ctrl_c_stops_a_forked_batch_in_one_line(make_session_folder, tmp_path):
+    """Ctrl-C (SIGINT to the terminal's process group) during a batch on forked workers: exit code 130,
+    "batgraph: interrupted" and nothing else on stderr (no worker's traceback), no worker left running."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    if not forked.can_fork(min_cores=1):
+        pytest.skip("no fork here")
+    for i in range(6):
+        make_session_folder(f"s{i}", seed=i + 1)
+    proc = subprocess.Popen([sys.executable, "-m", "batgraph.cli", "reconstruct", str(tmp_path / "s*"), "--out",
+                             str(tmp_path / "out"), "--workers", "2", "--viewer", "none", "--quiet"],
+                            start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    workers = []
+    deadline = time.monotonic() + 60
+    while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+        workers = psutil.Process(proc.pid).children()
+    assert len(workers) == 2, "the workers never started"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.decode() == "batgraph: interrupted\n", err.decode()
+    time.sleep(0.2)
+    assert not any(psutil.pid_exists(w.pid) and w.status() != psutil.STATUS_ZOMBIE for w in workers)
