@@ -216,15 +216,14 @@ GROUPS = ("all", *STATUSES, *SPANS, *(f"{st}/{sp}" for st in STATUSES for sp in 
 (e.g. ``single_view/inside``: gaps inside a track that one camera sees)."""
 
 
-def group_mask(table: pd.DataFrame, group: str) -> np.ndarray:
-    """Rows of a table with ``status`` and ``span`` columns that belong to ``group`` (one of GROUPS)."""
-    if group == "all":
-        return np.ones(len(table), bool)
-    st, _, sp = group.partition("/")
-    if st in SPANS:
-        return (table["span"] == st).to_numpy()
-    mask = (table["status"] == st).to_numpy()
-    return mask & (table["span"] == sp).to_numpy() if sp else mask
+def group_masks(table: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The rows of a table with ``status`` and ``span`` columns that belong to each group of GROUPS: {group:
+    bool (n,)}. Each text column is compared once per value (a comparison of a text column costs ~1 ms even
+    on a small table, and a summary asks for every group of every method)."""
+    status = {st: (table["status"] == st).to_numpy(bool) for st in STATUSES}
+    span = {sp: (table["span"] == sp).to_numpy(bool) for sp in SPANS}
+    return {"all": np.ones(len(table), bool), **status, **span,
+            **{f"{st}/{sp}": status[st] & span[sp] for st in STATUSES for sp in SPANS}}
 
 
 def errors_by_method(traj: pd.DataFrame, points: pd.DataFrame) -> dict[str, pd.DataFrame]:
@@ -259,17 +258,17 @@ def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame, joined: pd.DataFrame | 
         joined = errors_against(traj if "span" in traj.columns else add_span(traj), truth)
     j = joined
     out = {"rmse_m": {}, "mean_m": {}, "p95_m": {}, "coverage95": {}, "n": {}, "n_estimated": {}}
+    masks = group_masks(j)
+    err_all, m2_all = j["err_m"].to_numpy(float), j["mahal2"].to_numpy(float)
     for name in GROUPS:
-        g = j[group_mask(j, name)]
-        err = g["err_m"].to_numpy(float)
+        err, m2 = err_all[masks[name]], m2_all[masks[name]]
         est = np.isfinite(err)
-        m2 = g["mahal2"].to_numpy()
         has_cov = np.isfinite(m2)
         out["rmse_m"][name] = _rmse(err)
         out["mean_m"][name] = float(err[est].mean()) if est.any() else None
         out["p95_m"][name] = float(np.percentile(err[est], 95)) if est.any() else None
         out["coverage95"][name] = float(np.mean(m2[has_cov] <= CHI2_3DOF_95)) if has_cov.any() else None
-        out["n"][name] = int(len(g))
+        out["n"][name] = int(len(err))
         out["n_estimated"][name] = int(est.sum())
     return out
 
@@ -281,7 +280,7 @@ def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame, joined: pd.Data
     if not len(d):
         return {"n": 0}
     e = d["err_m"].to_numpy()
-    groups = {g: d.loc[group_mask(d, g), "err_m"].to_numpy() for g in GROUPS}
+    groups = {g: e[mask] for g, mask in group_masks(d).items()}
     return {"n": int(len(e)), "rms_m": float(np.sqrt(np.mean(e**2))), "median_m": float(np.median(e)),
             "max_m": float(e.max()), "rms_by_group_m": {g: _rmse(v) for g, v in groups.items()},
             "n_by_group": {g: int(len(v)) for g, v in groups.items()}}
@@ -374,10 +373,11 @@ def method_summary(session: Session, traj: pd.DataFrame, reproj: pd.DataFrame, r
     rep_mm = reprojection_in_mm(reproj, traj, session.rig)
     t = traj if "span" in traj.columns else add_span(traj)
     has = np.isfinite(t["x"].to_numpy(float))
+    masks = group_masks(t)
     s = {"runtime_s": runtime_s, "reprojection": reprojection_stats(session, rep_mm),
          "n_estimated": int(has.sum()), "n_points": int(len(t)),
-         "estimated": {g: int((has & group_mask(t, g)).sum()) for g in GROUPS},
-         "points": {g: int(group_mask(t, g).sum()) for g in GROUPS}}
+         "estimated": {g: int((has & masks[g]).sum()) for g in GROUPS},
+         "points": {g: int(masks[g].sum()) for g in GROUPS}}
     if session.truth is not None:
         s["truth"] = truth_stats(t, session.truth, truth_errors)
     if session.reference is not None:

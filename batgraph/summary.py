@@ -35,7 +35,7 @@ from .evaluate import (
     STATUSES,
     add_span,
     errors_by_method,
-    group_mask,
+    group_masks,
     method_rows,
     method_summary,
     point_errors,
@@ -132,8 +132,9 @@ def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: lis
         errs = {m: point_errors(trajectories.iloc[rows[m]], points, joined.get(m)).set_index(["frame", "marker"])
                 for m in methods}
         out = Comparison(methods, "truth" if truth is not None else "reference")
+        masks = {m: group_masks(e) for m, e in errs.items()}
         for g in GROUPS:
-            idx = {m: e.index[group_mask(e, g)] for m, e in errs.items()}
+            idx = {m: e.index[masks[m][g]] for m, e in errs.items()}
             _add_group(out, g, idx, lambda m, sel: _point_figures(errs[m].loc[sel], truth is not None))
         return out
     # reprojection: observations (frame, camera, marker) of the group a method reprojects and does not flag
@@ -146,8 +147,9 @@ def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: lis
         tabs[m] = pd.concat([t[ok].reset_index(), _status_of_observations(trajectories, m, t.index[ok])],
                             axis=1).set_index(keys)
     out = Comparison(methods, "reprojection")
+    masks = {m: group_masks(t) for m, t in tabs.items()}
     for g in GROUPS:
-        idx = {m: t.index[group_mask(t, g)] for m, t in tabs.items()}
+        idx = {m: t.index[masks[m][g]] for m, t in tabs.items()}
         _add_group(out, g, idx, lambda m, sel: _pixel_figures(tabs[m].loc[sel, "err_px"].to_numpy(float)))
     return out
 
