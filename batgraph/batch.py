@@ -311,7 +311,7 @@ def _run_forked(jobs: list[tuple[Path, Path]], methods: list[str], options: Opti
         cal = None if calibration is None else calibration.absolute()
         return run_session(s.absolute(), o.absolute(), methods, options, viewer, cal, validate, threads)
 
-    def lost(i: int, why: str, seconds: float) -> BatchItem:
+    def lost(i: int, why: str, seconds: float) -> BatchItem:  # a worker's death: run_session itself never raises
         return BatchItem(*jobs[i], "failed", _one_line(f"{why} while running this session (a crash in native "
                                                        "code, or out of memory)"), seconds)
 
