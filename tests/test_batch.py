@@ -54,11 +54,19 @@ ENGINES = ["forked", "dask"]
 
 def use_engine(engine: str, monkeypatch) -> None:
     """Forked workers (the default on Linux) or a local Dask cluster (where batgraph cannot fork: here by
-    ``BATGRAPH_FORK=0``)."""
+    ``BATGRAPH_FORK=0``); the other engine, if the batch took it, fails the test."""
+    import batgraph.batch
+
+    def not_this(*args, **kwargs):
+        raise AssertionError(f"the batch did not run on the {engine} engine")
+
     if engine == "dask":
         monkeypatch.setenv("BATGRAPH_FORK", "0")
+        monkeypatch.setattr(batgraph.batch, "_run_forked", not_this)
     elif not forked.can_fork(min_cores=1):
         pytest.skip("no fork here")
+    else:
+        monkeypatch.setattr(batgraph.batch, "_run_with_dask", not_this)
 
 
 @pytest.mark.parametrize("engine", ENGINES)
