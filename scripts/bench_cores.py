@@ -62,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         run_process(["reconstruct", str(SAMPLE), "--out", f"{tmp}/warm", *quiet], ROOT)
         print(f"warm-up (compiles the kernels when the cache is cold): {time.perf_counter() - t0:.1f} s", flush=True)
         t0 = time.perf_counter()
-        simulate_sessions(tmp, batch="batch" not in skip, parallel=len(available))
+        simulate_sessions(tmp, None if "reconstruct" in skip else (30, 180, 160), batch="batch" not in skip,
+                          parallel=len(available))
         print(f"simulated the sessions in {time.perf_counter() - t0:.1f} s", flush=True)
         rows = []
         if "reconstruct" not in skip:
