@@ -252,3 +252,30 @@ def test_threads_split_the_work_without_changing_an_answer(kernel_threads):
     one, three = run(1), run(3)
     for a, b in zip(one, three, strict=True):
         assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_a_reconstruct_compiles_each_kernel_for_one_layout_of_its_arrays(tmp_path):
+    """A fresh process's default reconstruct of the bundled sample (its smoother, with a segment group and
+    single-marker solves; its filter) holds one compiled copy of each tridiagonal kernel it called and of the
+    projection sums (with the rows they call): a read-only or Fortran-ordered argument would add one (~10 s
+    more on a first run). Counted on the dispatchers called from Python (a kernel called from a kernel is
+    compiled into its caller)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "data" / "samples" / "flight_5cam"
+    code = ("import sys\n"
+            "from batgraph.cli import main\n"
+            "main(['reconstruct', sys.argv[1], '--out', sys.argv[2], '--viewer', 'none', '--quiet'])\n"
+            "from batgraph.graph import kernels as k\n"
+            "for f in (k._solve_markers, k._logdet_markers, k._marginals_markers, k._solve_trace_markers,\n"
+            "          k._motion_trace_markers, k._projection_chunks):\n"
+            "    print(f.py_func.__name__, len(f.signatures))\n")
+    out = subprocess.run([sys.executable, "-c", code, str(sample), str(tmp_path / "out")], capture_output=True,
+                         text=True, timeout=900, env={**os.environ, "BATGRAPH_FORK": "0"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    counts = {name: int(n) for name, n in (line.split() for line in out.stdout.splitlines() if line.startswith("_"))}
+    assert len(counts) == 6 and counts["_solve_markers"] == 1 and counts["_projection_chunks"] == 1, out.stdout
+    assert max(counts.values()) == 1, out.stdout  # the others: once or not at all

@@ -115,8 +115,8 @@ class _Observations:
         """The rows of the markers where ``keep`` (bool over current columns), columns renumbered."""
         col = np.cumsum(keep) - 1
         rows = np.flatnonzero(keep[self.m])
-        return _Observations(self.f[rows], col[self.m[rows]], self.cam[rows], self.P, self.uv[:, rows],
-                             self.Linv[:, rows], self.behind_px, self.n_frames, int(keep.sum()))
+        return _Observations(self.f[rows], col[self.m[rows]], self.cam[rows], self.P, _columns(self.uv, rows),
+                             _columns(self.Linv, rows), self.behind_px, self.n_frames, int(keep.sum()))
 
     def tile(self, K: int) -> _Observations:
         """K copies of every marker as columns m + j M' (j < K) of K M' markers, rows still sorted by frame."""
@@ -126,8 +126,8 @@ class _Observations:
         order = np.argsort(np.tile(self.f, K), kind="stable")  # frame-major, copies in order within a frame
         rows = np.tile(np.arange(n), K)[order]
         col = (self.m[None, :] + self.n_markers * np.arange(K)[:, None]).ravel()[order]
-        return _Observations(self.f[rows], col, self.cam[rows], self.P, self.uv[:, rows], self.Linv[:, rows],
-                             self.behind_px, self.n_frames, K * self.n_markers)
+        return _Observations(self.f[rows], col, self.cam[rows], self.P, _columns(self.uv, rows),
+                             _columns(self.Linv, rows), self.behind_px, self.n_frames, K * self.n_markers)
 
     def residuals(self, x: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """Whitened residuals r (2, n) of every row at x (F, M', >= 3) [m] and, if asked, whitened
@@ -185,7 +185,15 @@ def projection_rows(rig: Rig, ideal: IdealObservations, c: np.ndarray, f: np.nda
     Linv = np.stack([1 / l00, -l10 / (l00 * l11), 1 / l11])
     P = np.stack([cam.P.ravel() for cam in rig], axis=-1)  # (12, C)
     behind = np.array([2.0 * cam.K[0, 0] for cam in rig])
-    return _Observations(f, col, c, P, ideal.uv_px[c, f, m].T.copy(), Linv, behind, ideal.seen.shape[1], n_markers)
+    # c from np.nonzero is a strided view: contiguous, like every other row array (one compiled kernel)
+    return _Observations(f, col, np.ascontiguousarray(c), P, ideal.uv_px[c, f, m].T.copy(), Linv, behind,
+                         ideal.seen.shape[1], n_markers)
+
+
+def _columns(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """a[:, rows] C-contiguous (numpy's fancy indexing on the second axis gives a Fortran-ordered array, which
+    the kernels would compile for separately)."""
+    return np.ascontiguousarray(a[:, rows])
 
 
 def _observations(rig: Rig, ideal: IdealObservations, estimated: np.ndarray) -> _Observations:

@@ -453,10 +453,17 @@ def _markers_split(D: np.ndarray, run) -> None:
     _split(M, -(-MIN_PART_BLOCKS // max(F, 1)), run)
 
 
+def _typed(a: np.ndarray) -> np.ndarray:
+    """``a`` C-contiguous and writeable (copied if not): numba compiles a kernel once per layout and
+    read-only flag of its arguments, so a read-only view (np.broadcast_to of one marker) or a fancy-indexed
+    (Fortran-ordered) array would compile a second copy of it on a first run (~10 s for the tridiagonal solve)."""
+    return np.require(a, requirements="CW")
+
+
 def _blocks(B: np.ndarray) -> np.ndarray:
     """The sub-diagonal blocks as (M, g, b, b) C-contiguous: (M, d, d) is one block (g = 1); (M, g, b, b) is a
     block-diagonal B of g blocks (a segment group's members, batgraph.graph.rigid)."""
-    return np.ascontiguousarray(B[:, None] if B.ndim == 3 else B)
+    return _typed(B[:, None] if B.ndim == 3 else B)
 
 
 def tridiagonal_solve(D: np.ndarray, B: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -505,8 +512,8 @@ def tridiagonal_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarray, Qi
     if B.ndim != 3:  # a block-diagonal B (segment groups) is not supported here: the search runs without them
         raise ValueError(f"B must be one (d, d) block per marker, shape (M, d, d), got {B.shape}")
     ld, tr = np.empty(D.shape[1]), np.empty(D.shape[1])
-    Bb = _blocks(np.ascontiguousarray(B))
-    AtQiA, Qi = np.ascontiguousarray(AtQiA), np.ascontiguousarray(Qi)
+    Bb = _blocks(B)
+    AtQiA, Qi = _typed(AtQiA), _typed(Qi)
     _markers_split(D, lambda m0, m1: _motion_trace_markers(m0, m1, D, Bb, AtQiA, Qi, ld, tr))
     return ld, tr
 
@@ -518,8 +525,8 @@ def tridiagonal_solve_motion_trace(D: np.ndarray, B: np.ndarray, AtQiA: np.ndarr
     if B.ndim != 3:
         raise ValueError(f"B must be one (d, d) block per marker, shape (M, d, d), got {B.shape}")
     out, ld, tr = np.empty_like(rhs), np.empty(D.shape[1]), np.empty(D.shape[1])
-    Bb = _blocks(np.ascontiguousarray(B))
-    AtQiA, Qi = np.ascontiguousarray(AtQiA), np.ascontiguousarray(Qi)
+    Bb = _blocks(B)
+    AtQiA, Qi = _typed(AtQiA), _typed(Qi)
     _markers_split(D, lambda m0, m1: _solve_trace_markers(m0, m1, D, Bb, AtQiA, Qi, rhs, out, ld, tr))
     return out, ld, tr
 
