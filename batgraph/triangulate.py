@@ -32,7 +32,10 @@ def dlt_points(rig: Rig, ideal: IdealObservations) -> np.ndarray:
     normal matrix sum(a a^T + b b^T), accumulated per camera: the SVD of the stacked (2C, 4) rows
     has the same null vector but costs ~2x (and 2C x 4 memory per point); the squared condition
     number is harmless here (positions equal to 2.4e-14 m on the 30-camera, 180-marker flight).
+    The answer is kept on ``ideal`` (its ``linear_xyz``) and given again, as a copy, for the same rig.
     """
+    if ideal.linear_xyz is not None and ideal.linear_xyz[0] is rig:  # triangulated already (IdealObservations)
+        return ideal.linear_xyz[1].copy()
     C, F, M = ideal.uv_px.shape[:3]
     seen = ideal.seen  # (C, F, M)
     N = np.zeros((F, M, len(_IU4[0])))  # upper triangle of each point's normal matrix
@@ -55,6 +58,7 @@ def dlt_points(rig: Rig, ideal: IdealObservations) -> np.ndarray:
         X = np.linalg.eigh(A)[1][:, :, 0]  # eigenvalues ascending: the first eigenvector
         with np.errstate(divide="ignore", invalid="ignore"):
             xyz[ok] = X[:, :3] / X[:, 3:4]
+    ideal.linear_xyz = (rig, xyz.copy())
     return xyz
 
 

@@ -3,6 +3,7 @@ geometry (exit 2 naming the camera), warnings in summary.json, and sessions with
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -15,11 +16,13 @@ import pytest
 import tomli_w
 
 from batgraph import checks
+from batgraph.camera import Rig
 from batgraph.cli import main
 from batgraph.errors import InputError
 from batgraph.measurement import ideal_observations
 from batgraph.pixel_noise import estimate_pixel_sigma
 from batgraph.session import dense_observations, read_session
+from batgraph.triangulate import dlt_points
 
 ROOT = Path(__file__).resolve().parents[1]
 FLIGHT = ROOT / "data" / "samples" / "flight_5cam"
@@ -82,6 +85,17 @@ def test_preflight_hands_on_the_observations_at_the_noise_it_chose(tmp_path):
     again = ideal_observations(s.rig, d, pre.sigma_px)
     assert np.array_equal(pre.ideal.uv_px, again.uv_px, equal_nan=True)
     np.testing.assert_allclose(pre.ideal.cov_px2, again.cov_px2, rtol=1e-13, atol=0)
+
+    # preflight's linear triangulation comes with them, for the same rig only, and equals one made afresh
+    assert again.linear_xyz is None and pre.ideal.linear_xyz[0] is s.rig
+    fresh = dlt_points(s.rig, again)
+    assert np.array_equal(dlt_points(s.rig, pre.ideal), fresh, equal_nan=True)
+    kept = dlt_points(s.rig, pre.ideal)
+    kept[:] = 0.0  # a copy each time: the kept one cannot be changed through it
+    assert np.array_equal(dlt_points(s.rig, pre.ideal), fresh, equal_nan=True)
+    moved = dataclasses.replace(s.rig[0], tvec=s.rig[0].tvec + 0.5)
+    other = Rig([moved, *list(s.rig)[1:]])
+    assert not np.array_equal(dlt_points(other, pre.ideal), fresh, equal_nan=True)  # another rig: computed
 
 
 def test_reconstruct_uses_and_reports_the_measured_noise(tmp_path):
