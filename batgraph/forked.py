@@ -296,7 +296,8 @@ def stream_jobs(fn: Callable[[int], object], n: int, workers: int,
                         i, seconds = entry[1], time.perf_counter() - entry[2]
                         done.add(i)
                         yield i, lost(i, f"its worker process died (exit code {entry[0].exitcode})", seconds)
-                        start()  # it found the dispenser empty at once if every other job is taken
+                        if len(done) < n:
+                            start()  # it finds the dispenser empty at once if every other job is taken
                     continue
                 if msg[0] == "start":
                     entry[1], entry[2] = msg[1], time.perf_counter()
