@@ -237,9 +237,9 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
     out_root: None -> each SESSION/out; else out_root/<session folder name>, plus out_root/batch_summary.csv.
     scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None -> ``n_workers`` worker
       processes (default min(n sessions, cores); one session at a time each, compiled kernels on cores // n
-      threads) forked from this one, or where forking is not possible (module docstring) a local Dask
-      cluster of as many, bound to 127.0.0.1, without dashboards. A single session without ``scheduler``
-      runs in this process (no workers).
+      threads) forked from this one, or where forking is not possible (module docstring) or for more than
+      forked.MAX_JOBS sessions a local Dask cluster of as many, bound to 127.0.0.1, without dashboards. A
+      single session without ``scheduler`` runs in this process (no workers).
     progress: a bar over finished sessions; the per-method bars inside workers are always off.
     viewer: "save" (recording.rrd in each output folder) or "none"; "spawn" (a live window) only for a
       single session without a scheduler.
@@ -277,7 +277,7 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
         items = [run_session(*jobs[0], methods, one, viewer, calibration, validate)]
     else:
         options = dataclasses.replace(options, progress=False)  # no nested bars from inside workers
-        if scheduler is None and forked.can_fork(min_cores=1):
+        if scheduler is None and forked.can_fork(min_cores=1) and len(jobs) <= forked.MAX_JOBS:
             items = _run_forked(jobs, methods, options, viewer, calibration, n_workers, progress, validate)
         else:
             items = _run_with_dask(jobs, methods, options, viewer, calibration, scheduler, n_workers, progress,
