@@ -541,7 +541,9 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "* each cell: median over seeds [min, max] (one value when all seeds agree or there is one seed); "
         "'—' = no such point or no figure (interpolation has no covariance; the filters and triangulation "
         "give no estimate before a marker's first triangulation).",
-        "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data, "
+        "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data "
+        "(kept >= the q of a 1 mm oscillation at the wingbeat when the tracks flap: "
+        "batgraph.graph.noise.flapping_q_floor), "
         "with the session's segment-length factors (both generators write their bones as `[markers] rigid`; "
         "default stiffness rigid_sigma_m = 2 mm), q scored by the Laplace marginal likelihood (the default "
         "[motion] noise_rule = \"evidence\"); `smoother_noseg` = the same without the segments; `smoother_loo` = "

@@ -1278,7 +1278,8 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
                             candidates: tuple[str, ...] = spec.AUTO_CANDIDATES, p_start: np.ndarray | None = None,
                             v_start: np.ndarray | None = None, progress: bool = False,
                             groups: list[np.ndarray] = (), rule: str = "evidence",
-                            oscillation_hz: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+                            oscillation_hz: float | None = None,
+                            q_floor: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Each marker's motion model among ``candidates`` and its noise level, by maximum Laplace evidence.
 
     ``rule`` (noise.NOISE_RULES) scores both the noise level and the model: the Laplace evidence or the
@@ -1297,6 +1298,8 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     model has no such part or the marker none (a start for the final solve; a group's members were searched
     without their segments). The "oscillating" candidate needs the
     wingbeat frequency ``oscillation_hz`` [Hz]; its info's sigma_m (M,) is each marker's oscillation std.
+    ``q_floor`` [m^2/s^3] (noise.flapping_q_floor): a constant-velocity marker whose q came out below it gets it
+    (after the model choice; info's ``raised_to_floor``, bool (M,), says which); None: no floor.
     """
     M = p_init.shape[1]
     found = {name: choose_noise_per_marker(rig, ideal, p_init, v_init, markers, fps, robust, robust_k, p_start,
@@ -1322,6 +1325,11 @@ def choose_model_per_marker(rig: Rig, ideal: IdealObservations, p_init: np.ndarr
     info = {name: found[name][1] for name in candidates}
     info["log_evidence"] = {name: found[name][1]["log_evidence"] for name in candidates}
     info["solution"] = tuple(solution)
+    raised = np.zeros(M, bool)
+    if q_floor is not None:
+        raised = (model == "constant_velocity") & (level < q_floor)
+        level[raised] = q_floor
+    info["raised_to_floor"] = raised
     return model, level, info
 
 

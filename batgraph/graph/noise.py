@@ -95,6 +95,14 @@ OSC_LOG10_SIGMA_RANGE = (-4.0, -1.0)
 # each marker's evidence -0.07..+0.05 nats, on 8 simulated and hold-out scenes (BENCHMARKS.md), in 0.6-0.8x the time.
 LOG10_GRID_STEP = 2.0
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
+# When the tracks flap (batgraph.graph.schedule.periodic_advice finds a wingbeat at f Hz), no marker is taken to move
+# on a straight line: its constant-velocity q is kept >= :func:`flapping_q_floor`, the q of an oscillation of
+# FLAPPING_BOB_M at f. Why: a body marker bobbing with the wingbeat by less than the pixel noise (2.3-2.6 mm RMS,
+# 0.6-0.8 px under 2 px of noise on the hold-out dorsal scene) leaves an evidence that falls monotonically to the
+# search's floor (q = 0.01; -29 nats at q = 1), and the straight track's ellipsoids then held 26-62 % of those
+# markers' truths on the hold-out scenes that flap (dorsal, 15 Hz, 10 Hz); their RMSE was the same or lower at the
+# floor. 1 mm is taken as the least a flapping animal's body heaves, not fitted to a scene (docs/accuracy.md).
+FLAPPING_BOB_M = 1e-3
 GLOBAL_RULE = (f"max Laplace marginal likelihood over log10 q in [{LOG10_Q_RANGE[0]:g}, {LOG10_Q_RANGE[1]:g}]"
                " (decade grid + golden section), one q for all markers")
 SLOPE_SEARCH = "per-marker search on the evidence's values and slopes, Brent's with derivatives"
@@ -496,6 +504,13 @@ GIVEN_RULE = "given (options or session), one q for all markers"
 # with the wingbeat) where the evidence prefers a smoother, overconfident track. session.NOISE_RULES.
 
 
+def flapping_q_floor(hz: float) -> float:
+    """The least constant-velocity q [m^2/s^3] of a marker on an animal flapping at ``hz`` [Hz]: that of an
+    oscillation of amplitude FLAPPING_BOB_M [m] (its acceleration, amplitude A w^2 with w = 2 pi hz, taken as
+    white over a band ~w wide: q ~ A^2 w^4 / w = A^2 w^3). 0.016 at 4 Hz, 0.13 at 8 Hz, 0.84 at 15 Hz."""
+    return FLAPPING_BOB_M**2 * (2.0 * math.pi * hz) ** 3
+
+
 def q_figures(q: float | np.ndarray, markers: np.ndarray | None = None, names: list[str] | None = None,
               selection: dict | None = None) -> dict:
     """The figures both smoothers report about q: a given one (``q`` a number) or, with ``selection``
@@ -570,7 +585,8 @@ def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, nam
     (accel_psd_m2_s3 {name: q} for the constant-velocity markers, jerk_psd_m2_s5 {name: j} for the
     constant-acceleration ones, oscillating_accel_psd_m2_s3 and oscillation_sigma_m {name: sigma_m [m]} for
     the oscillating ones), its search's rule and counts (``accel_psd_selection``, ``jerk_psd_selection``, ...)
-    and, with several candidates, log_evidence_per_marker {name: {model: score}}.
+    and, with several candidates, log_evidence_per_marker {name: {model: score}}; when the search's q floor
+    (:func:`flapping_q_floor`) raised markers, accel_psd_floor {accel_psd_m2_s3, flapping_bob_m, markers}.
     """
     out = {"accel_psd_source": "data", "motion_model_per_marker": {names[m]: str(model[m]) for m in markers}}
     if len(candidates) > 1:
@@ -585,6 +601,10 @@ def model_figures(model: np.ndarray, level: np.ndarray, markers: np.ndarray, nam
         out[NOISE_UNIT[c]] = {names[m]: float(level[m]) for m in markers if model[m] == c}
         if c == OSCILLATING:
             out["oscillation_sigma_m"] = {names[m]: float(sel["sigma_m"][m]) for m in markers if model[m] == c}
+    raised = selection.get("raised_to_floor")
+    if raised is not None and raised[markers].any():
+        out["accel_psd_floor"] = {"accel_psd_m2_s3": float(level[raised][0]), "flapping_bob_m": FLAPPING_BOB_M,
+                                  "markers": [names[m] for m in markers if raised[m]]}
     return out
 
 

@@ -109,7 +109,7 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         models, level, selection = choose_model_per_marker(
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
             p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options),
-            oscillation_hz=hz)
+            oscillation_hz=hz, q_floor=flapping_floor(figures))
         figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
         if spec.OSCILLATING in candidates:
             oscillation = spec.Oscillation(hz, selection[spec.OSCILLATING]["sigma_m"])
@@ -171,9 +171,17 @@ def periodic_advice(xyz_tri_m: np.ndarray, fps: float, model: str) -> dict:
     return {"periodic_motion_hz": hz, "wingbeat_advice": (
         f"the tracks move periodically at {hz:.1f} Hz (a wingbeat?), which the {model.replace('_', ' ')} motion "
         "model takes for noise: markers that move with it a little, like a body bobbing with the wingbeat, can "
-        "get 95 % ellipsoids that hold their truth far less often (81 % of observed points on the hold-out "
-        "dorsal-marker scene, docs/accuracy.md); --motion wingbeat ([motion] model = \"wingbeat\") models it, "
-        "at several times the smoother's time")}
+        f"get 95 % ellipsoids that hold their truth less often (their q is kept >= that of a "
+        f"{noise.FLAPPING_BOB_M * 1e3:g} mm oscillation at this frequency, {noise.flapping_q_floor(hz):.2g} m^2/s^3; "
+        "see the hold-out dorsal-marker scene in docs/accuracy.md); --motion wingbeat ([motion] model = "
+        "\"wingbeat\") models it, at several times the smoother's time")}
+
+
+def flapping_floor(figures: dict) -> float | None:
+    """The constant-velocity q floor (noise.flapping_q_floor) [m^2/s^3] when :func:`periodic_advice` found a wingbeat
+    (its figures in ``figures``), else None."""
+    hz = figures.get("periodic_motion_hz")
+    return None if hz is None else noise.flapping_q_floor(hz)
 
 
 def wingbeat_hz(session: Session, xyz_tri_m: np.ndarray) -> tuple[float | None, str]:

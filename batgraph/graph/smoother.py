@@ -55,7 +55,7 @@ from . import factors, noise, rigid
 from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, WINGBEAT, motion_model  # noqa: F401  (the schedule's constants, module docstring)
 from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
 from .fast import choose_model_per_marker, searched_start
-from .schedule import cleaning_motion
+from .schedule import cleaning_motion, flapping_floor, periodic_advice
 
 MAX_ITERATIONS = 200
 SEGMENTS_WITH_CAMERA_VARIABLES = (
@@ -205,6 +205,7 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     info: dict = {"solver": "gtsam", "motion_model": model_name, "robust": options.robust,
                   "robust_k": options.robust_k, "outlier_rejection": reject,
                   "camera_variables": int(sum(c.pose_cov is not None for c in session.rig))}
+    info.update(periodic_advice(tri, session.fps, model_name))  # the fast schedule's warning, and its q floor
     if info["camera_variables"] and len(pairs):
         info["segments_left_out"] = SEGMENTS_WITH_CAMERA_VARIABLES
         pairs = pairs[:0]
@@ -240,7 +241,8 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
         models, level, selection = choose_model_per_marker(
             session.rig, factors.without_observations(ideal, excluded), p_init, v_init, markers, session.fps,
             options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress,
-            groups=[members for members, _ in found], rule=noise.noise_rule(session, options))
+            groups=[members for members, _ in found], rule=noise.noise_rule(session, options),
+            q_floor=flapping_floor(info))
         info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
     model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
     if start is not None:  # the final solves start, in the chosen models' variables, from the noise search's
