@@ -99,7 +99,7 @@ CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data
 # on a straight line: its constant-velocity q is kept >= :func:`flapping_q_floor`, the q of an oscillation of
 # FLAPPING_BOB_M at f. Why: a body marker bobbing with the wingbeat by less than the pixel noise (2.3-2.6 mm RMS,
 # 0.6-0.8 px under 2 px of noise on the hold-out dorsal scene) leaves an evidence that falls monotonically to the
-# search's floor (q = 0.01; -29 nats at q = 1), and the straight track's ellipsoids then held 26-62 % of those
+# search's floor (q = 0.01; -29 nats at q = 1), and the straight track's ellipsoids then held 26-59 % of those
 # markers' truths on the hold-out scenes that flap (dorsal, 15 Hz, 10 Hz); their RMSE was the same or lower at the
 # floor. 1 mm is taken as the least a flapping animal's body heaves, not fitted to a scene (docs/accuracy.md).
 FLAPPING_BOB_M = 1e-3

@@ -171,9 +171,10 @@ def periodic_advice(xyz_tri_m: np.ndarray, fps: float, model: str) -> dict:
     return {"periodic_motion_hz": hz, "wingbeat_advice": (
         f"the tracks move periodically at {hz:.1f} Hz (a wingbeat?), which the {model.replace('_', ' ')} motion "
         "model takes for noise: markers that move with it a little, like a body bobbing with the wingbeat, can "
-        f"get 95 % ellipsoids that hold their truth less often (their q is kept >= that of a "
-        f"{noise.FLAPPING_BOB_M * 1e3:g} mm oscillation at this frequency, {noise.flapping_q_floor(hz):.2g} m^2/s^3; "
-        "see the hold-out dorsal-marker scene in docs/accuracy.md); --motion wingbeat ([motion] model = "
+        "get 95 % ellipsoids that hold their truth less often" + ("" if model == "random_walk" else (
+            f" (a constant-velocity q chosen from the data is kept >= that of a {noise.FLAPPING_BOB_M * 1e3:g} mm "
+            f"oscillation at this frequency, {noise.flapping_q_floor(hz):.2g} m^2/s^3)")) +
+        "; see the hold-out dorsal-marker scene in docs/accuracy.md; --motion wingbeat ([motion] model = "
         "\"wingbeat\") models it, at several times the smoother's time")}
 
 
