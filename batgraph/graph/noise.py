@@ -95,8 +95,9 @@ OSC_LOG10_SIGMA_RANGE = (-4.0, -1.0)
 # each marker's evidence -0.07..+0.05 nats, on 8 simulated and hold-out scenes (BENCHMARKS.md), in 0.6-0.8x the time.
 LOG10_GRID_STEP = 2.0
 CAUSAL_Q_FLOOR = 1.0  # the filter's q without a flap [m^2/s^3]: it sees no data, so stays loose
-# When the tracks flap (batgraph.graph.schedule.periodic_advice finds a wingbeat at f Hz), no marker is taken to move
-# on a straight line: its constant-velocity q is kept >= :func:`flapping_q_floor`, the q of an oscillation of
+# When the tracks flap (batgraph.graph.schedule.periodic_advice finds a wingbeat at f Hz; every model but "wingbeat",
+# whose oscillating candidate follows the bob instead, and only for a q chosen from the data), no marker is taken
+# to move on a straight line: its constant-velocity q is kept >= :func:`flapping_q_floor`, the q of an oscillation of
 # FLAPPING_BOB_M at f. Why: a body marker bobbing with the wingbeat by less than the pixel noise (2.3-2.6 mm RMS,
 # 0.6-0.8 px under 2 px of noise on the hold-out dorsal scene) leaves an evidence that falls monotonically to the
 # search's floor (q = 0.01; -29 nats at q = 1), and the straight track's ellipsoids then held 26-59 % of those
