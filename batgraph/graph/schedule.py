@@ -22,6 +22,7 @@ from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import cost as spec
 from . import noise, rigid
+from .ends import widen_ends
 from .fast import LOOSE_STEP_TOL_M, choose_model_per_marker, one_blas_thread, searched_start, solve_fast
 
 
@@ -128,10 +129,15 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         if r == n_rounds - 1 or (again == excluded).all():
             break
         excluded, p_start, v_start, a_start = again, xyz, info["velocity"], info["acceleration"]
+    used = spec.without_observations(ideal, excluded)
     if info["segments"]:  # the second depth a segment allows a single-view point
         cov, figures["depth_ambiguous_points"] = rigid.ambiguity_covariances(
-            rig, spec.without_observations(ideal, excluded), p_init, v_init, models, level, fps, robust, k,
-            info["segments"], xyz, cov, oscillation=oscillation)
+            rig, used, p_init, v_init, models, level, fps, robust, k, info["segments"], xyz, cov,
+            oscillation=oscillation)
+    cov, ends_figures = widen_ends(rig, used, p_init, models, level, fps, robust, k,
+                                   pairs, session.rigid_sigma_m, xyz, cov, oscillation=oscillation)
+    if ends_figures:  # the covariances of unobserved points at the track ends, checked on the track (ends.py)
+        figures["track_ends"] = ends_figures
     outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
                    markers_not_converged=int((info["estimated"] & ~info["converged"]).sum()))

@@ -53,6 +53,7 @@ from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import factors, noise, rigid
 from .cost import AUTO, AUTO_CANDIDATES, CLEANING_LOSS, REJECTION_ROUNDS, WINGBEAT, motion_model  # noqa: F401  (the schedule's constants, module docstring)
+from .ends import widen_ends
 from .factors import MotionFactors, MotionModel, ObservationFactors  # noqa: F401  (MotionModel re-exported)
 from .fast import choose_model_per_marker, searched_start
 from .schedule import cleaning_motion, flapping_floor, periodic_advice
@@ -273,10 +274,11 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
     xyz = factors.positions(solution, markers, F, M)
     keys = [factors.p_key(int(m), k) for k in range(F) for m in markers]
     cov[:, markers] = marginal_covariances(graph, solution, keys).reshape(F, len(markers), 3, 3)
+    used = factors.without_observations(ideal, excluded)
     if len(pairs):
         lengths = [float(solution.atVector(factors.length_key(s))[0]) for s in range(len(pairs))]
         cov, info["depth_ambiguous_points"] = rigid.ambiguity_covariances(  # as the fast schedule (rigid.py)
-            session.rig, factors.without_observations(ideal, excluded), p_init, v_init, models, level, session.fps,
+            session.rig, used, p_init, v_init, models, level, session.fps,
             options.robust, options.robust_k,
             [{"pair": tuple(ab), "length_m": L} for ab, L in zip(pairs, lengths, strict=True)], xyz, cov)
         var = marginal_covariances(graph, solution, [factors.length_key(s) for s in range(len(pairs))])
@@ -287,4 +289,9 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             "scatter_rms_m": float(np.sqrt(np.mean((np.linalg.norm(xyz[:, a] - xyz[:, b], axis=-1)
                                                     - solution.atVector(factors.length_key(s))[0]) ** 2)))}
             for s, (a, b) in enumerate(pairs)}
+    cov, ends_figures = widen_ends(session.rig, used, p_init, models, level, session.fps, options.robust,
+                                   options.robust_k, pairs, session.rigid_sigma_m, xyz,
+                                   cov)  # the fast schedule's last step (ends.py), with the fast solver
+    if ends_figures:
+        info["track_ends"] = ends_figures
     return Estimate("smoother", xyz, cov, outlier, time.perf_counter() - t0, info)

@@ -1,0 +1,178 @@
+"""Honest covariances at a track's ends: the smoother's extrapolation checked against the track itself.
+
+Before a marker's first and after its last frame seen by >= 2 cameras the smoother extrapolates with its
+motion model. Where the model misses a persistent motion (a wing's acceleration through a stroke, which a
+white-noise acceleration takes for noise), the extrapolation's covariance grows too slowly: on the hold-out
+generator's scenes the 95 % ellipsoids of unobserved points at the track ends held the truth 80-87 % of the
+time (docs/accuracy.md before this step), and hiding the ends of long tracks showed ratios of squared
+error to covariance growing with the distance, 2-11x at 8 frames on the flapping scenes.
+
+The check (one more solve of the same cost; both smoothers call it, the GTSAM one with the fast solver as for
+rigid.ambiguity_covariances):
+
+1. On every marker whose span (first to last frame with >= 2 views) holds >= ``MIN_SPAN_FRAMES`` frames,
+   every observation of its first and last ``BACKTEST_FRAMES`` span frames is hidden, and the caller's solve
+   runs again: the marker now extrapolates over frames where its triangulation is known.
+2. Each hidden frame with a triangulation gives d2 = e^T (S_solve + S_tri)^-1 e, e = extrapolated - triangulated
+   position (the linear DLT and its first-order covariance, batgraph.triangulate), at a horizon h = frames
+   from the nearest frame the solve still saw.
+3. The widening per frame c >= 0 is the one that makes the median of d2 / (1 + c h) the median of chi-square
+   with 3 DOF (:func:`growth_rate`, pooled over the markers; 0 when the median is already at or below it).
+   Why linear in h: a constant acceleration a that the model does not carry adds (a t^2 / 2)^2 to the squared
+   error against the white-noise model's q t^3 / 3, a ratio 1 + (3 a^2 / 4 q) t.
+4. Every unobserved point outside its marker's span gets its covariance times (1 + c h), h its distance in
+   frames from the span. Points with one view keep theirs: the backtest hides every ray, and with a ray two
+   of the three directions are measured; their coverage on the hold-out scenes was already 87-98 %, and
+   widening them took three of five scenes above 98 % (measured while this was written).
+
+The estimate itself does not change, nor any covariance inside a span. Figures (the smoother's info
+``track_ends``): backtest_frames, markers, samples, median_ratio (the median of d2 over chi-square's at
+c = 0), growth_per_frame (c) and widened_points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..camera import Rig
+from ..measurement import IdealObservations
+from ..motion import CHI2_3DOF_MEDIAN
+from ..triangulate import triangulate_ideal
+from . import cost as spec
+from .rigid import solve_rigid
+
+BACKTEST_FRAMES = 8  # frames hidden at each end of a long span
+MIN_SPAN_FRAMES = 2 * BACKTEST_FRAMES + 10  # a span this long keeps >= 10 frames seen between its hidden ends
+MIN_SAMPLES = 8  # fewer hidden frames with a triangulation: no widening (c = 0)
+
+
+def span_distance(n_views: np.ndarray) -> np.ndarray:
+    """Frames from each (frame, marker)'s nearest span end, (F, M) int: 0 inside the span (first to last frame
+    with n_views >= 2, both included), -1 for a marker never seen twice. n_views: (F, M) views per point."""
+    F, M = n_views.shape
+    two = n_views >= 2
+    has = two.any(axis=0)
+    first = np.where(has, two.argmax(axis=0), 0)
+    last = np.where(has, F - 1 - two[::-1].argmax(axis=0), -1)
+    f = np.arange(F)[:, None]
+    dist = np.maximum(first - f, 0) + np.maximum(f - last, 0)
+    return np.where(has, dist, -1)
+
+
+def hidden_ends(n_views: np.ndarray, frames: int = BACKTEST_FRAMES,
+                min_span: int = MIN_SPAN_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """The backtest's hidden points: (hide (F, M) bool, horizon (F, M) int). A marker whose span holds
+    >= ``min_span`` frames has its first and last ``frames`` span frames hidden, each at horizon h = frames to
+    the nearest frame left seen (1 .. frames); horizon is 0 elsewhere."""
+    F, M = n_views.shape
+    hide, horizon = np.zeros((F, M), bool), np.zeros((F, M), int)
+    dist = span_distance(n_views)
+    for m in np.flatnonzero((dist == 0).sum(axis=0) >= min_span):
+        inside = np.flatnonzero(dist[:, m] == 0)
+        f0, f1 = inside[0], inside[-1]
+        h = np.arange(1, frames + 1)
+        hide[f0:f0 + frames, m] = hide[f1 - frames + 1:f1 + 1, m] = True
+        horizon[f0:f0 + frames, m] = h[::-1]
+        horizon[f1 - frames + 1:f1 + 1, m] = h
+    return hide, horizon
+
+
+def straight_start(xyz_m: np.ndarray, hide: np.ndarray, horizon: np.ndarray,
+                   fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities (F, M, 3) [m, m/s] to start the hidden solve from: ``xyz_m`` and its velocities
+    (np.gradient) where seen; on a hidden frame (``hide``) at horizon h, the straight line from its seen
+    neighbour h frames away (the frame after a hidden start, before a hidden end) at that neighbour's velocity,
+    a one-sided difference with the next seen frame (which the neighbour keeps too), so that nothing of
+    ``xyz_m`` on hidden frames is used."""
+    F = xyz_m.shape[0]
+    p = xyz_m.copy()
+    vel = np.gradient(xyz_m, axis=0) * fps if F > 1 else np.zeros_like(xyz_m)
+    f, m = np.nonzero(hide)
+    h = horizon[f, m]
+    after = (f + h < F) & ~hide[np.minimum(f + h, F - 1), m]  # a hidden start: its seen neighbour comes after
+    src = np.where(after, f + h, f - h)
+    nxt = np.clip(np.where(after, src + 1, src - 1), 0, F - 1)  # the seen frame beyond the neighbour
+    v = (xyz_m[src, m] - xyz_m[nxt, m]) * (fps / np.where(after, -1, 1))[:, None]
+    p[f, m] = xyz_m[src, m] + v * (np.where(after, -h, h) / fps)[:, None]
+    vel[f, m] = vel[src, m] = v
+    return p, vel
+
+
+def growth_rate(d2: np.ndarray, horizon: np.ndarray, tol: float = 1e-4) -> float:
+    """The least c >= 0 with median(d2 / (1 + c horizon)) <= chi-square's median (3 DOF), by bisection to
+    ``tol``; 0 when fewer than MIN_SAMPLES samples or the median is already there. d2, horizon: (n,)."""
+    d2, horizon = np.asarray(d2, float), np.asarray(horizon, float)
+
+    def excess(c: float) -> float:
+        return float(np.median(d2 / (1.0 + c * horizon))) - CHI2_3DOF_MEDIAN
+
+    if len(d2) < MIN_SAMPLES or excess(0.0) <= 0:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while excess(hi) > 0 and hi < 1e6:
+        lo, hi = hi, 2 * hi
+    while hi - lo > tol * max(hi, 1.0):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if excess(mid) > 0 else (lo, mid)
+    return hi
+
+
+def calibrate_ends(solve: Callable[[IdealObservations, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+                   rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, cov_m2: np.ndarray,
+                   fps: float) -> tuple[np.ndarray, dict]:
+    """The module's check and widening. ``solve(ideal_subset, p_start, v_start)`` -> (xyz (F, M, 3) [m], cov
+    (F, M, 3, 3) [m^2]): the smoother's final solve (same models, levels, loss and segments) on a subset of
+    ``ideal``, the observations that solve used (C, F, M), started from positions p_start (F, M, 3) [m] and
+    velocities v_start [m/s]. xyz_m, cov_m2: its solution on all of them; fps [1/s]. Returns the covariances
+    (a copy where any widened) and the figures ({} when no unobserved point lies outside a span: nothing is
+    solved then).
+
+    The hidden solve starts from ``xyz_m`` with each hidden stretch replaced by the straight line from its seen
+    neighbour (that frame's position and velocity, np.gradient of xyz_m): a start at xyz_m itself would carry
+    the hidden observations into the backtest wherever the solve stops short of its optimum, or picks the
+    optimum nearest the truth among several (segments' spheres; measured: 0.08 against 0.37 per frame on the
+    dorsal scene with 30 iterations)."""
+    n_views = ideal.seen.sum(axis=0)
+    dist = span_distance(n_views)
+    targets = (n_views == 0) & (dist > 0) & np.isfinite(cov_m2).all(axis=(-2, -1))
+    if not targets.any():
+        return cov_m2, {}
+    hide, horizon = hidden_ends(n_views)
+    figures = {"backtest_frames": BACKTEST_FRAMES, "markers": int(hide.any(axis=0).sum()), "samples": 0,
+               "median_ratio": None, "growth_per_frame": 0.0, "widened_points": 0}
+    if not hide.any():  # no span long enough to check on
+        return cov_m2, figures
+    uv = ideal.uv_px.copy()
+    uv[:, hide] = np.nan
+    p_start, v_start = straight_start(xyz_m, hide, horizon, fps)
+    xyz_h, cov_h = solve(IdealObservations(uv, ideal.cov_px2), p_start, v_start)
+    tri, cov_tri = triangulate_ideal(rig, ideal)
+    e = xyz_h - tri
+    S = cov_h + cov_tri
+    ok = hide & np.isfinite(e).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+    ok[ok] = np.linalg.det(S[ok]) > 0
+    d2 = np.einsum("ni,ni->n", e[ok], np.linalg.solve(S[ok], e[ok][..., None])[..., 0])
+    c = growth_rate(d2, horizon[ok])
+    figures.update(samples=int(ok.sum()), median_ratio=float(np.median(d2) / CHI2_3DOF_MEDIAN) if len(d2) else None,
+                   growth_per_frame=c)
+    if c > 0:
+        cov_m2 = cov_m2.copy()
+        cov_m2[targets] *= (1.0 + c * dist[targets])[:, None, None]
+        figures["widened_points"] = int(targets.sum())
+    return cov_m2, figures
+
+
+def widen_ends(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray, level: np.ndarray,
+               fps: float, robust: str, robust_k: float, pairs: np.ndarray, sigma_m: float, xyz_m: np.ndarray,
+               cov_m2: np.ndarray, oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, dict]:
+    """Both smoothers' step: :func:`calibrate_ends` with the fast solver (rigid.solve_rigid at the final solve's
+    models, levels, loss and segments; arguments as solve_rigid's, ``ideal`` the observations the final solve
+    used)."""
+    def solve(sub: IdealObservations, p_start: np.ndarray, v_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xyz, cov, _ = solve_rigid(rig, sub, p_init, model, level, fps, robust, robust_k, pairs, sigma_m,
+                                  v_init=v_start, p_start=p_start, oscillation=oscillation)
+        return xyz, cov
+
+    return calibrate_ends(solve, rig, ideal, xyz_m, cov_m2, fps)
