@@ -108,6 +108,18 @@ def test_command_line_runs_blas_on_one_thread_unless_the_user_chose():
     assert chosen.stdout.strip() == "2"
 
 
+def test_help_and_option_checks_import_no_table_or_solver_library():
+    """`batgraph --help`, a usage error and the option checks need the parser only: importing batgraph.cli loads
+    none of pandas, numba, scipy, GTSAM (measured: `batgraph --help` 0.60 s and 106 MiB with pandas, which
+    batgraph.inputs imported for its table readers; 0.19 s and 28 MiB without)."""
+    code = ("import sys, batgraph.cli; "
+            "print(sorted(m for m in ('pandas', 'numba', 'scipy', 'gtsam', 'pycolmap', 'cv2') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    help_ = subprocess.run([sys.executable, "-m", "batgraph.cli", "--help"], capture_output=True, text=True)
+    assert help_.returncode == 0 and "reconstruct" in help_.stdout
+
+
 def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
     """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 min on 2
     cores), none when they are cached or with --quiet. kernels.needs_compiling() is True against an empty numba
