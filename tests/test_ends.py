@@ -50,6 +50,19 @@ def test_straight_start_continues_a_straight_track_exactly():
     assert np.allclose(p, xyz, atol=1e-12) and np.allclose(v[hide[:, 0], 0], [0.5, 1.0, -2.0], atol=1e-9)
 
 
+def test_backtest_markers_keep_groups_whole_and_spread_a_large_set():
+    long_span = np.ones(100, bool)
+    long_span[[5, 6]] = False
+    group = np.array([10, 11, 12, 40])
+    few = ends.backtest_markers(long_span[:20], [np.array([10, 11, 12])], most=32)
+    assert few.sum() == 20 - 2 + 2 * 0 and not few[[5, 6]].any()  # all markers with a long span
+    many = ends.backtest_markers(long_span, [group], most=32)
+    assert 32 <= many.sum() <= 35 and (many[group].all() or not many[group].any())
+    picked = np.flatnonzero(many)
+    assert picked.min() < 10 and picked.max() > 90  # spread over the markers, not the first 32
+    assert not many[[5, 6]].any()
+
+
 def test_growth_rate_recovers_a_linear_widening_and_none_where_calibrated():
     rng = np.random.default_rng(3)
     h = rng.integers(1, 9, 4000)

@@ -41,11 +41,14 @@ from ..measurement import IdealObservations
 from ..motion import CHI2_3DOF_MEDIAN
 from ..triangulate import triangulate_ideal
 from . import cost as spec
-from .rigid import solve_rigid
+from .rigid import groups, solve_rigid
 
 BACKTEST_FRAMES = 8  # frames hidden at each end of a long span
 MIN_SPAN_FRAMES = 2 * BACKTEST_FRAMES + 10  # a span this long keeps >= 10 frames seen between its hidden ends
 MIN_SAMPLES = 8  # fewer hidden frames with a triangulation: no widening (c = 0)
+# At most about this many markers are checked (whole segment groups, spread over the markers): 16 hidden frames
+# each, ~500 samples, enough for one pooled median; at 30 x 180 x 160 all 180 cost 0.93 s for 3 widened points
+BACKTEST_MARKERS = 32
 
 
 def span_distance(n_views: np.ndarray) -> np.ndarray:
@@ -119,15 +122,55 @@ def growth_rate(d2: np.ndarray, horizon: np.ndarray, tol: float = 1e-4) -> float
     return hi
 
 
-def calibrate_ends(solve: Callable[[IdealObservations, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
-                   rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, cov_m2: np.ndarray,
-                   fps: float) -> tuple[np.ndarray, dict]:
-    """The module's check and widening. ``solve(ideal_subset, p_start, v_start)`` -> (xyz (F, M, 3) [m], cov
-    (F, M, 3, 3) [m^2]): the smoother's final solve (same models, levels, loss and segments) on a subset of
-    ``ideal``, the observations that solve used (C, F, M), started from positions p_start (F, M, 3) [m] and
-    velocities v_start [m/s]. xyz_m, cov_m2: its solution on all of them; fps [1/s]. Returns the covariances
-    (a copy where any widened) and the figures ({} when no unobserved point lies outside a span: nothing is
-    solved then).
+def backtest_markers(long_span: np.ndarray, units: list[np.ndarray] | None = None,
+                     most: int = BACKTEST_MARKERS) -> np.ndarray:
+    """The markers to check, (M,) bool: the ``units`` (marker index arrays solved together: segment groups;
+    default every marker alone) holding a marker with ``long_span`` (M,) bool, all of them when they hold
+    <= ``most`` such markers, else units spread evenly over that list (in marker order) until they do."""
+    M = len(long_span)
+    units = [np.array([m]) for m in range(M)] if units is None else list(units)
+    covered = np.zeros(M, bool)
+    for u in units:
+        covered[u] = True
+    units += [np.array([m]) for m in np.flatnonzero(~covered)]
+    useful = sorted((u for u in units if long_span[u].any()), key=lambda u: int(np.min(u)))
+    chosen = np.zeros(M, bool)
+    if sum(int(long_span[u].sum()) for u in useful) <= most:
+        for u in useful:
+            chosen[u] = True
+        return chosen
+    n = 0
+    for i in _spread_order(len(useful)):
+        if n >= most:
+            break
+        chosen[useful[i]] = True
+        n += int(long_span[useful[i]].sum())
+    return chosen
+
+
+def _spread_order(n: int) -> list[int]:
+    """0 .. n-1 in an order whose every prefix is spread evenly (bit-reversed halving: 0, n/2, n/4, 3n/4, ...)."""
+    order, seen, step = [], set(), 1.0
+    while len(order) < n:
+        for k in range(int(step)):
+            i = int(k * n / step)
+            if i not in seen:
+                seen.add(i)
+                order.append(i)
+        step *= 2
+    return order
+
+
+def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig, ideal: IdealObservations,
+                   xyz_m: np.ndarray, cov_m2: np.ndarray, fps: float,
+                   units: list[np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
+    """The module's check and widening. ``solve(ideal_subset, p_start, v_start, markers)`` -> (xyz (F, M', 3)
+    [m], cov (F, M', 3, 3) [m^2]): the smoother's final solve (same models, levels, loss and segments) of the
+    markers ``markers`` (M',) int on ``ideal_subset`` (C, F, M', 2), a subset of their observations that the
+    final solve used, started from positions p_start (F, M', 3) [m] and velocities v_start [m/s]. ideal: those
+    observations (C, F, M); xyz_m, cov_m2: the final solve's solution on them; fps [1/s]; units: the markers
+    solved together (:func:`backtest_markers`). Returns the covariances (a copy where any widened) and the
+    figures ({} when no unobserved point lies outside a span: nothing is solved then).
 
     The hidden solve starts from ``xyz_m`` with each hidden stretch replaced by the straight line from its seen
     neighbour (that frame's position and velocity, np.gradient of xyz_m): a start at xyz_m itself would carry
@@ -140,15 +183,18 @@ def calibrate_ends(solve: Callable[[IdealObservations, np.ndarray, np.ndarray], 
     if not targets.any():
         return cov_m2, {}
     hide, horizon = hidden_ends(n_views)
-    figures = {"backtest_frames": BACKTEST_FRAMES, "markers": int(hide.any(axis=0).sum()), "samples": 0,
+    sel = np.flatnonzero(backtest_markers(hide.any(axis=0), units))
+    figures = {"backtest_frames": BACKTEST_FRAMES, "markers": int(hide[:, sel].any(axis=0).sum()), "samples": 0,
                "median_ratio": None, "growth_per_frame": 0.0, "widened_points": 0}
     if not hide.any():  # no span long enough to check on
         return cov_m2, figures
-    uv = ideal.uv_px.copy()
+    hide, horizon = hide[:, sel], horizon[:, sel]
+    sub = IdealObservations(ideal.uv_px[:, :, sel], ideal.cov_px2[:, :, sel])
+    uv = sub.uv_px.copy()
     uv[:, hide] = np.nan
-    p_start, v_start = straight_start(xyz_m, hide, horizon, fps)
-    xyz_h, cov_h = solve(IdealObservations(uv, ideal.cov_px2), p_start, v_start)
-    tri, cov_tri = triangulate_ideal(rig, ideal)
+    p_start, v_start = straight_start(xyz_m[:, sel], hide, horizon, fps)
+    xyz_h, cov_h = solve(IdealObservations(uv, sub.cov_px2), p_start, v_start, sel)
+    tri, cov_tri = triangulate_ideal(rig, sub)
     e = xyz_h - tri
     S = cov_h + cov_tri
     ok = hide & np.isfinite(e).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
@@ -169,10 +215,17 @@ def widen_ends(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np
                cov_m2: np.ndarray, oscillation: spec.Oscillation | None = None) -> tuple[np.ndarray, dict]:
     """Both smoothers' step: :func:`calibrate_ends` with the fast solver (rigid.solve_rigid at the final solve's
     models, levels, loss and segments; arguments as solve_rigid's, ``ideal`` the observations the final solve
-    used)."""
-    def solve(sub: IdealObservations, p_start: np.ndarray, v_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xyz, cov, _ = solve_rigid(rig, sub, p_init, model, level, fps, robust, robust_k, pairs, sigma_m,
-                                  v_init=v_start, p_start=p_start, oscillation=oscillation)
+    used). The markers of a segment group are checked together or not at all."""
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+
+    def solve(sub: IdealObservations, p_start: np.ndarray, v_start: np.ndarray,
+              sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        inside = np.isin(pairs, sel).all(axis=1)  # a chosen group's segments, in the subset's marker numbers
+        xyz, cov, _ = solve_rigid(rig, sub, p_init[:, sel], model[sel], np.asarray(level)[sel], fps, robust,
+                                  robust_k, np.searchsorted(sel, pairs[inside]), sigma_m, v_init=v_start,
+                                  p_start=p_start, oscillation=None if oscillation is None else oscillation.of(sel))
         return xyz, cov
 
-    return calibrate_ends(solve, rig, ideal, xyz_m, cov_m2, fps)
+    estimated = np.isfinite(p_init).all(axis=(0, 2))
+    units = [members for members, _ in groups(pairs, estimated)]
+    return calibrate_ends(solve, rig, ideal, xyz_m, cov_m2, fps, units)
