@@ -253,7 +253,6 @@ def _arrow_cells(data: bytes) -> pd.DataFrame | None:
     faster: observations.csv of the 30 x 180 x 160 scene (530k rows) 0.33 -> 0.03 s. tests/test_inputs_csv.py
     compares the two.
     """
-
     import pyarrow as pa
     import pyarrow.compute as pc
     from pyarrow import csv as pa_csv

@@ -5,7 +5,8 @@ motion model. Where the model misses a persistent motion (a wing's acceleration 
 white-noise acceleration takes for noise), the extrapolation's covariance grows too slowly: on the hold-out
 generator's scenes the 95 % ellipsoids of unobserved points at the track ends held the truth 80-87 % of the
 time (docs/accuracy.md before this step), and hiding the ends of long tracks showed ratios of squared
-error to covariance growing with the distance, 2-11x at 8 frames on the flapping scenes.
+error to covariance growing with the distance, 1.5-11x at 8 frames on the flapping scenes (the truth's
+d2 over chi-square's median, seeds 1-3).
 
 The check (one more solve of the same cost; both smoothers call it, the GTSAM one with the fast solver as for
 rigid.ambiguity_covariances):
