@@ -728,6 +728,13 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     def data_map():
         return _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
 
+    ends = _get(summary, "methods", "smoother", "info", "track_ends") or {}
+    ends_note = (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
+                 f"{ends['backtest_frames']} frames hidden: squared errors {ends['median_ratio']:.2f}x what its "
+                 f"covariances said, median) and widened the covariances of the {ends['widened_points']} unseen "
+                 f"points at the track ends by 1 + {ends['growth_per_frame']:.3f} h, h their distance in frames "
+                 "from the track (batgraph.graph.ends)." if ends.get("widened_points") else "")
+
     verdict_html = (
         (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '
          f"result: {html.escape(verdict.why)}.</p><p class=\"verdict\"><b>How good:</b> "
@@ -738,7 +745,7 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                       "by one (orange) or none (red) inside the marker's track, and the track ends before its "
                       "first and after its last frame seen twice (grey), where every method extrapolates. "
                       "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
-                      "track ends out by default.", "where the data are")
+                      "track ends out by default." + ends_note, "where the data are")
     )
     sections.append(("verdict", "Verdict", verdict_html))
 

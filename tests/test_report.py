@@ -339,6 +339,21 @@ def test_report_shows_summary_numbers_as_given(tmp_path):
     assert truth["ukf"][2] == "43.21" and truth["ukf"][3] == "50.0 %"
 
 
+def test_report_says_when_the_track_ends_were_widened(tmp_path):
+    """The data map's caption gives the smoother's track-end check (summary.json info.track_ends) when it widened
+    covariances, and says nothing of it otherwise."""
+    session, traj, rep, summary = make_scene(methods=("smoother", "ukf"))
+    info = summary["methods"]["smoother"].setdefault("info", {})
+    info["track_ends"] = {"backtest_frames": 8, "markers": 14, "samples": 201, "median_ratio": 2.1887,
+                          "growth_per_frame": 0.3678, "widened_points": 44}
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    assert ("checked its extrapolation on 14 tracks (their first and last 8 frames hidden: squared errors 2.19x "
+            "what its covariances said, median) and widened the covariances of the 44 unseen points at the track "
+            "ends by 1 + 0.368 h") in text
+    info["track_ends"].update(growth_per_frame=0.0, widened_points=0)
+    assert "checked its extrapolation" not in render_report(session, traj, rep, summary)
+
+
 def test_degenerate_inputs_still_render(tmp_path):
     """No reprojection rows and a single method without any estimate: every figure section says so,
     and the truth section (nothing to compare) is left out."""
