@@ -730,10 +730,11 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
 
     ends = _get(summary, "methods", "smoother", "info", "track_ends") or {}
     ends_note = (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
-                 f"{ends['backtest_frames']} frames hidden: squared errors {ends['median_ratio']:.2f}x what its "
-                 f"covariances said, median) and widened the covariances of the {ends['widened_points']} unseen "
-                 f"points at the track ends by 1 + {ends['growth_per_frame']:.3f} h, h their distance in frames "
-                 "from the track (batgraph.graph.ends)." if ends.get("widened_points") else "")
+                 f"{ends['backtest_frames']} frames hidden: the 95th percentile of the squared errors "
+                 f"{ends['p95_ratio']:.2f}x what its covariances said) and widened the covariances of the "
+                 f"{ends['widened_points']} unseen points at the track ends by 1 + {ends['growth_per_frame']:.3f} "
+                 "h, h their distance in frames from the track (batgraph.graph.ends)."
+                 if ends.get("widened_points") else "")
 
     verdict_html = (
         (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '

@@ -542,8 +542,8 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "'—' = no such point or no figure (interpolation has no covariance; the filters and triangulation "
         "give no estimate before a marker's first triangulation).",
         "* rows: `smoother` = the default motion model, constant velocity, q chosen per marker from the data "
-        "(kept >= the q of a 1 mm oscillation at the wingbeat when the tracks flap: "
-        "batgraph.graph.noise.flapping_q_floor), "
+        "(kept >= the q of the heave g / w^2 at the wingbeat w when the tracks flap, a lift swinging by one body "
+        "weight: batgraph.graph.noise.flapping_q_floor), "
         "with the session's segment-length factors (both generators write their bones as `[markers] rigid`; "
         "default stiffness rigid_sigma_m = 2 mm), q scored by the Laplace marginal likelihood (the default "
         "[motion] noise_rule = \"evidence\"), unobserved points outside a span widened by the track ends' check "
@@ -560,7 +560,8 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "constant velocity with q from the motion config (its default; \"auto\" filters with constant "
         "velocity); `smoother_rw` / `filter_rw` = the paper's random walk "
         "(Options.motion_model='random_walk'); `ekf` / `ukf` = the paper's filters (random walk); "
-        "`triangulate` = per-frame DLT; `interpolation` = triangulation linearly interpolated through gaps, "
+        "`triangulate` = per-frame DLT, with the DLT's own first-order covariance (batgraph.triangulate); "
+        "`interpolation` = triangulation linearly interpolated through gaps, "
         "constant before the first and after the last triangulated frame (factors.initial_track).",
         "* robust loss: the defaults of Options (Huber) for smoother and filter; EKF, UKF and triangulation have none.",
         "",

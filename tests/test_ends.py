@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from batgraph.graph import ends, schedule
-from batgraph.motion import CHI2_3DOF_MEDIAN
+from batgraph.motion import CHI2_3DOF_95
 from batgraph.result import Options
 
 
@@ -68,10 +68,10 @@ def test_growth_rate_recovers_a_linear_widening_and_none_where_calibrated():
     rng = np.random.default_rng(3)
     h = rng.integers(1, 9, 4000)
     chi = rng.chisquare(3, 4000)
-    assert ends.growth_rate(chi, h) < 0.02  # calibrated: the median is at chi-square's (to sampling noise)
+    assert ends.growth_rate(chi, h) < 0.03  # calibrated: the 95th percentile is chi-square's (to sampling noise)
     c = ends.growth_rate(chi * (1 + 0.4 * h), h)
-    assert abs(c - 0.4) < 0.04
-    assert np.median(chi * (1 + 0.4 * h) / (1 + c * h)) == pytest.approx(CHI2_3DOF_MEDIAN, rel=1e-3)
+    assert abs(c - 0.4) < 0.06
+    assert np.quantile(chi * (1 + 0.4 * h) / (1 + c * h), 0.95) == pytest.approx(CHI2_3DOF_95, rel=1e-3)
     assert ends.growth_rate(chi[:ends.MIN_SAMPLES - 1] * 10, h[:ends.MIN_SAMPLES - 1]) == 0.0  # too few
 
 

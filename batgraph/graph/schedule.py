@@ -111,7 +111,8 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
             rig, spec.without_observations(ideal, excluded), p_init, v_init, markers, fps, robust, k, candidates,
             p_start, v_start, progress=options.progress, groups=groups, rule=noise.noise_rule(session, options),
             oscillation_hz=hz, q_floor=flapping_floor(figures))
-        figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
+        figures.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates,
+                                           figures.get("periodic_motion_hz")))
         if spec.OSCILLATING in candidates:
             oscillation = spec.Oscillation(hz, selection[spec.OSCILLATING]["sigma_m"])
         # the final solve starts where the search solved each marker at its level (the same observations; the
@@ -178,8 +179,9 @@ def periodic_advice(xyz_tri_m: np.ndarray, fps: float, model: str) -> dict:
         f"the tracks move periodically at {hz:.1f} Hz (a wingbeat?), which the {model.replace('_', ' ')} motion "
         "model takes for noise: markers that move with it a little, like a body bobbing with the wingbeat, can "
         "get 95 % ellipsoids that hold their truth less often" + ("" if model == "random_walk" else (
-            f" (a constant-velocity q chosen from the data is kept >= that of a {noise.FLAPPING_BOB_M * 1e3:g} mm "
-            f"oscillation at this frequency, {noise.flapping_q_floor(hz):.2g} m^2/s^3)")) +
+            f" (a constant-velocity q chosen from the data is kept >= that of a {noise.flapping_heave_m(hz) * 1e3:.2g} "
+            f"mm heave at this frequency, {noise.flapping_q_floor(hz):.2g} m^2/s^3: a lift that swings by "
+            f"{noise.FLAPPING_LIFT_SWING:g} body weight over the stroke)")) +
         "; see the hold-out dorsal-marker scene in docs/accuracy.md; --motion wingbeat ([motion] model = "
         "\"wingbeat\") models it, at several times the smoother's time")}
 

@@ -245,7 +245,8 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             options.robust, options.robust_k, candidates, p_start, v_start, progress=options.progress,
             groups=[members for members, _ in found], rule=noise.noise_rule(session, options),
             q_floor=flapping_floor(info))
-        info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates))
+        info.update(noise.model_figures(models, level, markers, dense.markers, selection, candidates,
+                                        info.get("periodic_motion_hz")))
     model = {int(m): motion_model(models[m], dt, level[m]) for m in markers}
     if start is not None:  # the final solves start, in the chosen models' variables, from the noise search's
         if models_chosen:  # solutions where it ran (as the fast schedule), else from the cleaning solution
