@@ -86,8 +86,9 @@ def dorsal():
 def test_widened_ends_cover_the_truth_on_a_hold_out_scene(dorsal):
     """On the hold-out dorsal scene (seed 1) the unobserved points after a track's end (44, on wing markers
     whose stroke the constant-velocity extrapolation does not follow) are covered by their 95 % ellipsoids on
-    80 % without the widening (measured 79.5 %) and >= 90 % with it (measured 95.5 %: the backtest's median
-    ratio 2.19, c = 0.37 per frame). No other covariance changes, and the positions do not."""
+    < 90 % without the widening (measured 84.1 %; 79.5 % with the 1 mm flapping floor before the eighteenth
+    session) and >= 90 % with it (measured 100 %: the backtest's 95th-percentile ratio 5.75, c = 0.82 per frame;
+    93.6 % on seed 2). No other covariance changes, and the positions do not."""
     from batgraph import evaluate
     from batgraph.pipeline import run_methods
 
@@ -101,7 +102,7 @@ def test_widened_ends_cover_the_truth_on_a_hold_out_scene(dorsal):
         sel = (e.status == "unobserved") & (e.span == "outside")
         out[on] = (res.estimates["smoother"], np.mean(e.mahal2[sel] <= 7.814727903251178), sel.sum())
     (bare, cov_bare, n), (wide, cov_wide, _) = out[False], out[True]
-    assert n >= 30 and cov_bare < 0.85 and cov_wide >= 0.9
+    assert n >= 30 and cov_bare < 0.9 and cov_wide >= 0.9
     fig = wide.info["track_ends"]
     assert "track_ends" not in bare.info and fig["growth_per_frame"] > 0.1 and fig["samples"] > 100
     assert np.array_equal(wide.xyz_m, bare.xyz_m, equal_nan=True)
