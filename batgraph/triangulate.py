@@ -99,9 +99,14 @@ def _first_order_cov(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> n
         J = cam.ideal_jacobian_world(xyz_m[s])  # (n, 2, 3)
         depth2 = ((xyz_m[s] @ cam.R[2]) + cam.tvec.reshape(3)[2]) ** 2  # (n,)
         K2inv = np.linalg.inv(cam.K[:2, :2])
-        W = depth2[:, None, None] * (cam.K[0, 0] * cam.K[1, 1] * K2inv.T @ K2inv)  # (n, 2, 2)
-        a[s] += _jt_m_j(J, W)
-        b[s] += _jt_m_j(J, W @ ideal.cov_px2[c][s] @ W)
+        (g00, g01), (_, g11) = cam.K[0, 0] * cam.K[1, 1] * K2inv.T @ K2inv  # W_c = depth^2 G_c
+        cv = ideal.cov_px2[c][s]  # (n, 2, 2)
+        s00, s01, s11 = cv[:, 0, 0], cv[:, 0, 1], cv[:, 1, 1]
+        a[s] += _jt_m_j(J, depth2 * g00, depth2 * g01, depth2 * g11)
+        d4 = depth2 * depth2  # W S W = depth^4 G S G, written out
+        b[s] += _jt_m_j(J, d4 * (g00 * g00 * s00 + 2 * g00 * g01 * s01 + g01 * g01 * s11),
+                        d4 * (g00 * g01 * s00 + (g00 * g11 + g01 * g01) * s01 + g01 * g11 * s11),
+                        d4 * (g01 * g01 * s00 + 2 * g01 * g11 * s01 + g11 * g11 * s11))
     A = _symmetric(a)
     cov = np.full((F, M, 3, 3), np.nan)
     good = valid & (np.abs(np.linalg.det(A)) > 0)
@@ -110,12 +115,13 @@ def _first_order_cov(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> n
     return cov
 
 
-def _jt_m_j(J: np.ndarray, Mw: np.ndarray) -> np.ndarray:
-    """The 6 distinct entries (upper triangle, _IU3 order) of J^T Mw J: J (n, 2, 3), Mw (n, 2, 2) symmetric."""
+def _jt_m_j(J: np.ndarray, m00: np.ndarray, m01: np.ndarray, m11: np.ndarray) -> np.ndarray:
+    """The 6 distinct entries (upper triangle, _IU3 order) of J^T M J, (n, 6): J (n, 2, 3), M the symmetric
+    2x2 [[m00, m01], [m01, m11]] given by its entries (n,) each."""
     i, j = _IU3
     J0, J1 = J[:, 0], J[:, 1]
-    m00, m01, m11 = Mw[:, 0, 0, None], Mw[:, 0, 1, None], Mw[:, 1, 1, None]
-    return m00 * J0[:, i] * J0[:, j] + m11 * J1[:, i] * J1[:, j] + m01 * (J0[:, i] * J1[:, j] + J1[:, i] * J0[:, j])
+    return (m00[:, None] * J0[:, i] * J0[:, j] + m11[:, None] * J1[:, i] * J1[:, j]
+            + m01[:, None] * (J0[:, i] * J1[:, j] + J1[:, i] * J0[:, j]))
 
 
 def _symmetric(upper: np.ndarray) -> np.ndarray:
