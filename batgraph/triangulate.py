@@ -84,9 +84,10 @@ def _first_order_cov(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> n
     ``depth * normalised residual``, scaled by sqrt(fx fy)). Its covariance is the sandwich
     A^-1 B A^-1 with A = sum_c J_c^T W_c J_c and B = sum_c J_c^T W_c S_c W_c J_c (J_c: the ideal-pixel
     Jacobian, S_c: the ideal-pixel noise covariance); it equals (sum_c J_c^T S_c^-1 J_c)^-1 only
-    where W_c is proportional to S_c^-1 for every view (same depth and isotropic noise). The 6 distinct
-    entries of each J^T M J (M symmetric 2x2) are summed elementwise: batched (n, 3, 2) @ (n, 2, 2)
-    products cost twice as much.
+    where W_c is proportional to S_c^-1 with one factor for every view (e.g. all views at one depth, with
+    one isotropic noise and square pixels). The 6 distinct entries of each J^T M J (M symmetric 2x2) are
+    summed elementwise, W S W written out: batched (n, 2, 2) products took 0.40 s against 0.29 s at
+    30 x 180 x 160 (BENCHMARKS.md).
     """
     F, M = xyz_m.shape[:2]
     valid = np.isfinite(xyz_m).all(axis=-1)

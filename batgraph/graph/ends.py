@@ -22,7 +22,8 @@ rigid.ambiguity_covariances):
    ellipsoids are for 95 % coverage, so that is what is matched. Matching the median instead (until the
    eighteenth session) rested on the triangulation's overconfident covariance: with the DLT's own
    (batgraph.triangulate) it left 87-89 % of the unobserved track ends covered on the first generator and the
-   glide, against 98 % on the first generator and 97 % on the dorsal scene with the percentile (3 seeds).
+   glide, against 96 % on the first generator and 97 % on the dorsal scene with the percentile (3 seeds
+   pooled, docs/accuracy.md; the glide's 23 points: 87 % either way, its backtest finding c = 0).
    Why linear in h: a constant acceleration a that the model does not carry adds (a t^2 / 2)^2 to the squared
    error against the white-noise model's q t^3 / 3, a ratio 1 + (3 a^2 / 4 q) t.
 4. Every unobserved point outside its marker's span gets its covariance times (1 + c h), h its distance in
