@@ -13,6 +13,7 @@ from .session import MotionConfig
 
 CHI2_3DOF_95 = 7.814727903251178  # 95 % quantile of chi-square, 3 DOF (the paper rounds it to 7.8147, eq. 5)
 CHI2_3DOF_MEDIAN = 2.3659738843753377  # its median (scipy.stats.chi2.ppf(0.5, 3))
+CHI2_1DOF_95 = 3.841458820694124  # 95 % quantile of chi-square, 1 DOF (scipy.stats.chi2.ppf(0.95, 1))
 G_MPS2 = 9.81  # standard gravity [m/s^2]
 
 

@@ -729,12 +729,18 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         return _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
 
     ends = _get(summary, "methods", "smoother", "info", "track_ends") or {}
+    widened = []
+    if ends.get("widened_points"):
+        widened.append(f"the covariances of the {ends['widened_points']} unseen points at the track ends by 1 + "
+                       f"{ends['growth_per_frame']:.3f} h (the 95th percentile of the squared errors was "
+                       f"{ends['p95_ratio']:.2f}x what its covariances said)")
+    if ends.get("widened_single_view_points"):
+        widened.append(f"the variance along the ray of the {ends['widened_single_view_points']} points seen by one "
+                       f"camera there by 1 + {ends['ray_growth_per_frame']:.3f} h (the errors along those cameras' "
+                       f"rays: {ends['ray_p95_ratio']:.2f}x)")
     ends_note = (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
-                 f"{ends['backtest_frames']} frames hidden: the 95th percentile of the squared errors "
-                 f"{ends['p95_ratio']:.2f}x what its covariances said) and widened the covariances of the "
-                 f"{ends['widened_points']} unseen points at the track ends by 1 + {ends['growth_per_frame']:.3f} "
-                 "h, h their distance in frames from the track (batgraph.graph.ends)."
-                 if ends.get("widened_points") else "")
+                 f"{ends['backtest_frames']} frames hidden) and widened " + " and ".join(widened) +
+                 ", h the distance in frames from the track (batgraph.graph.ends)." if widened else "")
 
     verdict_html = (
         (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '

@@ -345,12 +345,17 @@ def test_report_says_when_the_track_ends_were_widened(tmp_path):
     session, traj, rep, summary = make_scene(methods=("smoother", "ukf"))
     info = summary["methods"]["smoother"].setdefault("info", {})
     info["track_ends"] = {"backtest_frames": 8, "markers": 14, "samples": 201, "median_ratio": 2.1887,
-                          "p95_ratio": 3.0412, "growth_per_frame": 0.3678, "widened_points": 44}
+                          "p95_ratio": 3.0412, "growth_per_frame": 0.3678, "widened_points": 44, "ray_samples": 100,
+                          "ray_p95_ratio": 2.7607, "ray_growth_per_frame": 0.3647, "widened_single_view_points": 67}
     text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
-    assert ("checked its extrapolation on 14 tracks (their first and last 8 frames hidden: the 95th percentile of "
-            "the squared errors 3.04x what its covariances said) and widened the covariances of the 44 unseen points "
-            "at the track ends by 1 + 0.368 h") in text
-    info["track_ends"].update(growth_per_frame=0.0, widened_points=0)
+    assert ("checked its extrapolation on 14 tracks (their first and last 8 frames hidden) and widened the "
+            "covariances of the 44 unseen points at the track ends by 1 + 0.368 h (the 95th percentile of the squared "
+            "errors was 3.04x what its covariances said) and the variance along the ray of the 67 points seen by one "
+            "camera there by 1 + 0.365 h (the errors along those cameras' rays: 2.76x), h the distance") in text
+    info["track_ends"].update(widened_single_view_points=0)
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    assert "said), h the distance" in text and "along the ray" not in text
+    info["track_ends"].update(growth_per_frame=0.0, widened_points=0, widened_single_view_points=0)
     assert "checked its extrapolation" not in render_report(session, traj, rep, summary)
 
 

@@ -27,13 +27,24 @@ rigid.ambiguity_covariances):
    Why linear in h: a constant acceleration a that the model does not carry adds (a t^2 / 2)^2 to the squared
    error against the white-noise model's q t^3 / 3, a ratio 1 + (3 a^2 / 4 q) t.
 4. Every unobserved point outside its marker's span gets its covariance times (1 + c h), h its distance in
-   frames from the span. Points with one view keep theirs: the backtest hides every ray, and with a ray two
-   of the three directions are measured; their coverage on the hold-out scenes was already 87-98 %, and
-   widening them took three of five scenes above 98 % (measured while this was written).
+   frames from the span.
+5. A point outside its span seen by one camera has two of its three directions measured by the ray; what the
+   motion model extrapolates is its depth along the ray. So the same hidden frames are read along a ray too:
+   at the ends of markers seen by one camera beyond that end (:func:`ray_cameras`, the camera of the
+   single-view frame nearest the span), z^2 = (u . e)^2 / (u^T S_solve u (1 + c' h) + u^T S_tri u), u the unit
+   ray from that camera's centre to the extrapolated point, and c' >= 0 makes the 95th percentile of z^2
+   chi-square's (1 DOF) 95 % point (:func:`ray_growth_rate`). Every single-view point outside its span then
+   gets its variance along its own ray times (1 + c' h) (a rank-one term, Sigma + c' h (u^T Sigma u) u u^T).
+   Why along the ray only: widening the whole motion part of their covariance by c took the hold-out dorsal
+   and turn scenes' single-view ends from 96-98 % to 100 %, where the motion the model misses lies mostly
+   across those rays; along the ray the first generator's single-view ends went from 87 to 94-95 % (3 seeds
+   pooled, measured while this was written; docs/accuracy.md).
 
 The estimate itself does not change, nor any covariance inside a span. Figures (the smoother's info
 ``track_ends``): backtest_frames, markers, samples, median_ratio and p95_ratio (the median and the 95th
-percentile of d2 over chi-square's at c = 0), growth_per_frame (c) and widened_points.
+percentile of d2 over chi-square's at c = 0), growth_per_frame (c) and widened_points; ray_samples,
+ray_p95_ratio (the 95th percentile of z^2 over chi-square's at c' = 0), ray_growth_per_frame (c') and
+widened_single_view_points.
 """
 
 from __future__ import annotations
@@ -44,7 +55,7 @@ import numpy as np
 
 from ..camera import Rig
 from ..measurement import IdealObservations
-from ..motion import CHI2_3DOF_95, CHI2_3DOF_MEDIAN
+from ..motion import CHI2_1DOF_95, CHI2_3DOF_95, CHI2_3DOF_MEDIAN
 from ..triangulate import triangulate_ideal
 from . import cost as spec
 from .rigid import groups, solve_rigid
@@ -115,11 +126,22 @@ def growth_rate(d2: np.ndarray, horizon: np.ndarray, tol: float = 1e-4) -> float
     bisection to ``tol``; 0 when fewer than MIN_SAMPLES samples or the percentile is already there.
     d2, horizon: (n,)."""
     d2, horizon = np.asarray(d2, float), np.asarray(horizon, float)
+    return _least_c(lambda c: float(np.quantile(d2 / (1.0 + c * horizon), 0.95)) - CHI2_3DOF_95, len(d2), tol)
 
-    def excess(c: float) -> float:
-        return float(np.quantile(d2 / (1.0 + c * horizon), 0.95)) - CHI2_3DOF_95
 
-    if len(d2) < MIN_SAMPLES or excess(0.0) <= 0:
+def ray_growth_rate(e_ray: np.ndarray, var_solve: np.ndarray, var_tri: np.ndarray, horizon: np.ndarray,
+                    tol: float = 1e-4) -> float:
+    """The least c >= 0 with the 95th percentile of e_ray^2 / (var_solve (1 + c horizon) + var_tri) <= chi-square's
+    95 % point (1 DOF), as :func:`growth_rate`. e_ray: errors along a ray [m]; var_solve, var_tri: the solve's and
+    the triangulation's variances along it [m^2]; horizon: frames; all (n,)."""
+    e2, vs, vt, h = (np.asarray(a, float) for a in (np.square(e_ray), var_solve, var_tri, horizon))
+    return _least_c(lambda c: float(np.quantile(e2 / (vs * (1.0 + c * h) + vt), 0.95)) - CHI2_1DOF_95, len(e2), tol)
+
+
+def _least_c(excess: Callable[[float], float], n: int, tol: float) -> float:
+    """The least c >= 0 with excess(c) <= 0 (excess decreasing in c), by doubling then bisection to ``tol``;
+    0 when n < MIN_SAMPLES or excess(0) <= 0."""
+    if n < MIN_SAMPLES or excess(0.0) <= 0:
         return 0.0
     lo, hi = 0.0, 1.0
     while excess(hi) > 0 and hi < 1e6:
@@ -162,7 +184,7 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
     final solve used, started from positions p_start (F, M', 3) [m] and velocities v_start [m/s]. ideal: those
     observations (C, F, M); xyz_m, cov_m2: the final solve's solution on them; fps [1/s]; units: the markers
     solved together (:func:`backtest_markers`). Returns the covariances (a copy where any widened) and the
-    figures ({} when no unobserved point lies outside a span: nothing is solved then).
+    figures ({} when no point seen by fewer than two cameras lies outside a span: nothing is solved then).
 
     The hidden solve starts from ``xyz_m`` with each hidden stretch replaced by the straight line from its seen
     neighbour (that frame's position and velocity, np.gradient of xyz_m): a start at xyz_m itself would carry
@@ -171,13 +193,15 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
     dorsal scene with 30 iterations)."""
     n_views = ideal.seen.sum(axis=0)
     dist = span_distance(n_views)
-    targets = (n_views == 0) & (dist > 0) & np.isfinite(cov_m2).all(axis=(-2, -1))
-    if not targets.any():
+    outside = (dist > 0) & np.isfinite(cov_m2).all(axis=(-2, -1))
+    targets, rays = outside & (n_views == 0), outside & (n_views == 1)
+    if not (targets.any() or rays.any()):
         return cov_m2, {}
     hide, horizon = hidden_ends(n_views)
     sel = np.flatnonzero(backtest_markers(hide.any(axis=0), units))
     figures = {"backtest_frames": BACKTEST_FRAMES, "markers": int(hide[:, sel].any(axis=0).sum()), "samples": 0,
-               "median_ratio": None, "p95_ratio": None, "growth_per_frame": 0.0, "widened_points": 0}
+               "median_ratio": None, "p95_ratio": None, "growth_per_frame": 0.0, "widened_points": 0,
+               "ray_samples": 0, "ray_p95_ratio": None, "ray_growth_per_frame": 0.0, "widened_single_view_points": 0}
     if not hide.any():  # no span long enough to check on
         return cov_m2, figures
     hide, horizon = hide[:, sel], horizon[:, sel]
@@ -197,11 +221,62 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
     if len(d2):
         figures.update(median_ratio=float(np.median(d2) / CHI2_3DOF_MEDIAN),
                        p95_ratio=float(np.quantile(d2, 0.95) / CHI2_3DOF_95))
-    if c > 0:
-        cov_m2 = cov_m2.copy()
-        cov_m2[targets] *= (1.0 + c * dist[targets])[:, None, None]
+    out = cov_m2
+    if c > 0 and targets.any():
+        out = out.copy()
+        out[targets] *= (1.0 + c * dist[targets])[:, None, None]
         figures["widened_points"] = int(targets.sum())
-    return cov_m2, figures
+    if rays.any():  # step 5: the same hidden frames along the rays of the cameras that see the markers beyond
+        cam = ray_cameras(ideal.seen[:, :, sel], dist[:, sel], hide)
+        use = ok & (cam >= 0)
+        u = _unit_rays(rig, cam[use], xyz_h[use])
+        e_ray = np.einsum("ni,ni->n", u, e[use])
+        var_h, var_tri = _along(u, cov_h[use]), _along(u, cov_tri[use])
+        c_ray = ray_growth_rate(e_ray, var_h, var_tri, horizon[use])
+        figures.update(ray_samples=int(use.sum()), ray_growth_per_frame=c_ray)
+        if use.any():
+            figures["ray_p95_ratio"] = float(np.quantile(e_ray**2 / (var_h + var_tri), 0.95) / CHI2_1DOF_95)
+        if c_ray > 0:
+            out = out.copy() if out is cov_m2 else out
+            f, m = np.nonzero(rays)
+            u = _unit_rays(rig, ideal.seen[:, f, m].argmax(axis=0), xyz_m[f, m])
+            grow = c_ray * dist[f, m] * _along(u, out[f, m])
+            out[f, m] += grow[:, None, None] * u[:, :, None] * u[:, None, :]
+            figures["widened_single_view_points"] = int(rays.sum())
+    return out, figures
+
+
+def ray_cameras(seen: np.ndarray, dist: np.ndarray, hide: np.ndarray) -> np.ndarray:
+    """For each hidden frame (``hide`` (F, M) bool), the camera that sees its marker on the single-view frame
+    nearest beyond that end of the span (a hidden frame before the span's middle belongs to its start), (F, M)
+    int, -1 where that end has no single-view frame beyond it or the frame is not hidden. seen: (C, F, M) bool;
+    dist: :func:`span_distance` (F, M)."""
+    n_views = seen.sum(axis=0)
+    out = np.full(hide.shape, -1)
+    for m in np.flatnonzero(hide.any(axis=0)):
+        inside = np.flatnonzero(dist[:, m] == 0)
+        f0, f1 = inside[0], inside[-1]
+        before = np.flatnonzero(n_views[:f0, m] == 1)
+        after = f1 + 1 + np.flatnonzero(n_views[f1 + 1:, m] == 1)
+        hidden = np.flatnonzero(hide[:, m])
+        start = hidden < 0.5 * (f0 + f1)
+        if len(before):
+            out[hidden[start], m] = seen[:, before[-1], m].argmax()
+        if len(after):
+            out[hidden[~start], m] = seen[:, after[0], m].argmax()
+    return out
+
+
+def _unit_rays(rig: Rig, cams: np.ndarray, xyz_m: np.ndarray) -> np.ndarray:
+    """Unit vectors (n, 3) from camera ``cams`` (n,) int's centre to the points xyz_m (n, 3) [m]."""
+    centres = np.stack([cam.center_world for cam in rig])
+    u = xyz_m - centres[cams]
+    return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+
+def _along(u: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The variances u^T cov u (n,) [m^2] of covariances (n, 3, 3) along unit vectors u (n, 3)."""
+    return np.einsum("ni,nij,nj->n", u, cov, u)
 
 
 def widen_ends(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray, level: np.ndarray,
