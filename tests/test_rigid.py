@@ -263,12 +263,16 @@ def test_depth_ambiguity_adds_the_second_intersection_along_the_ray():
         assert grown == 0 and np.array_equal(out, cov)
 
 
-def test_depth_ambiguity_on_the_simulated_flight():
+def test_depth_ambiguity_on_the_simulated_flight(monkeypatch):
     """The 5-camera flight (seed 1, 160 frames): the covariances of single-view points at the track ends
     cover the truth more often (measured 280 -> 286 of 359 inside the 95 % ellipsoid, 78.0 -> 79.7 %; asserted
     >= 5 points more; 281 -> 293 with the 1 mm flapping floor before the eighteenth session, whose body markers'
     q was lower), the positions are unchanged, and only single-view points' covariances grow, each by a
-    rank-one PSD term."""
+    rank-one PSD term. The track ends' check, which widens single-view ends along their rays after this step, is
+    off in both runs (with it: 286 -> 289): this is the step's own effect."""
+    from batgraph.graph import schedule
+
+    monkeypatch.setattr(schedule, "widen_ends", lambda *a, **k: (a[11], {}))
     session = simulate.simulate_flight(np.random.default_rng(1), n_cameras=5)
     res = pipeline.run_methods(session, ["smoother"], Options(progress=False))
     est, dense = res.estimates["smoother"], res.dense
