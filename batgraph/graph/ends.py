@@ -38,7 +38,11 @@ rigid.ambiguity_covariances):
    Why along the ray only: widening the whole motion part of their covariance by c took the hold-out dorsal
    and turn scenes' single-view ends from 96-98 % to 100 %, where the motion the model misses lies mostly
    across those rays; along the ray the first generator's single-view ends went from 87 to 94-95 % (3 seeds
-   pooled, measured while this was written; docs/accuracy.md).
+   pooled, measured while this was written; docs/accuracy.md). It errs wide: the hidden frames hide every view,
+   and a single-view stretch's rays, frame after frame, pin its depth better than no ray does (the bundled
+   sample: 85.4 -> 99.1 %, 644 points, c' = 0.60; within 8 frames of the track 98 and 89 % were covered before).
+   Keeping the one camera on the hidden frames instead measured c' = 0 over 8 frames on the first generator,
+   whose misses lie beyond them (76-82 % covered at 9-32 frames), so it was not used.
 
 The estimate itself does not change, nor any covariance inside a span. Figures (the smoother's info
 ``track_ends``): backtest_frames, markers, samples, median_ratio and p95_ratio (the median and the 95th
