@@ -62,7 +62,7 @@ from ..measurement import IdealObservations
 from ..motion import CHI2_1DOF_95, CHI2_3DOF_95, CHI2_3DOF_MEDIAN
 from ..triangulate import triangulate_ideal
 from . import cost as spec
-from .rigid import groups, solve_rigid
+from .rigid import groups, solve_rigid, unit_rays
 
 BACKTEST_FRAMES = 8  # frames hidden at each end of a long span
 MIN_SPAN_FRAMES = 2 * BACKTEST_FRAMES + 10  # a span this long keeps >= 10 frames seen between its hidden ends
@@ -233,7 +233,7 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
     if rays.any():  # step 5: the same hidden frames along the rays of the cameras that see the markers beyond
         cam = ray_cameras(ideal.seen[:, :, sel], dist[:, sel], hide)
         use = ok & (cam >= 0)
-        u = _unit_rays(rig, cam[use], xyz_h[use])
+        u = unit_rays(rig, cam[use], xyz_h[use])[0]
         e_ray = np.einsum("ni,ni->n", u, e[use])
         var_h, var_tri = _along(u, cov_h[use]), _along(u, cov_tri[use])
         c_ray = ray_growth_rate(e_ray, var_h, var_tri, horizon[use])
@@ -243,7 +243,7 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
         if c_ray > 0:
             out = out.copy() if out is cov_m2 else out
             f, m = np.nonzero(rays)
-            u = _unit_rays(rig, ideal.seen[:, f, m].argmax(axis=0), xyz_m[f, m])
+            u = unit_rays(rig, ideal.seen[:, f, m].argmax(axis=0), xyz_m[f, m])[0]
             grow = c_ray * dist[f, m] * _along(u, out[f, m])
             out[f, m] += grow[:, None, None] * u[:, :, None] * u[:, None, :]
             figures["widened_single_view_points"] = int(rays.sum())
@@ -269,13 +269,6 @@ def ray_cameras(seen: np.ndarray, dist: np.ndarray, hide: np.ndarray) -> np.ndar
         if len(after):
             out[hidden[~start], m] = seen[:, after[0], m].argmax()
     return out
-
-
-def _unit_rays(rig: Rig, cams: np.ndarray, xyz_m: np.ndarray) -> np.ndarray:
-    """Unit vectors (n, 3) from camera ``cams`` (n,) int's centre to the points xyz_m (n, 3) [m]."""
-    centres = np.stack([cam.center_world for cam in rig])
-    u = xyz_m - centres[cams]
-    return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
 
 def _along(u: np.ndarray, cov: np.ndarray) -> np.ndarray:

@@ -305,6 +305,14 @@ AMBIGUITY_MIN_SEPARATION_SD = 3.0
 AMBIGUITY_MIN_WEIGHT = 1e-6  # a second mode less probable than this (motion-only posterior) is not counted
 
 
+def unit_rays(rig: Rig, cams: np.ndarray, xyz_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays from cameras ``cams`` (n,) int to points xyz_m (n, 3) [m]: unit vectors u (n, 3) (0 where a point
+    is at its camera's centre), their lengths t (n,) [m] and the centres (n, 3) [m, world]."""
+    centres = np.array([cam.center_world for cam in rig])[cams]
+    t = np.linalg.norm(xyz_m - centres, axis=-1)
+    return (xyz_m - centres) / np.where(t > 0, t, 1.0)[:, None], t, centres
+
+
 def ambiguity_covariances(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, v_init: np.ndarray | None,
                           model: np.ndarray, level: np.ndarray, fps: float, robust: str, robust_k: float,
                           segments: list[dict], xyz: np.ndarray, cov: np.ndarray,
@@ -354,16 +362,13 @@ def depth_ambiguity(rig: Rig, ideal: IdealObservations, xyz: np.ndarray, cov: np
     """
     n_views = ideal.seen.sum(axis=0)  # (F, M)
     first_cam = np.argmax(ideal.seen, axis=0)  # (F, M): the camera of a single-view point
-    centres = np.array([cam.center_world for cam in rig])  # (C, 3)
     extra = np.zeros(n_views.shape)  # (F, M): the largest w_o (t_o - t_e)^2 over a point's partners [m^2]
     u_all = np.zeros(xyz.shape)
     pairs = np.asarray(pairs, int).reshape(-1, 2)
     for (m, p), L in zip(np.concatenate([pairs, pairs[:, ::-1]]), np.concatenate([lengths, lengths]), strict=True):
         f = np.flatnonzero((n_views[:, m] == 1) & np.isfinite(xyz[:, m]).all(axis=-1)
                            & np.isfinite(xyz[:, p]).all(axis=-1))
-        c0 = centres[first_cam[f, m]]  # (n, 3)
-        t_e = np.linalg.norm(xyz[f, m] - c0, axis=-1)
-        u = (xyz[f, m] - c0) / np.where(t_e > 0, t_e, 1.0)[:, None]
+        u, t_e, c0 = unit_rays(rig, first_cam[f, m], xyz[f, m])
         sd_e = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, cov[f, m], u), 0.0))
         t_free = np.einsum("ni,ni->n", xyz_free[f, m] - c0, u)
         s2 = np.einsum("ni,nij,nj->n", u, cov_free[f, m], u) + sd_e**2

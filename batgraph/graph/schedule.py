@@ -137,7 +137,7 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
             oscillation=oscillation)
     cov, ends_figures = widen_ends(rig, used, p_init, models, level, fps, robust, k,
                                    pairs, session.rigid_sigma_m, xyz, cov, oscillation=oscillation)
-    if ends_figures:  # the covariances of unobserved points at the track ends, checked on the track (ends.py)
+    if ends_figures:  # the covariances of points seen by < 2 cameras at the track ends, checked on the track (ends.py)
         figures["track_ends"] = ends_figures
     outlier = spec.outlier_flags(rig, ideal, xyz)
     figures.update(iterations=sum(rounds), final_error=info["cost"], logdet=info["logdet"],
