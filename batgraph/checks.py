@@ -141,7 +141,8 @@ def preflight(session: Session, dense: DenseObservations) -> Preflight:
     noise = dict(info["cameras"])
     for c, name in enumerate(session.rig.names):
         noise[name] = dict(noise[name], used_px=float(sigma[c]))
-    noise = {"source": "session.toml" if given is not None else "estimated", "cameras": noise}
+    noise = {"source": "session.toml" if given is not None else "estimated", "cameras": noise,
+             "measured_on_markers": int(len(info["markers"]))}  # of dense.markers (pixel_noise.sample_markers)
     warnings += _noise_warnings(session, measured, given)
     if session.extra_toml.get("import", {}).get("image_size") == "inferred":
         warnings.append("image sizes were guessed at import (principal point = image centre): 'outside the "

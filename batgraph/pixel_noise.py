@@ -10,6 +10,13 @@ point took from it). Per camera, ``sigma_c^2 = sum e / sum (2 - h)`` over its in
 median start, then the triangulation is re-weighted with the new sigmas and the whole repeated until
 the sigmas change by < 1 %. A camera with fewer than MIN_OBSERVATIONS inliers gets the pooled value.
 
+A large session is measured on a sample of its markers (:func:`sample_markers`: at most MAX_POINTS
+(frame, marker) points, markers spread over the list, topped up until every camera keeps
+MIN_SAMPLED_OBSERVATIONS of its observations): at 30 x 180 x 160 it measures 50 of 180 markers, 3,800-5,000
+observations a camera, whose statistical error in sigma is ~1 % (1 / sqrt(2 nu), nu = sum (2 - h) their degrees
+of freedom), the iteration's own tolerance; measured, the sampled sigmas are the whole session's within 1.5 %,
+in 0.18 s instead of 0.54 s.
+
 Why not a library: aniposelib and OpenCV report reprojection errors, which understate the noise by the
 leverage (with 2 cameras by half) and mix cameras; this is the unbiased per-camera figure.
 """
@@ -26,6 +33,8 @@ from .triangulate import dlt_points
 
 CHI2_2DOF_999 = 13.815510557964274
 MIN_OBSERVATIONS = 20
+MAX_POINTS = 8000  # (frame, marker) points measured; more are sampled by marker (sample_markers)
+MIN_SAMPLED_OBSERVATIONS = 2000  # each camera keeps this many of its observations in the sample (or all it has)
 MEDIAN_CHI2_2DOF = 2 * math.log(2)  # median of chi-square with 2 DOF
 
 
@@ -53,20 +62,47 @@ def _gauss_newton(P: np.ndarray, uv: np.ndarray, Wu: np.ndarray, w_scale: np.nda
     return xyz, r, h, Sigma
 
 
+def sample_markers(seen: np.ndarray, max_points: int = MAX_POINTS,
+                   min_observations: int = MIN_SAMPLED_OBSERVATIONS) -> np.ndarray:
+    """The markers (sorted indices into M) whose points the pixel noise is measured on, for observations
+    ``seen`` (C, F, M) bool: all when F x M <= max_points; else max(1, max_points // F) markers spread evenly
+    over the list, then, for each camera with fewer than min(min_observations, all it has) observations of
+    points seen twice among them, its own most observed markers added until it has that many."""
+    C, F, M = seen.shape
+    if F * M <= max_points:
+        return np.arange(M)
+    keep = np.zeros(M, bool)
+    keep[np.unique(np.linspace(0, M - 1, max(1, max_points // F)).round().astype(int))] = True
+    per = (seen & (seen.sum(axis=0) >= 2)[None]).sum(axis=1)  # (C, M) observations usable for the noise
+    for c in range(C):
+        need = min(min_observations, int(per[c].sum()))
+        for m in np.argsort(-per[c], kind="stable"):
+            if int(per[c][keep].sum()) >= need:
+                break
+            keep[m] = True
+    return np.flatnonzero(keep)
+
+
 def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.ndarray | None = None,
-                         max_rounds: int = 6) -> tuple[np.ndarray, dict]:
+                         max_rounds: int = 6, max_points: int = MAX_POINTS,
+                         min_observations: int = MIN_SAMPLED_OBSERVATIONS) -> tuple[np.ndarray, dict]:
     """Per-camera raw-pixel noise std [px] (module docstring).
 
     ideal_unit: ideal observations with a 1 px raw-pixel noise (``ideal_observations(rig, dense, 1.0)``),
     uv_px (C, F, M, 2), cov_px2 (C, F, M, 2, 2). xyz_start: the linear triangulation (F, M, 3) if the
     caller has it. Observations of points behind their camera at the start take no part (the geometry
-    checks report them). Returns sigma (C,) [px] and info: per camera name
-    {"sigma_px", "n_used", "n_rejected", "pooled"} plus "xyz_m" (F, M, 3) and "cov_m2" (F, M, 3, 3), the
-    weighted triangulation at the final sigmas (world frame, NaN where < 2 views).
+    checks report them). Measured on the markers :func:`sample_markers` picks (``max_points``,
+    ``min_observations``). Returns sigma (C,) [px] and info: "cameras", per camera name {"sigma_px", "n_used",
+    "n_rejected", "pooled"}; "markers", the sampled markers' indices (K,); "xyz_m" (F, K, 3) and "cov_m2"
+    (F, K, 3, 3), their weighted triangulation at the final sigmas (world frame, NaN where < 2 views).
     Cameras with no usable observation get the pooled value; NaN everywhere if no point has 2 views.
     """
     C = len(rig)
     xyz0 = dlt_points(rig, ideal_unit) if xyz_start is None else xyz_start
+    markers = sample_markers(ideal_unit.seen, max_points, min_observations)
+    if len(markers) < xyz0.shape[1]:
+        ideal_unit = IdealObservations(ideal_unit.uv_px[:, :, markers], ideal_unit.cov_px2[:, :, markers])
+        xyz0 = xyz0[:, markers]
     seen = ideal_unit.seen & np.isfinite(xyz0).all(axis=-1)[None]
     for c, cam in enumerate(rig):
         seen[c][seen[c]] = cam.to_cam(xyz0[seen[c]])[:, 2] > 0
@@ -111,4 +147,4 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     sigma = np.sqrt(sigma2)
     info = {cam.name: {"sigma_px": float(sigma[c]), "n_used": int(used[c]), "n_rejected": int(rejected[c]),
                        "pooled": bool(not enough[c])} for c, cam in enumerate(rig)}
-    return sigma, {"cameras": info, "xyz_m": xyz, "cov_m2": Sigma}
+    return sigma, {"cameras": info, "markers": markers, "xyz_m": xyz, "cov_m2": Sigma}
