@@ -19,7 +19,7 @@ import pandas as pd
 from .labels import factorize, text_column
 from .motion import CHI2_3DOF_95
 from .result import Estimate
-from .session import DenseObservations, Session
+from .session import DenseObservations, Session, span_distance
 
 STATUSES = ("observed", "single_view", "unobserved")
 SPANS = ("inside", "outside")
@@ -46,10 +46,7 @@ def inside_span(n_views: np.ndarray, takes: list[slice] | None = None) -> np.nda
     n_views = np.asarray(n_views)
     if takes is not None and len(takes) > 1:
         return np.concatenate([inside_span(n_views[sl]) for sl in takes])
-    two = n_views >= 2
-    seen_before = np.cumsum(two, axis=0) > 0
-    seen_after = np.cumsum(two[::-1], axis=0)[::-1] > 0
-    return seen_before & seen_after
+    return span_distance(n_views) == 0
 
 
 def take_of(frames: np.ndarray) -> np.ndarray:

@@ -212,6 +212,19 @@ class DenseObservations:
         return self.seen.sum(axis=0)
 
 
+def span_distance(n_views: np.ndarray) -> np.ndarray:
+    """Frames from each (frame, marker)'s nearest span end, (F, M) int: 0 inside the span (first to last frame
+    with n_views >= 2, both included), -1 for a marker never seen twice. n_views: (F, M) views per point."""
+    F, M = n_views.shape
+    two = n_views >= 2
+    has = two.any(axis=0)
+    first = np.where(has, two.argmax(axis=0), 0)
+    last = np.where(has, F - 1 - two[::-1].argmax(axis=0), -1)
+    f = np.arange(F)[:, None]
+    dist = np.maximum(first - f, 0) + np.maximum(f - last, 0)
+    return np.where(has, dist, -1)
+
+
 def dense_observations(session: Session) -> DenseObservations:
     """Scatter the long observations table into (C, F, M) arrays (see :class:`DenseObservations`).
 

@@ -10,6 +10,7 @@ import pytest
 from batgraph.graph import ends, schedule
 from batgraph.motion import CHI2_3DOF_95
 from batgraph.result import Options
+from batgraph.session import span_distance
 
 
 def test_span_distance_counts_frames_to_the_nearest_span_end():
@@ -19,7 +20,7 @@ def test_span_distance_counts_frames_to_the_nearest_span_end():
                         [3, 1, 2],
                         [0, 0, 0],
                         [1, 0, 0]])
-    dist = ends.span_distance(n_views)
+    dist = span_distance(n_views)
     # marker 0: span frames 1-3 (a single-view frame inside it is inside); marker 1 never seen twice
     assert dist[:, 0].tolist() == [1, 0, 0, 0, 1, 2]
     assert dist[:, 1].tolist() == [-1] * 6
@@ -118,7 +119,7 @@ def test_widened_ends_cover_the_truth_on_a_hold_out_scene(dorsal):
     from batgraph.session import dense_observations
     dense = dense_observations(dorsal)
     n_views = dense.n_views
-    dist = ends.span_distance(n_views)
+    dist = span_distance(n_views)
     target, ray = (n_views == 0) & (dist > 0), (n_views == 1) & (dist > 0)
     assert fig["widened_points"] == target.sum() and fig["widened_single_view_points"] == ray.sum() > 30
     scale = np.where(target, 1 + fig["growth_per_frame"] * dist, 1.0)
@@ -170,7 +171,7 @@ def test_ray_cameras_name_the_camera_seeing_the_marker_beyond_each_end():
     seen[1, 35, 0] = True  # after it: camera 1 on frame 35, camera 0 on frame 36
     seen[0, 36, 0] = True
     n_views = seen.sum(axis=0)
-    dist = ends.span_distance(n_views)
+    dist = span_distance(n_views)
     hide, _ = ends.hidden_ends(n_views)
     cams = ends.ray_cameras(seen, dist, hide)
     K = ends.BACKTEST_FRAMES

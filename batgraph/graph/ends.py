@@ -60,9 +60,10 @@ import numpy as np
 from ..camera import Rig
 from ..measurement import IdealObservations
 from ..motion import CHI2_1DOF_95, CHI2_3DOF_95, CHI2_3DOF_MEDIAN
+from ..session import span_distance
 from ..triangulate import triangulate_ideal
 from . import cost as spec
-from .rigid import groups, solve_rigid, unit_rays
+from .rigid import along, groups, solve_rigid, unit_rays
 
 BACKTEST_FRAMES = 8  # frames hidden at each end of a long span
 MIN_SPAN_FRAMES = 2 * BACKTEST_FRAMES + 10  # a span this long keeps >= 10 frames seen between its hidden ends
@@ -71,19 +72,6 @@ MIN_SAMPLES = 20  # fewer hidden frames with a triangulation: no widening (c = 0
 # each, ~1000 samples. At 30 x 180 x 160 (seed 3) all 180 gave c = 0.240 in a 0.93 s hidden solve; 64 gave 0.249
 # (0.6 s, most of it the 14-marker segment group), 48 gave 0.229 and 32 gave 0.353: fewer markers, a noisier c
 BACKTEST_MARKERS = 64
-
-
-def span_distance(n_views: np.ndarray) -> np.ndarray:
-    """Frames from each (frame, marker)'s nearest span end, (F, M) int: 0 inside the span (first to last frame
-    with n_views >= 2, both included), -1 for a marker never seen twice. n_views: (F, M) views per point."""
-    F, M = n_views.shape
-    two = n_views >= 2
-    has = two.any(axis=0)
-    first = np.where(has, two.argmax(axis=0), 0)
-    last = np.where(has, F - 1 - two[::-1].argmax(axis=0), -1)
-    f = np.arange(F)[:, None]
-    dist = np.maximum(first - f, 0) + np.maximum(f - last, 0)
-    return np.where(has, dist, -1)
 
 
 def hidden_ends(n_views: np.ndarray, frames: int = BACKTEST_FRAMES,
@@ -235,7 +223,7 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
         use = ok & (cam >= 0)
         u = unit_rays(rig, cam[use], xyz_h[use])[0]
         e_ray = np.einsum("ni,ni->n", u, e[use])
-        var_h, var_tri = _along(u, cov_h[use]), _along(u, cov_tri[use])
+        var_h, var_tri = along(u, cov_h[use]), along(u, cov_tri[use])
         c_ray = ray_growth_rate(e_ray, var_h, var_tri, horizon[use])
         figures.update(ray_samples=int(use.sum()), ray_growth_per_frame=c_ray)
         if use.any():
@@ -244,7 +232,7 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
             out = out.copy() if out is cov_m2 else out
             f, m = np.nonzero(rays)
             u = unit_rays(rig, ideal.seen[:, f, m].argmax(axis=0), xyz_m[f, m])[0]
-            grow = c_ray * dist[f, m] * _along(u, out[f, m])
+            grow = c_ray * dist[f, m] * along(u, out[f, m])
             out[f, m] += grow[:, None, None] * u[:, :, None] * u[:, None, :]
             figures["widened_single_view_points"] = int(rays.sum())
     return out, figures
@@ -269,11 +257,6 @@ def ray_cameras(seen: np.ndarray, dist: np.ndarray, hide: np.ndarray) -> np.ndar
         if len(after):
             out[hidden[~start], m] = seen[:, after[0], m].argmax()
     return out
-
-
-def _along(u: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """The variances u^T cov u (n,) [m^2] of covariances (n, 3, 3) along unit vectors u (n, 3)."""
-    return np.einsum("ni,nij,nj->n", u, cov, u)
 
 
 def widen_ends(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, model: np.ndarray, level: np.ndarray,

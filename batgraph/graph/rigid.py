@@ -305,6 +305,11 @@ AMBIGUITY_MIN_SEPARATION_SD = 3.0
 AMBIGUITY_MIN_WEIGHT = 1e-6  # a second mode less probable than this (motion-only posterior) is not counted
 
 
+def along(u: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The variances u^T cov u (n,) [m^2] of covariances (n, 3, 3) along unit vectors u (n, 3)."""
+    return np.einsum("ni,nij,nj->n", u, cov, u)
+
+
 def unit_rays(rig: Rig, cams: np.ndarray, xyz_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The rays from cameras ``cams`` (n,) int to points xyz_m (n, 3) [m]: unit vectors u (n, 3) (0 where a point
     is at its camera's centre), their lengths t (n,) [m] and the centres (n, 3) [m, world]."""
@@ -369,9 +374,9 @@ def depth_ambiguity(rig: Rig, ideal: IdealObservations, xyz: np.ndarray, cov: np
         f = np.flatnonzero((n_views[:, m] == 1) & np.isfinite(xyz[:, m]).all(axis=-1)
                            & np.isfinite(xyz[:, p]).all(axis=-1))
         u, t_e, c0 = unit_rays(rig, first_cam[f, m], xyz[f, m])
-        sd_e = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, cov[f, m], u), 0.0))
+        sd_e = np.sqrt(np.maximum(along(u, cov[f, m]), 0.0))
         t_free = np.einsum("ni,ni->n", xyz_free[f, m] - c0, u)
-        s2 = np.einsum("ni,nij,nj->n", u, cov_free[f, m], u) + sd_e**2
+        s2 = along(u, cov_free[f, m]) + sd_e**2
         d = c0 - xyz[f, p]
         b = np.einsum("ni,ni->n", u, d)
         disc = b * b - (np.einsum("ni,ni->n", d, d) - L * L)
