@@ -1371,20 +1371,35 @@ def solve_per_model(rig: Rig, ideal: IdealObservations, p_init: np.ndarray, mode
         x, c, info = solve_fast(rig, ideal, p_mine, name, np.where(mine, level, np.nan), fps, robust, robust_k,
                                 v_init=v_init, p_start=p_start, covariances=covariances, a_init=a_init,
                                 oscillation=oscillation if name == spec.OSCILLATING else None)
-        xyz[:, mine] = x[:, mine]
-        if covariances:
-            cov[:, mine] = c[:, mine]
-        for key in ("iterations_per_marker", "converged", "at_camera", "cost_per_marker", "logdet_per_marker",
-                    "estimated"):
-            merged[key][mine] = info[key][mine]
+        merge_markers((xyz, cov, merged), (x, c, info), mine)
+    return xyz, cov, merge_markers((xyz, cov, merged), None, None)[2]
+
+
+PER_MARKER = ("iterations_per_marker", "converged", "at_camera", "cost_per_marker", "logdet_per_marker", "estimated")
+
+
+def merge_markers(into: tuple, part: tuple | None, markers: np.ndarray | None) -> tuple:
+    """Copy the markers ``markers`` (M,) bool of one solve, ``part`` = (xyz, cov, info) as :func:`solve_per_model`
+    returns them, into another, ``into``, in place (its cov None where covariances were not asked): positions,
+    covariances, the info's per-marker arrays, velocity and acceleration (where ``part`` has them); then ``into``'s
+    totals anew (iterations the maximum, cost and logdet the sums over its estimated markers; position its xyz).
+    part None: the totals only. Returns ``into``."""
+    xyz, cov, info = into
+    if part is not None:
+        x, c, other = part
+        xyz[:, markers] = x[:, markers]
+        if cov is not None:
+            cov[:, markers] = c[:, markers]
+        for key in PER_MARKER:
+            info[key][markers] = other[key][markers]
         for key in ("velocity", "acceleration"):
-            if info[key] is not None:
-                merged[key][:, mine] = info[key][:, mine]
-    est = merged["estimated"]
-    merged.update(iterations=int(merged["iterations_per_marker"].max(initial=0)),
-                  cost=float(merged["cost_per_marker"][est].sum()),
-                  logdet=float(merged["logdet_per_marker"][est].sum()), position=xyz)
-    return xyz, cov, merged
+            if other[key] is not None:
+                info[key][:, markers] = other[key][:, markers]
+    est = info["estimated"]
+    info.update(iterations=int(info["iterations_per_marker"][est].max(initial=0)),
+                cost=float(info["cost_per_marker"][est].sum()), logdet=float(info["logdet_per_marker"][est].sum()),
+                position=xyz)
+    return into
 
 
 @_one_thread

@@ -121,14 +121,21 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
         p_start, v_start, a_start = searched_start(selection["solution"], p_start, v_start, fps)
     rounds = []
     n_rounds = spec.REJECTION_ROUNDS if reject else 1
+    redo, result = estimated, None  # the markers the next round solves; the solution so far
     for r in range(n_rounds):  # step 4: final solves until the rejected set is the excluded one
-        xyz, cov, info = rigid.solve_rigid(rig, spec.without_observations(ideal, excluded), p_init, models, level,
-                                           fps, robust, k, pairs, session.rigid_sigma_m, v_init=v_start,
-                                           p_start=p_start, a_init=a_start, oscillation=oscillation)
-        rounds.append(info["iterations"])
+        solved = rigid.solve_rigid(rig, spec.without_observations(ideal, excluded),
+                                   np.where(redo[None, :, None], p_init, np.nan), np.where(redo, models, None), level,
+                                   fps, robust, k, pairs, session.rigid_sigma_m, v_init=v_start, p_start=p_start,
+                                   a_init=a_start, oscillation=oscillation)
+        result = solved if result is None else rigid.merge_solutions(result, solved, redo)
+        xyz, cov, info = result
+        rounds.append(solved[2]["iterations"])
         again = _rejected(rig, ideal, xyz)
         if r == n_rounds - 1 or (again == excluded).all():
             break
+        # a later round solves only the markers whose observations changed, with their segment groups: the
+        # others' problems are the same and solved (at 30 x 180 x 160 the second round 0.35-0.43 s -> ms)
+        redo = rigid.with_groups((again != excluded).any(axis=(0, 1)), pairs, estimated)
         excluded, p_start, v_start, a_start = again, xyz, info["velocity"], info["acceleration"]
     used = spec.without_observations(ideal, excluded)
     if info["segments"]:  # the second depth a segment allows a single-view point
