@@ -242,6 +242,38 @@ def test_validation_csv_belongs_to_the_result(small_session, tmp_path, monkeypat
     assert (out / "calibration.toml").read_text() == "written by calibrate"
 
 
+def test_a_failure_while_the_tables_are_written_leaves_the_old_result(small_session, tmp_path, monkeypatch):
+    """reconstruct starts writing the CSV tables into its staging folder as soon as they exist, beside the summary:
+    a summary that fails then leaves the previous result as it was and no staging folder behind."""
+    from batgraph import pipeline, summary
+
+    out = tmp_path / "out"
+    pipeline.reconstruct(small_session, out, ["triangulate"], viewer="none")
+    old = _snapshot(out)
+
+    def boom(*a, **kw):
+        raise RuntimeError("summary failed")
+
+    monkeypatch.setattr(summary, "summarize", boom)
+    with pytest.raises(RuntimeError, match="summary failed"):
+        pipeline.reconstruct(small_session, out, ["smoother", "triangulate"], viewer="none")
+    assert _snapshot(out) == old
+    assert _hidden_siblings(out) == [] and _hidden_inside(out) == []
+
+
+def test_write_outputs_writes_a_result_of_run_methods(small_session, tmp_path):
+    """The library's route: run_methods, then write_outputs into a folder (the same files as reconstruct's)."""
+    from batgraph.pipeline import OUTPUT_FILES, run_methods, write_outputs
+    from batgraph.result import Options
+    from batgraph.session import read_session
+
+    result = run_methods(read_session(small_session), ["triangulate"], Options(progress=False))
+    files = write_outputs(result, tmp_path / "out", viewer="none")
+    assert {p.name for p in files} == {*OUTPUT_FILES} - {"validation.csv", "recording.rrd"}
+    assert all(p.is_file() for p in files) and _hidden_siblings(tmp_path / "out") == []
+    assert len((tmp_path / "out" / "trajectories.csv").read_text().splitlines()) == len(result.trajectories) + 1
+
+
 def test_batch_sessions_are_swapped_each(small_session, tmp_path):
     """Each session folder of a batch is written the same way (a user file in one survives)."""
     from batgraph.batch import reconstruct_many
