@@ -58,12 +58,10 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def run_methods(session: Session, methods: list[str], options: Options, live=None, on_tables=None) -> Result:
+def run_methods(session: Session, methods: list[str], options: Options, live=None) -> Result:
     """Run ``methods`` on a loaded session; returns tables and summary (nothing written).
 
-    live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes. on_tables: an optional
-    ``on_tables(trajectories, reprojection)``, called with the two tables as soon as they exist, before the
-    summary (``reconstruct`` starts writing them then).
+    live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes.
     The methods are independent: with the fast solver and no live viewer they run side by side in forked
     processes (batgraph.forked.map_jobs; the first method here or in a child, its estimate pickled back),
     the first listed (the costliest of the defaults, the smoother) showing its progress.
@@ -91,8 +89,6 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     estimates = dict(zip(methods, ests, strict=True))
     traj_all = pd.concat([evaluate.trajectories_table(session, dense, est) for est in ests], ignore_index=True)
     reproj_all = evaluate.reprojection_tables(session, dense, ests)  # the observations' columns gathered once
-    if on_tables is not None:
-        on_tables(traj_all, reproj_all)
     summary = summary_mod.summarize(
         session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},
         infos={m: e.info for m, e in estimates.items()},
@@ -170,41 +166,18 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     (here, in this process, where no child can be made).
     Returns the paths written (under ``out_dir``).
     """
-    with staging_folder(out_dir, result.session.path) as stage:
-        files = write_into(stage, result, viewer, options, validation_table, report or report_standby())
-    return [Path(out_dir) / p.name for p in files]
-
-
-def staging_folder(out_dir: str | Path, session_dir: str | Path | None):
-    """The staging folder of :func:`write_outputs` (batgraph.atomic.result_folder, a context manager): it replaces
-    ``out_dir`` when the block completes. The session folder itself (--out SESSION) or a folder holding it is not
-    swapped but written file by file."""
+    out_dir = Path(out_dir)
+    session_dir = result.session.path
+    # the session folder itself (--out SESSION) or a folder holding it is not swapped: file by file there
     in_place = session_dir is not None and Path(os.path.realpath(out_dir)) in (
         Path(os.path.realpath(session_dir)), *Path(os.path.realpath(session_dir)).parents)
-    return atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place)
-
-
-def write_into(stage: Path, result: Result, viewer: str, options: Options | None,
-               validation_table: pd.DataFrame | None, report: forked.Standby,
-               tables: forked.Pending | None = None) -> list[Path]:
-    """:func:`write_outputs`' files written into its staging folder ``stage``; ``tables``: the CSV tables' writing
-    when already started there (:func:`start_tables`). Returns the paths written (under ``stage``)."""
-    files = _write_files(result, stage, viewer, options, report, tables)
-    if validation_table is not None:
-        from .validate import CSV_NAME, write_csv
-        write_csv(validation_table, stage / CSV_NAME)
-        files.append(stage / CSV_NAME)
-    return files
-
-
-def start_tables(stage: Path, trajectories: pd.DataFrame, reprojection: pd.DataFrame) -> forked.Pending:
-    """trajectories.csv and reprojection.csv written into ``stage`` by a child forked now (batgraph.forked.Standby:
-    it sees the tables in its memory, nothing is pickled), or here where no child can be made."""
-    def write_tables():
-        write_csv(stage / "trajectories.csv", trajectories, "%.9g")
-        write_csv(stage / "reprojection.csv", reprojection, "%.6f")
-
-    return forked.Standby(lambda: write_tables, "CSV tables").run()
+    with atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place) as stage:
+        files = _write_files(result, stage, viewer, options, report or report_standby())
+        if validation_table is not None:
+            from .validate import CSV_NAME, write_csv
+            write_csv(validation_table, stage / CSV_NAME)
+            files.append(stage / CSV_NAME)
+    return [out_dir / p.name for p in files]
 
 
 def _report_writer():
@@ -221,19 +194,22 @@ def report_standby() -> forked.Standby:
 
 
 def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | None,
-                 report: forked.Standby, tables: forked.Pending | None = None) -> list[Path]:
+                 report: forked.Standby) -> list[Path]:
     """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``: the two CSV tables
-    by a child (``tables`` when started already, else forked here: :func:`start_tables`) and report.html by
-    ``report``, beside this process's writing of the others (at 30 x 180 x 160 the CSVs take 1.3 s, the rest
-    ~0.8 s)."""
+    by a child forked here (batgraph.forked.Standby) and report.html by ``report``, beside this process's writing
+    of the others (at 30 x 180 x 160 the CSVs take 1.3 s, the rest ~0.8 s)."""
     from .formats.c3d_trc import write_c3d, write_trc
 
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
     report_path = out_dir / "report.html"
     files = [out_dir / "trajectories.csv", out_dir / "reprojection.csv", out_dir / "summary.json"]
-    if tables is None:
-        tables = start_tables(out_dir, result.trajectories, result.reprojection)
+
+    def write_tables():
+        write_csv(files[0], result.trajectories, "%.9g")
+        write_csv(files[1], result.reprojection, "%.6f")
+
+    tables = forked.Standby(lambda: write_tables, "CSV tables").run()  # a child forked now: nothing is pickled
     try:
         pending = report.run(report_path, s, result.trajectories, result.reprojection, result.summary)
         atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
@@ -274,43 +250,28 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     options = options or Options()
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
-    # the report's child, forked before the estimators' memory grows; cancelled on failure. The staging folder of
-    # the output folder's one atomic replacement (write_outputs; without --validate a previous validation.csv is
-    # not kept: it would be read as this result's) is made before the estimators, so that the CSV tables are
-    # written from the moment they exist, beside the summary (at 30 x 180 x 160 the CSVs take 1.3 s, the summary
-    # 0.6 s); on failure the output folder is left as it was.
-    tables = []  # the CSV tables' writing, once started
-
+    # the report's child, forked before the estimators' memory grows; cancelled on failure
     with report_standby() as report:
         session = read_session(session_dir, calibration)
         methods = list(methods or DEFAULT_METHODS)
-        with staging_folder(out, session_dir) as stage:
-
-            def start(traj: pd.DataFrame, reproj: pd.DataFrame) -> None:
-                tables.append(start_tables(stage, traj, reproj))
-
-            try:
-                if viewer == "spawn":
-                    from .viewer import LiveViewer
-                    with LiveViewer(session, dense_observations(session), method="filter") as live:
-                        result = run_methods(session, methods, options, live=live, on_tables=start)
-                else:
-                    result = run_methods(session, methods, options, on_tables=start)
-                result.out_dir = out
-                validation = None
-                if validate:
-                    from .validate import validate_session
-                    validation = validate_session(session, methods, options, summary=result.summary,
-                                                  workers=validate_workers)
-                    result.summary["validation"] = validation.to_summary()
-                    summary_mod.refresh_verdict(result.summary)
-                files = write_into(stage, result, viewer, options, None if validation is None else validation.table,
-                                   report, tables[0])
-            finally:  # no child may write into a staging folder being removed
-                for pending in tables:
-                    pending.cancel()
-    result.files = [out / p.name for p in files]
-    return result
+        if viewer == "spawn":
+            from .viewer import LiveViewer
+            with LiveViewer(session, dense_observations(session), method="filter") as live:
+                result = run_methods(session, methods, options, live=live)
+        else:
+            result = run_methods(session, methods, options)
+        result.out_dir = out
+        validation = None
+        if validate:
+            from .validate import validate_session
+            validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
+            result.summary["validation"] = validation.to_summary()
+            summary_mod.refresh_verdict(result.summary)
+        # one atomic replacement of the whole folder; without --validate a previous validation.csv is not kept
+        # (it would be read as this result's)
+        result.files = write_outputs(result, out, viewer, options,
+                                     validation_table=None if validation is None else validation.table, report=report)
+        return result
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

@@ -242,9 +242,9 @@ def test_validation_csv_belongs_to_the_result(small_session, tmp_path, monkeypat
     assert (out / "calibration.toml").read_text() == "written by calibrate"
 
 
-def test_a_failure_while_the_tables_are_written_leaves_the_old_result(small_session, tmp_path, monkeypatch):
-    """reconstruct starts writing the CSV tables into its staging folder as soon as they exist, beside the summary:
-    a summary that fails then leaves the previous result as it was and no staging folder behind."""
+def test_a_failure_after_the_estimators_leaves_the_old_result(small_session, tmp_path, monkeypatch):
+    """A summary that fails after the estimators ran leaves the previous result as it was and no staging folder
+    behind."""
     from batgraph import pipeline, summary
 
     out = tmp_path / "out"
