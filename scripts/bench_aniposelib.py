@@ -58,7 +58,7 @@ def _process_time(argv: list[str], cwd: Path | None = None, repeats: int = 3) ->
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        subprocess.run(argv, cwd=cwd, check=True, stdout=subprocess.DEVNULL)
+        subprocess.run(argv, cwd=cwd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # warnings
         times.append(time.perf_counter() - t0)
     return statistics.median(times), times
 

@@ -202,7 +202,9 @@ def calibrate_ends(solve: Callable[..., tuple[np.ndarray, np.ndarray]], rig: Rig
     uv[:, hide] = np.nan
     p_start, v_start = straight_start(xyz_m[:, sel], hide, horizon, fps)
     xyz_h, cov_h = solve(IdealObservations(uv, sub.cov_px2), p_start, v_start, sel)
-    tri, cov_tri = triangulate_ideal(rig, sub)
+    seen_hidden = sub.uv_px.copy()  # the hidden points' own triangulation: the other points' is not asked for
+    seen_hidden[:, ~hide] = np.nan
+    tri, cov_tri = triangulate_ideal(rig, IdealObservations(seen_hidden, sub.cov_px2))
     e = xyz_h - tri
     S = cov_h + cov_tri
     ok = hide & np.isfinite(e).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
