@@ -149,7 +149,7 @@ def preflight(session: Session, dense: DenseObservations) -> Preflight:
                         "image' checks and plots assume them (re-import with --image-size W H)")
     motion = session.motion
     if not motion.has_physics and (motion.sigma_m is None or motion.causal_accel_psd_m2_s3 is None):
-        try:  # info's covariances are those of the measured noise: what the track really carries
+        try:  # info's covariances are those of the measured noise: what the track really carries (sampled markers')
             sigma_m, q = noise_from_track(info["xyz_m"], info["cov_m2"], session.fps)
         except ValueError as e:  # e.g. labelled frames far apart: nothing to measure, so stay loose
             sigma_m, q = LOOSE_MOTION

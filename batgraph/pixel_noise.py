@@ -75,11 +75,12 @@ def sample_markers(seen: np.ndarray, max_points: int = MAX_POINTS,
     keep[np.unique(np.linspace(0, M - 1, max(1, max_points // F)).round().astype(int))] = True
     per = (seen & (seen.sum(axis=0) >= 2)[None]).sum(axis=1)  # (C, M) observations usable for the noise
     for c in range(C):
-        need = min(min_observations, int(per[c].sum()))
+        need, have = min(min_observations, int(per[c].sum())), int(per[c][keep].sum())
         for m in np.argsort(-per[c], kind="stable"):
-            if int(per[c][keep].sum()) >= need:
+            if have >= need:
                 break
-            keep[m] = True
+            if not keep[m]:
+                keep[m], have = True, have + int(per[c, m])
     return np.flatnonzero(keep)
 
 

@@ -34,9 +34,8 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    level for a marker); then D' = step 2's rule at that solution over ALL observations; while D' != D (at most
    REJECTION_ROUNDS solves in all), D = D' and re-solve warm (the fast schedule re-solves only the markers whose
    observations in D changed, each with its segment group: the others' problems are unchanged). Covariances
-   come from the last
-   solve's graph (D excluded); the outlier flags are, as always, |r|^2 > 13.8155 at the final
-   solution over all observations (so every excluded observation is flagged when the rounds converged).
+   come from the last solve's graph (D excluded); the outlier flags are, as always, |r|^2 > 13.8155 at the
+   final solution over all observations (so every excluded observation is flagged when the rounds converged).
 
 With ``robust="none"`` or rejection off, the answer is the single minimiser of the cost as before.
 """
