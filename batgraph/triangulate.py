@@ -98,7 +98,7 @@ def _first_order_cov(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray) -> n
         if not s.any():
             continue
         J = cam.ideal_jacobian_world(xyz_m[s])  # (n, 2, 3)
-        depth2 = ((xyz_m[s] @ cam.R[2]) + cam.tvec.reshape(3)[2]) ** 2  # (n,)
+        depth2 = cam.to_cam(xyz_m[s])[:, 2] ** 2  # (n,)
         K2inv = np.linalg.inv(cam.K[:2, :2])
         (g00, g01), (_, g11) = cam.K[0, 0] * cam.K[1, 1] * K2inv.T @ K2inv  # W_c = depth^2 G_c
         cv = ideal.cov_px2[c][s]  # (n, 2, 2)
