@@ -735,9 +735,13 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                        f"{ends['growth_per_frame']:.3f} h (the 95th percentile of the squared errors was "
                        f"{ends['p95_ratio']:.2f}x what its covariances said)")
     if ends.get("widened_single_view_points"):
+        ratio = ends.get("ray_p95_ratio")
+        floored = ends.get("depth_floored_points") or 0
         widened.append(f"the variance along the ray of the {ends['widened_single_view_points']} points seen by one "
-                       f"camera there by 1 + {ends['ray_growth_per_frame']:.3f} h (the errors along those cameras' "
-                       f"rays: {ends['ray_p95_ratio']:.2f}x)")
+                       "camera there" + (f" ({floored} of them first raised to the variance the solve gives them "
+                                         "without that view)" if floored else "")
+                       + f" by 1 + {ends['ray_growth_per_frame']:.3f} h"
+                       + (f" (the errors along those cameras' rays: {ratio:.2f}x)" if ratio is not None else ""))
     ends_note = (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
                  f"{ends['backtest_frames']} frames hidden) and widened " + " and ".join(widened) +
                  ", h the distance in frames from the track (batgraph.graph.ends)." if widened else "")

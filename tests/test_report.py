@@ -352,6 +352,10 @@ def test_report_says_when_the_track_ends_were_widened(tmp_path):
             "covariances of the 44 unseen points at the track ends by 1 + 0.368 h (the 95th percentile of the squared "
             "errors was 3.04x what its covariances said) and the variance along the ray of the 67 points seen by one "
             "camera there by 1 + 0.365 h (the errors along those cameras' rays: 2.76x), h the distance") in text
+    info["track_ends"].update(depth_floored_points=12, ray_p95_ratio=None)  # floored; no backtest along the rays
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    assert ("the variance along the ray of the 67 points seen by one camera there (12 of them first raised to the "
+            "variance the solve gives them without that view) by 1 + 0.365 h, h the distance") in text
     info["track_ends"].update(widened_single_view_points=0)
     text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
     assert "said), h the distance" in text and "along the ray" not in text
