@@ -219,7 +219,8 @@ SMOOTHER_NOTES = ("segments_left_out", "wingbeat_left_out", "wingbeat_advice")
 
 def smoother_warnings(info: dict | None) -> list[str]:
     """One line per rigid segment (``[markers] rigid``) whose length scatters over the frames by more than
-    RIGID_WARN_FACTOR x rigid_sigma_m RMS at the smoother's solution: the pair is not rigid, or a label is
+    RIGID_WARN_FACTOR x rigid_sigma_m RMS at the smoother's solution or, beyond the triangulation's noise, in the
+    per-frame triangulation (graph.rigid.triangulated_excess): the pair is not rigid, or a label is
     swapped, and the segment factor is pulling the two markers toward a length they do not keep. Before
     them, the smoother's notes (:data:`SMOOTHER_NOTES`): why it left the segments out, or the wingbeat
     model's oscillation for want of a frequency, or that the tracks move periodically and its motion model
@@ -228,8 +229,9 @@ def smoother_warnings(info: dict | None) -> list[str]:
     sigma = info.get("rigid_sigma_m")
     out = [info[key] for key in SMOOTHER_NOTES if info.get(key)]
     for name, s in (info.get("segments") or {}).items():
-        if sigma and s["scatter_rms_m"] > RIGID_WARN_FACTOR * sigma:
-            out.append(f"segment {name}: its length varies by {1000 * s['scatter_rms_m']:.1f} mm RMS over the frames, "
+        scatter = max(s["scatter_rms_m"], s.get("triangulated_excess_m") or 0.0)
+        if sigma and scatter > RIGID_WARN_FACTOR * sigma:
+            out.append(f"segment {name}: its length varies by {1000 * scatter:.1f} mm RMS over the frames, "
                        f"more than {RIGID_WARN_FACTOR:g} x [markers] rigid_sigma_m = {1000 * sigma:g} mm: these two "
                        "markers are not on one rigid segment, or a label is swapped; check [markers] rigid")
     return out

@@ -155,9 +155,11 @@ def _run(session: Session, dense: DenseObservations, ideal: IdealObservations, o
             for m in markers if models[m] == "constant_acceleration"}
     if info["segments"]:
         figures["rigid_sigma_m"] = session.rigid_sigma_m
+        excess = rigid.triangulated_excess(rig, ideal, [s["pair"] for s in info["segments"]])
         figures["segments"] = {f"{dense.markers[s['pair'][0]]}-{dense.markers[s['pair'][1]]}":
-                               {k_: s[k_] for k_ in ("length_m", "length_sigma_m", "scatter_rms_m")}
-                               for s in info["segments"]}
+                               {**{k_: s[k_] for k_ in ("length_m", "length_sigma_m", "scatter_rms_m")},
+                                "triangulated_excess_m": float(e)}
+                               for s, e in zip(info["segments"], excess, strict=True)}
     if reject:
         figures["iterations_per_round"] = rounds
         figures["rejected"] = int(excluded.sum())

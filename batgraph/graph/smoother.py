@@ -25,7 +25,7 @@ Outlier rejection (``options.outlier_rejection``, with a robust loss; every fast
    conditional on the cameras at their calibrated means (the markers share the cameras, so the exact
    evidence would not split per marker); one global q instead cost 8.6 % in RMSE on observed points
    (1.448 -> 1.572 mm, simulated 5-camera flight, seed 1). A given q (options or session) is global.
-   With model "auto" (opt-in; constant velocity is the default) the same search runs for constant
+   With model "auto" (the default since the twentieth session) the same search runs for constant
    velocity (q) and constant acceleration (jerk PSD j), and each marker keeps the model of larger evidence
    (fast.choose_model_per_marker); an explicit constant_acceleration searches j only. The cleaning
    solve of steps 1-2 uses constant velocity for both (fast.cleaning_motion).
@@ -285,11 +285,13 @@ def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObserva
             [{"pair": tuple(ab), "length_m": L} for ab, L in zip(pairs, lengths, strict=True)], xyz, cov)
         var = marginal_covariances(graph, solution, [factors.length_key(s) for s in range(len(pairs))])
         info["rigid_sigma_m"] = session.rigid_sigma_m
+        excess = rigid.triangulated_excess(session.rig, ideal, pairs)
         info["segments"] = {f"{dense.markers[a]}-{dense.markers[b]}": {
             "length_m": float(solution.atVector(factors.length_key(s))[0]),
             "length_sigma_m": float(np.sqrt(var[s].ravel()[0])),
             "scatter_rms_m": float(np.sqrt(np.mean((np.linalg.norm(xyz[:, a] - xyz[:, b], axis=-1)
-                                                    - solution.atVector(factors.length_key(s))[0]) ** 2)))}
+                                                    - solution.atVector(factors.length_key(s))[0]) ** 2))),
+            "triangulated_excess_m": float(excess[s])}
             for s, (a, b) in enumerate(pairs)}
     cov, ends_figures = widen_ends(session.rig, used, p_init, models, level, session.fps, options.robust,
                                    options.robust_k, pairs, session.rigid_sigma_m, xyz,
