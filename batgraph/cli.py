@@ -59,8 +59,8 @@ def _add_reconstruct(sub):
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
     p.add_argument("--motion",
                    choices=["constant_velocity", "random_walk", "constant_acceleration", "auto", "wingbeat"],
-                   help="motion model (default: session.toml [motion] model, else constant_velocity); auto: the "
-                        "smoother picks constant velocity or acceleration per marker; wingbeat: constant velocity "
+                   help="motion model (default: session.toml [motion] model, else auto: the smoother picks constant "
+                        "velocity or acceleration per marker by marginal likelihood); wingbeat: constant velocity "
                         "or constant velocity plus an oscillation at the wingbeat frequency per marker (both "
                         "slower; the filters use constant velocity for auto, wingbeat and constant_acceleration)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",

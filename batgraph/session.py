@@ -67,7 +67,7 @@ class MotionConfig:
         log predictive density); see batgraph.graph.noise and docs/accuracy.md for what each gives.
     """
 
-    model: str = "constant_velocity"  # or random_walk, constant_acceleration, auto, wingbeat (batgraph.graph.noise)
+    model: str = "auto"  # or constant_velocity, random_walk, constant_acceleration, wingbeat (batgraph.graph.noise)
     flight_speed_mps: float | None = None
     span_m: float | None = None
     flap_hz: float | None = None

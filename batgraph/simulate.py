@@ -544,7 +544,7 @@ def simulate_flight(
     offset = [float(v) for v in rng_scene.uniform(-0.05, 0.05, 2)]
     scene = flight_scene(n_frames, fps, n_markers, phase0, offset)
     rig = tunnel_rig(rng_cams, n_cameras)
-    motion = MotionConfig(model="constant_velocity", flight_speed_mps=FLIGHT_SPEED_MPS, span_m=SPAN_M,
+    motion = MotionConfig(flight_speed_mps=FLIGHT_SPEED_MPS, span_m=SPAN_M,
                           flap_hz=FLAP_HZ, flap_angle_deg=FLAP_ANGLE_DEG)
     params = {"scene": "flight", "n_cameras": int(n_cameras), "n_markers": n_markers, "n_frames": int(n_frames),
               "fps": float(fps), "phase0_rad": phase0, "offset_yz_m": offset,
@@ -574,7 +574,7 @@ def simulate_ear(
     drift_phase = [float(v) for v in rng_scene.uniform(0, 2 * np.pi, 3)]
     scene = ear_scene(n_frames, fps, phase0, drift_hz, drift_phase)
     rig = ear_rig(rng_cams, np.array([0.0, 0.0, 0.02]))
-    motion = MotionConfig(model="constant_velocity", flight_speed_mps=0.0, span_m=EAR_LENGTH_M, flap_hz=EAR_HZ,
+    motion = MotionConfig(flight_speed_mps=0.0, span_m=EAR_LENGTH_M, flap_hz=EAR_HZ,
                           flap_angle_deg=EAR_BEND_DEG)
     names = scene.marker_names
     skeleton = [("head1", "head2"), ("head2", "head3"), ("head3", "head1"), ("head2", "ear1")]
@@ -637,7 +637,7 @@ def simulate_wand(
     rng_scene, rng_cams, *streams = rng.spawn(5)
     scene = wand_scene(n_frames, fps, rng_scene)
     rig = tunnel_rig(rng_cams, n_cameras)
-    motion = MotionConfig(model="constant_velocity", flight_speed_mps=FLIGHT_SPEED_MPS, span_m=WAND_LENGTH_M,
+    motion = MotionConfig(flight_speed_mps=FLIGHT_SPEED_MPS, span_m=WAND_LENGTH_M,
                           flap_hz=1.0, flap_angle_deg=90.0)
     params = {"scene": "wand", "n_cameras": int(n_cameras), "n_frames": int(n_frames), "fps": float(fps),
               "wand_length_m": WAND_LENGTH_M}

@@ -461,7 +461,7 @@ def simulate_wingbeat(
     p["n_observations"] = len(obs)
     return Session(
         name=name or f"wingbeat_{flight}_{n_cameras}cam", fps=float(fps), rig=rig, observations=obs,
-        motion=MotionConfig(model="constant_velocity"), pixel_sigma_px=p["pixel_sigma_px"],
+        motion=MotionConfig(), pixel_sigma_px=p["pixel_sigma_px"],
         marker_names=list(scene.marker_names), skeleton=skeleton(), truth=truth_table(scene), mislabels=mis,
         extra_toml={"wingbeat": p}, rigid=rigid_pairs(),
     )

@@ -148,11 +148,11 @@ def _auto(session: Session):
 
 
 def test_auto_picks_constant_velocity_on_constant_velocity_tracks():
-    """Tracks drawn from the constant-velocity model (q = 3 and 100 m^2/s^3, 80 frames): "auto" (opt-in;
-    a session that states no model gets constant velocity) keeps constant velocity for every marker
+    """Tracks drawn from the constant-velocity model (q = 3 and 100 m^2/s^3, 80 frames): "auto" (the default
+    since the twentieth session: a session that states no model gets it) keeps constant velocity for every marker
     (measured evidence margins 42, 106, 69 nats)."""
     session, _, _, _ = cv_scene([3.0, 100.0, 30.0], n_frames=80, seed=4)
-    assert MotionConfig(**PAPER_PHYSICS).model == "constant_velocity"  # the default
+    assert MotionConfig(**PAPER_PHYSICS).model == "auto"  # the default
     session = dataclasses.replace(session, motion=MotionConfig(model="auto", **PAPER_PHYSICS))
     est, dense = _auto(session)
     ev = est.info["log_evidence_per_marker"]

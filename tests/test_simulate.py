@@ -71,7 +71,7 @@ def test_truth_matches_scene_and_skeleton():
     assert sess.marker_names[14:] == ["mem_r_001", "mem_r_002", "mem_r_003", "mem_l_001", "mem_l_002", "mem_l_003"]
     assert ("elbow_l", "wrist_l") in sess.skeleton and ("body1", "shoulder_r") in sess.skeleton
     m = sess.motion
-    assert (m.model, m.flight_speed_mps, m.span_m, m.flap_hz, m.flap_angle_deg) == ("constant_velocity", 3.0, 0.5,
+    assert (m.model, m.flight_speed_mps, m.span_m, m.flap_hz, m.flap_angle_deg) == ("auto", 3.0, 0.5,
                                                                                      4.0, 90.0)
     # the bat flies along -x at 3 m/s and spans 0.5 m (+-2 cm for the folding upstroke)
     body = scene.points_m[:, 0]

@@ -33,7 +33,7 @@ REJECT_SQ_RESIDUAL = 25.0
 MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration")
 # The polynomial order of each model's state: p (0), [p, v] (1), [p, v, a] (2); the state has d = 3 (order + 1)
 MOTION_ORDER = {"random_walk": 0, "constant_velocity": 1, "constant_acceleration": 2}
-# "auto" (opt-in, [motion] model or --motion): each marker's model among these, by its evidence (batgraph.graph.noise)
+# "auto" (the default [motion] model; --motion): each marker's model among these, by its evidence (batgraph.graph.noise)
 AUTO = "auto"
 AUTO_CANDIDATES = ("constant_velocity", "constant_acceleration")
 # "wingbeat" (opt-in, [motion] model or --motion): each marker constant velocity or "oscillating" (constant velocity
