@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install demo test bench study realdata samples lint clean
+.PHONY: install demo test bench study coverage realdata samples lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,10 @@ bench: install
 ## study: the accuracy study (see BENCHMARKS.md / README.md)
 study: install
 	$(BIN)/python scripts/accuracy_study.py
+
+## coverage: the default smoother's 95 % coverage by status and span pooled over seeds 1-10 (docs/coverage_seeds.md)
+coverage: install
+	$(BIN)/python scripts/coverage_seeds.py
 
 ## realdata: every real dataset in ../shared/data/real through reconstruct --validate (docs/real_data.md)
 realdata: install
