@@ -47,8 +47,9 @@ both smoothers call it, the GTSAM one with the fast solver as for rigid.ambiguit
    depends on the model being right over the whole stretch, which no hidden frame of step 1 shows when its
    segment partners stay in view. With constant acceleration (the default "auto" picks it for every marker of
    the first generator's seeds 1 and 3) the variance along the ray at 9 frames past the span was 3.6 mm against
-   errors of 37 mm (99 mm with constant velocity), and the check of step 5, keeping that one camera or not,
-   found c' = 0.04-0.08: the first generator's single-view ends were covered 88.5 % (seed 1 81.9 %). So each
+   errors of 37 mm (99 mm with constant velocity), and the check of step 5 found c' = 0.078 and 0 on those two
+   seeds (0.036 and 0 keeping that one camera on the hidden frames): the first generator's single-view ends were
+   covered 88.5 % (seed 1 81.9 %). So each
    single-view point outside its span gets, along its ray, at least the variance the solve gives it without its
    view (:func:`no_view_variances`: the covariances of the segment groups holding such points without their
    single-view observations outside the spans, linearised at the final solution, not iterated), before step 5's
