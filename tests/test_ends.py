@@ -152,7 +152,7 @@ def test_single_view_ends_are_widened_along_their_rays_on_the_first_generator():
     session = simulate_flight(np.random.default_rng(1), n_cameras=5)
     out = _without_and_with_the_check(session, "single_view", Options(progress=False, motion_model="constant_velocity"))
     (_, cov_bare, n), (wide, cov_wide, _) = out[False], out[True]
-    assert n > 300 and cov_bare < 0.85 and 0.9 <= cov_wide <= 0.98
+    assert n > 300 and cov_bare < 0.85 and 0.9 <= cov_wide <= 0.985  # 350 of 359; 0.98 would leave 1 point
     fig = wide.info["track_ends"]
     assert fig["ray_samples"] > 100 and fig["ray_growth_per_frame"] > 0.05 and fig["ray_p95_ratio"] > 1
 
