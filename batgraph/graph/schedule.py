@@ -173,10 +173,6 @@ NO_WINGBEAT = ("motion model wingbeat: no wingbeat found in the triangulated tra
                "every marker uses constant velocity; set [motion] flap_hz in session.toml if the animal flaps")
 
 
-MODEL_WORDS = {"auto": "auto (constant velocity or acceleration per marker)", "random_walk": "random walk",
-               "constant_velocity": "constant velocity", "constant_acceleration": "constant acceleration"}
-
-
 def periodic_advice(xyz_tri_m: np.ndarray, fps: float, model: str) -> dict:
     """When the triangulated tracks (F, M, 3) [m] move periodically (motion.wingbeat_peak: an interior peak
     at least WINGBEAT_PROMINENCE times the periodogram's median) and ``model`` is not "wingbeat": figures
@@ -188,8 +184,9 @@ def periodic_advice(xyz_tri_m: np.ndarray, fps: float, model: str) -> dict:
     if peak is None or peak[1] < WINGBEAT_PROMINENCE:
         return {}
     hz = peak[0]
+    words = model.replace("_", " ") + (" (constant velocity or acceleration per marker)" if model == spec.AUTO else "")
     return {"periodic_motion_hz": hz, "wingbeat_advice": (
-        f"the tracks move periodically at {hz:.1f} Hz (a wingbeat?), which the {MODEL_WORDS.get(model, model)} "
+        f"the tracks move periodically at {hz:.1f} Hz (a wingbeat?), which the {words} "
         "motion model takes for noise: markers that move with it a little, like a body bobbing with the wingbeat, can "
         "get 95 % ellipsoids that hold their truth less often" + ("" if model == "random_walk" else (
             f" (a constant-velocity q chosen from the data is kept >= that of a {noise.flapping_heave_m(hz) * 1e3:.2g} "
