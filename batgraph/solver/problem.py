@@ -205,12 +205,22 @@ class Problem:
         """(cost (M,), near (M,), D (F, M, d, d), B (F - 1, M, d, d), g (F, M, d)) at x: the Gauss-Newton blocks
         (H[k + 1, k] in B) and gradient; the rows' curvature is the robust loss's own where ``exact`` (per
         marker), IRLS's elsewhere."""
+        cost, near, D, B, g = self.row_system(x, exact)
+        cost = cost + self.add_motion(x, D, B, g)
+        return np.where(np.isnan(cost), np.inf, cost), near, D, B, g
+
+    def row_system(self, x: np.ndarray, exact: np.ndarray | bool = False) -> tuple:
+        """:meth:`system`'s projection rows alone (cost (M,) not made finite)."""
         F, M, d = x.shape
         cost, near = np.zeros(M), np.zeros(M)
         D, B, g = np.zeros((F, M, d, d)), np.zeros((max(F - 1, 0), M, d, d)), np.zeros((F, M, d))
         ex = np.ascontiguousarray(np.broadcast_to(np.asarray(exact, float), (M,)))
         kernels.rows_system(np.ascontiguousarray(x), self.rows, self.cams.P, self.cams.behind, self.loss.code,
                             float(self.loss.k), ex, True, cost, near, D, B, g)
+        return cost, near, D, B, g
+
+    def add_motion(self, x: np.ndarray, D: np.ndarray, B: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """Add the motion and gauge-prior terms at x to a system (D, B, g), in place; returns their cost (M,)."""
         AtQiA, Qi, Bm = self.motion_blocks()
         e = x[1:] - x[:-1] @ self.A.T
         eQ = np.einsum("fmi,mij->fmj", e, Qi)
@@ -222,8 +232,7 @@ class Problem:
         D[0] += self.P0
         e0 = x[0] - self._mu0_state()
         g[0] += e0 @ self.P0
-        total = cost + 0.5 * np.einsum("fmi,fmi->m", e, eQ) + 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
-        return np.where(np.isnan(total), np.inf, total), near, D, B, g
+        return 0.5 * np.einsum("fmi,fmi->m", e, eQ) + 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
 
 
 _NONE = np.zeros(1)
