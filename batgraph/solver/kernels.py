@@ -173,6 +173,16 @@ def row_terms(x, rows, marker, P, behind, robust: int, k: float) -> dict:
 
 
 # ----- block-tridiagonal sweeps ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True)
+def mirror_lower(a):  # pragma: no cover  (compiled)
+    """a (n, n) with its upper triangle set from its lower one, in place; returns a (LAPACK's potri fills one)."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            a[i, j] = a[j, i]
+    return a
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _inverse(A, out, work):  # pragma: no cover  (compiled)
     """out = A^-1 by Gauss-Jordan with partial pivoting (small blocks; LAPACK beyond 12); returns log |det A|

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 from ..forked import usable_cores
 
@@ -59,3 +60,21 @@ def split(n_items: int, min_part: int, run) -> None:
     run(cuts[0], cuts[1])
     for f in futures:
         f.result()
+
+
+@contextmanager
+def one_blas_thread():
+    """BLAS held to one thread while the solver runs (re-entrant): its linear algebra is small blocks, where more
+    threads only add synchronisation (a 126-wide Cholesky inverse: 0.16 ms on one thread, 0.73 ms on two of a
+    loaded 2-core machine)."""
+    if _state.get("blas"):
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        _state["blas"] = True
+        try:
+            yield
+        finally:
+            _state["blas"] = False
