@@ -5,11 +5,13 @@ With fixed cameras this is the joint minimiser exactly: markers share nothing el
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
-from ..measurement import IdealObservations
-from . import chains, lm, segments
+from ..camera import Rig
+from ..measurement import IdealObservations, without
+from . import chains, kernels, lm, segments
 from . import model as mm
 from .problem import Cameras, Loss, Problem, Rows, derivatives, log_det_units, start_state
 from .threads import one_blas_thread
@@ -17,17 +19,21 @@ from .threads import one_blas_thread
 
 @dataclass
 class Setup:
-    """What every solve of one session shares: the observations (C, F, M), the rig as rows see it, fps, the
-    loss, the initial track p_init (F, M, 3) [m] (its first frame the gauge prior's mean; NaN for a marker not
-    estimated) and the segments (pairs (S, 2) marker indices, their stiffness sigma [m])."""
+    """What every solve of one session shares: the observations (C, F, M), the rig, fps, the loss, the initial
+    track p_init (F, M, 3) [m] (its first frame the gauge prior's mean; NaN for a marker not estimated) and the
+    segments (pairs (S, 2) marker indices, their stiffness sigma [m])."""
 
     ideal: IdealObservations
-    cams: Cameras
+    rig: Rig
     fps: float
     loss: Loss
     p_init: np.ndarray
     pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     rigid_sigma_m: float = 0.002
+
+    @cached_property
+    def cams(self) -> Cameras:
+        return Cameras.of(self.rig)
 
     @property
     def estimated(self) -> np.ndarray:
@@ -39,9 +45,7 @@ class Setup:
 
     def without(self, drop: np.ndarray) -> Setup:
         """The same with the observations where ``drop`` (C, F, M) made unseen."""
-        uv = self.ideal.uv_px.copy()
-        uv[drop] = np.nan
-        return replace(self, ideal=replace(self.ideal, uv_px=uv))
+        return replace(self, ideal=without(self.ideal, drop))
 
     def problem(self, markers: np.ndarray, name: str, level: np.ndarray) -> Problem:
         """The problem of ``markers`` (int indices) with model ``name`` at levels (len(markers),)."""
@@ -53,9 +57,12 @@ class Setup:
 @dataclass
 class Fit:
     """A solve: xyz (F, M, 3) [m], cov (F, M, 3, 3) [m^2] or None, velocity and acceleration (F, M, 3) [m/s, m/s^2]
-    (NaN where the marker's model has none); per marker cost, logdet (physical units; a group's on its first
-    member), iterations, converged, at_camera; per segment used: pairs (S', 2), length_m, length_sd_m (S',)."""
+    (NaN where the marker's model has none); state (F, M, 9) each marker's scaled state (its model's d first, NaN
+    after) and models (M,) their names (None: not solved); per marker cost, logdet (physical units; a group's on
+    its first member), iterations, converged, at_camera; per segment used: pairs (S', 2), length_m, length_sd_m."""
 
+    state: np.ndarray
+    models: np.ndarray
     xyz: np.ndarray
     cov: np.ndarray | None
     velocity: np.ndarray
@@ -72,16 +79,17 @@ class Fit:
     @classmethod
     def empty(cls, F: int, M: int, covariances: bool) -> Fit:
         nan3 = np.full((F, M, 3), np.nan)
-        return cls(nan3, np.full((F, M, 3, 3), np.nan) if covariances else None, nan3.copy(), nan3.copy(),
-                   np.zeros(M), np.zeros(M), np.zeros(M, int), np.zeros(M, bool), np.zeros(M, bool))
+        return cls(np.full((F, M, 9), np.nan), np.full(M, None, object), nan3,
+                   np.full((F, M, 3, 3), np.nan) if covariances else None, nan3.copy(), nan3.copy(), np.zeros(M),
+                   np.zeros(M), np.zeros(M, int), np.zeros(M, bool), np.zeros(M, bool))
 
     def merge(self, other: Fit, markers: np.ndarray) -> Fit:
         """This fit with ``markers`` (M,) bool, and their segments, taken from ``other``, in place."""
-        for name in ("xyz", "velocity", "acceleration"):
+        for name in ("state", "xyz", "velocity", "acceleration"):
             getattr(self, name)[:, markers] = getattr(other, name)[:, markers]
         if self.cov is not None and other.cov is not None:
             self.cov[:, markers] = other.cov[:, markers]
-        for name in ("cost", "logdet", "iterations", "converged", "at_camera"):
+        for name in ("models", "cost", "logdet", "iterations", "converged", "at_camera"):
             getattr(self, name)[markers] = getattr(other, name)[markers]
         mine = ~markers[self.pairs].all(axis=1) if len(self.pairs) else np.zeros(0, bool)
         self.pairs = np.concatenate([self.pairs[mine], other.pairs])
@@ -111,7 +119,7 @@ def _solve(setup, models, levels, start, settings, covariances, with_segments) -
         ms = np.flatnonzero((models == name) & ~grouped)
         prob = setup.problem(ms, name, levels[ms])
         sol = chains.solve(prob, _start(name, setup.fps, start, ms), settings, covariances=covariances)
-        _put(out, ms, sol.x, None if sol.Sigma is None else sol.Sigma[..., :3, :3], setup.fps)
+        _put(out, ms, sol.x, None if sol.Sigma is None else sol.Sigma[..., :3, :3], setup.fps, name)
         out.cost[ms], out.logdet[ms] = sol.cost, sol.logdet
         out.iterations[ms], out.converged[ms], out.at_camera[ms] = sol.iterations, sol.converged, sol.at_camera
     pairs, lengths, sds = [], [], []
@@ -122,7 +130,7 @@ def _solve(setup, models, levels, start, settings, covariances, with_segments) -
         name = names.pop()
         x, L, cov_L, ld, res, cov = _solve_group(setup, members, seg_ids, name, levels, start, settings,
                                                  covariances)
-        _put(out, members, x, cov, setup.fps)
+        _put(out, members, x, cov, setup.fps, name)
         out.cost[members] = res.cost[0] / len(members)
         out.logdet[members] = 0.0
         out.logdet[members[0]] = ld + log_det_units(name, setup.fps, F) * len(members)
@@ -152,7 +160,9 @@ def _start(name: str, fps: float, start: tuple, ms: np.ndarray) -> np.ndarray:
     return start_state(name, fps, p[:, ms], None if v is None else v[:, ms], None if a is None else a[:, ms])
 
 
-def _put(out: Fit, ms: np.ndarray, x: np.ndarray, cov: np.ndarray | None, fps: float) -> None:
+def _put(out: Fit, ms: np.ndarray, x: np.ndarray, cov: np.ndarray | None, fps: float, name: str) -> None:
+    out.state[:, ms, :x.shape[-1]] = x
+    out.models[ms] = name
     out.xyz[:, ms] = x[..., :3]
     if out.cov is not None and cov is not None:
         out.cov[:, ms] = cov
@@ -170,4 +180,19 @@ def log_evidence(fit: Fit, models: np.ndarray, levels: np.ndarray, fps: float) -
     for name in dict.fromkeys(m for m in models if m is not None):
         ms = models == name
         out[ms] = mm.log_evidence(fit.cost[ms], fit.logdet[ms], levels[ms], name, 1.0 / fps, F - 1)
+    return out
+
+
+def sq_residuals(setup: Setup, fit: Fit) -> np.ndarray:
+    """|r|^2 = |L^-1 (pi(p(t)) - uv)|^2 of every observation of ``setup`` at ``fit``'s states (plain Gaussian
+    whitening), (C, F, M); NaN where unseen, not solved, or behind the camera."""
+    C, F, M = setup.ideal.seen.shape
+    out = np.full((C, F, M), np.nan)
+    for name in dict.fromkeys(m for m in fit.models if m is not None):
+        ms = np.flatnonzero(fit.models == name)
+        prob = setup.problem(ms, name, np.ones(len(ms)))
+        x = np.ascontiguousarray(fit.state[:, ms, :prob.d])
+        terms = kernels.row_terms(x, prob.rows, prob.cams.P, prob.cams.behind, 0, 1.0)
+        rows = prob.rows
+        out[rows.cam, rows.frame, ms[rows.marker]] = np.where(terms["inv"] > 0, (terms["r"] ** 2).sum(axis=1), np.nan)
     return out

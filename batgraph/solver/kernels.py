@@ -144,7 +144,8 @@ def rows_system(x, rows, P, behind, robust: int, k: float, exact, jacobian: bool
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, r, J, w, p, dp):  # pragma: no cover
+def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, r, J, w, p, dp,
+               inv):  # pragma: no cover
     """:func:`row_terms` for rows lo..hi-1."""
     F = x.shape[0]
     Jr = np.empty((2, 3))
@@ -153,22 +154,23 @@ def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, 
         pair = kf + 1 < F and (W[i, 1, 0] != 0.0 or W[i, 1, 1] != 0.0 or W[i, 1, 2] != 0.0)
         _position(x, kf, mk, W, i, pair, p[i])
         _position(x, kf, mk, dW, i, pair, dp[i])
-        r[i, 0], r[i, 1], _ = _project(P, cam[i], p[i], uv[0, i], uv[1, i], Linv[0, i], Linv[1, i], Linv[2, i],
-                                       behind[cam[i]], Jr)
+        r[i, 0], r[i, 1], inv[i] = _project(P, cam[i], p[i], uv[0, i], uv[1, i], Linv[0, i], Linv[1, i],
+                                            Linv[2, i], behind[cam[i]], Jr)
         J[i] = Jr
         w[i] = rho_w(r[i, 0] ** 2 + r[i, 1] ** 2, robust, k)[1]
 
 
-def row_terms(x, rows, marker, P, behind, robust: int, k: float) -> dict:
+def row_terms(x, rows, P, behind, robust: int, k: float) -> dict:
     """Per row (n rows): the whitened residual r (n, 2), its whitened Jacobian in the world point J (n, 2, 3)
-    [1/m], the IRLS weight w (n,), the point p (n, 3) [m] and dp/ds (n, 3) [m per frame] along its time.
-    marker (n,) each row's marker; arguments otherwise as :func:`rows_system`'s (rows also with ``dW``)."""
+    [1/m], the IRLS weight w (n,), the point p (n, 3) [m], dp/ds (n, 3) [m per frame] along its time, and the
+    inverse depth inv (n,) [1/m] (0 behind the camera). Arguments as :func:`rows_system`'s (rows placed, with
+    ``dW``)."""
     n = len(rows.k)
     out = {"r": np.empty((n, 2)), "J": np.empty((n, 2, 3)), "w": np.empty(n), "p": np.empty((n, 3)),
-           "dp": np.empty((n, 3))}
-    split(n, MIN_PART_ROWS, lambda lo, hi: _row_terms(lo, hi, x, marker, rows.k, rows.W, rows.dW, rows.cam, P,
+           "dp": np.empty((n, 3)), "inv": np.empty(n)}
+    split(n, MIN_PART_ROWS, lambda lo, hi: _row_terms(lo, hi, x, rows.marker, rows.k, rows.W, rows.dW, rows.cam, P,
                                                        rows.uv, rows.Linv, behind, robust, k, out["r"], out["J"],
-                                                       out["w"], out["p"], out["dp"]))
+                                                       out["w"], out["p"], out["dp"], out["inv"]))
     return out
 
 

@@ -24,6 +24,8 @@ from scipy.linalg import lapack
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..measurement import of_markers
+from ..triangulate import triangulate_ideal
 from .kernels import mirror_lower
 from .problem import Problem
 
@@ -246,3 +248,34 @@ def marginals(group: Group, state, covariances: bool) -> tuple:
     Sig = 0.5 * (Sig + np.swapaxes(Sig, -1, -2))
     F, gm, d = state[0].shape
     return np.stack([Sig[:, i * d:(i + 1) * d, i * d:(i + 1) * d] for i in range(gm)], axis=1), S_inv, logdet
+
+
+MIN_SCATTER_FRAMES = 10  # fewer frames with both markers triangulated: no triangulated scatter (0)
+
+
+def triangulated_excess(setup, pairs: np.ndarray) -> np.ndarray:
+    """Each segment's length scatter beyond what the triangulation's noise explains, (S,) [m]: from the per-frame
+    linear triangulation of the frames where both markers have >= 2 views, sqrt(s^2 - n) with s = 1.4826 x the
+    median absolute deviation of the lengths (robust to a mislabelled frame) and n the median of their variances
+    u^T (S_a + S_b) u; 0 within 3 standard errors of zero (the MAD's, s^2 sqrt(5.4 / frames)) or with fewer than
+    MIN_SCATTER_FRAMES frames. Unlike the scatter at the smoother's solution, which the segment factor pulls in,
+    this sees neither the segment nor the motion model. setup: batgraph.solver.fit.Setup; pairs (S, 2)."""
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    out = np.zeros(len(pairs))
+    if not len(pairs):
+        return out
+    sel = np.unique(pairs)
+    xyz, cov = triangulate_ideal(setup.rig, of_markers(setup.ideal, sel))
+    for s, (a, b) in enumerate(np.searchsorted(sel, pairs)):
+        d, S = xyz[:, a] - xyz[:, b], cov[:, a] + cov[:, b]
+        ok = np.isfinite(d).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+        n = int(ok.sum())
+        if n < MIN_SCATTER_FRAMES:
+            continue
+        length = np.linalg.norm(d[ok], axis=-1)
+        u = d[ok] / np.where(length > 0, length, 1.0)[:, None]
+        s2 = (1.4826 * np.median(np.abs(length - np.median(length)))) ** 2
+        excess = s2 - float(np.median(np.einsum("ni,nij,nj->n", u, S[ok], u)))
+        if excess > 3 * s2 * np.sqrt(5.4 / n):
+            out[s] = np.sqrt(excess)
+    return out
