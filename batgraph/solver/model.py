@@ -9,6 +9,7 @@ keeps the Gauss-Newton blocks well conditioned. Noise matrices in physical units
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -43,9 +44,11 @@ def noise_scale(name: str, level: float | np.ndarray) -> float | np.ndarray:
     return np.square(level) if name == "random_walk" else np.asarray(level, float)
 
 
+@functools.lru_cache(maxsize=64)
 def scaled(name: str, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(A, Q1, P0), each (d, d): x[k+1] = A x[k] + w, w ~ N(0, noise_scale(level) Q1) [m^2], and the gauge priors'
-    information on the first frame [1/m^2], all in the scaled state x = S [p, v, a], S = diag(1, dt, dt^2)."""
+    information on the first frame [1/m^2], all in the scaled state x = S [p, v, a], S = diag(1, dt, dt^2).
+    The arrays are shared (cached): do not write into them."""
     order, I = ORDER[check(name)], np.eye(3)
     if order == 0:
         return I, I, I / PRIOR_SIGMA[0] ** 2

@@ -134,7 +134,9 @@ class Rows:
 @dataclass
 class Problem:
     """The cost of M markers (module docstring) with one motion model ``model`` and a noise level per marker,
-    level (M,) (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]); mu0 (M, 3) the gauge prior's mean positions [m]."""
+    level (M,) (sigma_m [m], q [m^2/s^3] or j [m^2/s^5]); mu0 (M, 3) the gauge prior's mean positions [m].
+    prior: (mean (M, d), information (M, d, d)) on the first frame's state instead of the gauge prior (the
+    filter's prediction)."""
 
     rows: Rows
     cams: Cameras
@@ -144,6 +146,7 @@ class Problem:
     level: np.ndarray
     loss: Loss
     mu0: np.ndarray
+    prior: tuple | None = None
 
     def __post_init__(self):
         mm.check(self.model)
@@ -172,7 +175,9 @@ class Problem:
 
     def of_markers(self, keep: np.ndarray) -> Problem:
         """The problem of the markers where ``keep`` (bool (M,))."""
-        return replace(self, rows=self.rows.of_markers(keep), level=self.level[keep], mu0=self.mu0[keep])
+        prior = None if self.prior is None else (self.prior[0][keep], self.prior[1][keep])
+        return replace(self, rows=self.rows.of_markers(keep), level=self.level[keep], mu0=self.mu0[keep],
+                       prior=prior)
 
     def motion_blocks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A^T Q^-1 A, Q^-1, -Q^-1 A), each (M, d, d): the motion part's blocks of the Hessian."""
@@ -181,17 +186,23 @@ class Problem:
 
     def motion_cost(self, x: np.ndarray) -> np.ndarray:
         """0.5 sum_k e_k^T Q^-1 e_k per marker (M,), e = x[k+1] - A x[k]."""
+        if len(x) < 2:
+            return np.zeros(x.shape[1])
         e = x[1:] - x[:-1] @ self.A.T
         return 0.5 * self.wq * np.einsum("fmi,fmi->m", e @ self.Qi1, e)
 
     def prior_cost(self, x: np.ndarray) -> np.ndarray:
-        e0 = x[0] - self._mu0_state()
-        return 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
+        mean, info = self._prior()
+        e0 = x[0] - mean
+        return 0.5 * (e0 * (info @ e0[..., None])[..., 0]).sum(axis=-1)
 
-    def _mu0_state(self) -> np.ndarray:
+    def _prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """The first frame's prior: (mean (M, d), information (M, d, d))."""
+        if self.prior is not None:
+            return self.prior
         mu = np.zeros((self.n_markers, self.d))
         mu[:, :3] = self.mu0
-        return mu
+        return mu, np.broadcast_to(self.P0, (self.n_markers, self.d, self.d))
 
     def cost(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(total cost per marker (M,), inf where not finite; each marker's largest inverse depth (M,) [1/m])."""
@@ -221,6 +232,14 @@ class Problem:
 
     def add_motion(self, x: np.ndarray, D: np.ndarray, B: np.ndarray, g: np.ndarray) -> np.ndarray:
         """Add the motion and gauge-prior terms at x to a system (D, B, g), in place; returns their cost (M,)."""
+        mean, info = self._prior()
+        D[0] += info
+        e0 = x[0] - mean
+        ge0 = (info @ e0[..., None])[..., 0]
+        g[0] += ge0
+        cost = 0.5 * (e0 * ge0).sum(axis=-1)
+        if len(x) < 2:
+            return cost
         AtQiA, Qi, Bm = self.motion_blocks()
         e = x[1:] - x[:-1] @ self.A.T
         eQ = np.einsum("fmi,mij->fmj", e, Qi)
@@ -229,10 +248,7 @@ class Problem:
         D[:-1] += AtQiA
         D[1:] += Qi
         B += Bm
-        D[0] += self.P0
-        e0 = x[0] - self._mu0_state()
-        g[0] += e0 @ self.P0
-        return 0.5 * np.einsum("fmi,fmi->m", e, eQ) + 0.5 * np.einsum("mi,ij,mj->m", e0, self.P0, e0)
+        return cost + 0.5 * np.einsum("fmi,fmi->m", e, eQ)
 
 
 _NONE = np.zeros(1)
