@@ -137,7 +137,8 @@ def _frames(ideal: IdealObservations, k: int) -> IdealObservations:
 
 
 def _update(rows: Rows, cams, fps, name, loss, mean, cov, on) -> tuple[int, int]:
-    """One frame's update of the markers ``on`` (M,) bool, mean (M, d) and cov (M, d, d) in place: (iterations, discarded)."""
+    """One frame's update of the markers ``on`` (M,) bool, mean (M, d) and cov (M, d, d), in place; returns
+    (iterations, updates discarded)."""
     ms = np.flatnonzero(on)
     sub = rows.of_markers(on)
     info = np.linalg.inv(cov[ms])

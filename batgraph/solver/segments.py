@@ -133,7 +133,8 @@ class Group:
         for i in range(gm):
             T[:, i * d:(i + 1) * d, i * d:(i + 1) * d] = D[:, i]
         gx = g.reshape(F, gm * d).copy()
-        C, E, gL = self.seg.border(x, L, T, gx, exact, full=self._accepted < NEAR_STEP_M)
+        close = self._accepted < NEAR_STEP_M
+        C, E, gL = self.seg.border(x, L, T, gx, exact and close, full=close)
         cost = np.array([c.sum() + self.seg.cost(x, L)])
         return cost, np.array([near.max(initial=0.0)]), T, B.reshape(F - 1, gm, d, d), C, E, gx, gL
 
