@@ -33,6 +33,8 @@ class IdealObservations:
     uv_px: np.ndarray
     cov_px2: np.ndarray
     linear_xyz: tuple | None = field(default=None, repr=False, compare=False)
+    time_frac: np.ndarray | None = None  # (C, F, M) capture time after the frame's [frames]; None: all 0
+    row_frac: np.ndarray | None = None  # (C, F, M) raw image row / height (a rolling shutter's regressor)
 
     @property
     def seen(self) -> np.ndarray:
@@ -45,7 +47,7 @@ class IdealObservations:
         without undistorting again.
         """
         sigma = np.broadcast_to(np.asarray(pixel_sigma_px, dtype=float), self.uv_px.shape[:1])
-        return IdealObservations(self.uv_px, self.cov_px2 * (sigma ** 2)[:, None, None, None, None], self.linear_xyz)
+        return dataclasses.replace(self, cov_px2=self.cov_px2 * (sigma ** 2)[:, None, None, None, None])
 
 
 def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float | np.ndarray) -> IdealObservations:

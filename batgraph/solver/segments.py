@@ -226,12 +226,16 @@ def _sym_inverse(S: np.ndarray) -> tuple[np.ndarray, float]:
 
 def bordered_solve(T, BG, C, E, rx, rL) -> tuple[np.ndarray, np.ndarray]:
     """[[T, C], [C^T, E]] [dx, dL] = [rx, rL] by the Schur complement on dL; T (F, n, n) with sub-diagonal blocks
-    BG (F - 1, g, b, b), C (F, n, s), E (s, s), rx (F, n), rL (s,)."""
-    Y = sweeps(T, BG, np.concatenate([rx[..., None], C], axis=-1))["dx"]
-    z, W = Y[..., 0], Y[..., 1:]
+    BG (F - 1, g, b, b), C (F, n, s), E (s, s), rx (F, n) and rL (s,), or (F, n, r) and (s, r) for r at once."""
+    one = rx.ndim == 2
+    rx, rL = (rx[..., None], rL[:, None]) if one else (rx, rL)
+    r = rx.shape[-1]
+    Y = sweeps(T, BG, np.concatenate([rx, C], axis=-1))["dx"]
+    z, W = Y[..., :r], Y[..., r:]
     S = E - np.einsum("fns,fnt->st", C, W)
-    dL = np.linalg.solve(S, rL - np.einsum("fns,fn->s", C, z))
-    return z - W @ dL, dL
+    dL = np.linalg.solve(S, rL - np.einsum("fns,fnr->sr", C, z))
+    dx = z - W @ dL
+    return (dx[..., 0], dL[:, 0]) if one else (dx, dL)
 
 
 def marginals(group: Group, state, covariances: bool) -> tuple:
