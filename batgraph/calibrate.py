@@ -464,21 +464,29 @@ def _initial_rig_from_scratch(rig: Rig, dense: DenseObservations, ref: int, sigm
 # ==================================================================================================
 # what the observations can determine
 # ==================================================================================================
+def _spread(xyz: np.ndarray) -> np.ndarray:
+    """Principal standard deviations (3,) [m] of points (n, 3), largest first."""
+    return np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0, None))[::-1] if len(xyz) > 2 else np.zeros(3)
+
+
 def _near_line(xyz: np.ndarray) -> tuple[bool, float, float]:
-    """(spread across < LINE_RATIO x spread along, across [m], along [m]) of points (n, 3): principal stds."""
-    sd = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0, None))[::-1] if len(xyz) > 2 else np.zeros(3)
+    """(spread across < LINE_RATIO x spread along, across [m], along [m]) of points (n, 3)."""
+    sd = _spread(xyz)
     return bool(sd[1] < LINE_RATIO * sd[0]) or sd[0] == 0, float(sd[1]), float(sd[0])
 
 
-def undetermined_reason(rig: Rig, dense: DenseObservations, xyz: np.ndarray, n_unknown: int) -> str | None:
-    """Why the observations cannot determine the rig's poses, in one line, or None when they can.
+def undetermined_reason(rig: Rig, dense: DenseObservations, xyz: np.ndarray, n_unknown: int,
+                        intrinsics: bool = False) -> str | None:
+    """Why the observations cannot determine the rig, in one line, or None when they can.
 
     xyz: the points triangulated with the starting rig (F, M, 3) [m], NaN where < 2 views.
     n_unknown: the rig's unknowns beyond the gauge (6C - 7 poses, plus intrinsics when refined).
     Too few frames (< MIN_FRAMES with a point), too few points (their equations beyond their own
     positions, sum of 2 k - 3 over points seen k times, fewer than EQUATIONS_PER_UNKNOWN per unknown),
-    points near a line (rotations about it are unobserved), a camera sharing fewer than
-    MIN_CAMERA_POINTS points with the others or seeing them near a line.
+    points near a line (rotations about it are unobserved), with ``intrinsics`` (focal lengths or lens
+    refined) points near a plane (thinner than LINE_RATIO of their extent: focal length trades against
+    distance), a camera sharing fewer than MIN_CAMERA_POINTS points with the others or seeing them near
+    a line. Poses alone are determined by points in a plane.
     """
     seen = dense.seen
     ok = np.isfinite(xyz[..., 0]) & (seen.sum(0) >= 2)
@@ -496,6 +504,10 @@ def undetermined_reason(rig: Rig, dense: DenseObservations, xyz: np.ndarray, n_u
     if line:
         return (f"degenerate motion: the points lie near a line ({1000 * across:.1f} mm across, {1000 * along:.0f} mm "
                 "along it): rotations about it are not observed")
+    sd = _spread(xyz[ok])
+    if intrinsics and sd[2] < LINE_RATIO * sd[0]:
+        return (f"degenerate motion: the points lie near a plane ({1000 * sd[2]:.1f} mm thick, {1000 * sd[0]:.0f} mm "
+                "across): focal lengths and lens distortion are not observed (refine the poses only)")
     for c, cam in enumerate(rig):
         mine = ok & seen[c]
         if mine.sum() < MIN_CAMERA_POINTS:
@@ -823,7 +835,7 @@ def calibrate_session(
     n_unknown = 6 * C - 7 + (4 * C if refine_intrinsics else 0) + (5 * C if refine_distortion else 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         xyz_start, _ = triangulate(rig0, dense, sigma)
-    why = undetermined_reason(rig0, dense, xyz_start, n_unknown)
+    why = undetermined_reason(rig0, dense, xyz_start, n_unknown, refine_intrinsics or refine_distortion)
     if why is not None:
         raise InputError(f"calibrate: the observations cannot determine the rig: {why}")
     adjust = {"refine_intrinsics": refine_intrinsics, "refine_distortion": refine_distortion,
