@@ -1,11 +1,11 @@
-"""Rig calibration by bundle adjustment of all cameras at once (pycolmap), with an explicit gauge.
+"""Rig calibration by bundle adjustment of all cameras at once (pycolmap), judged by what the images determine.
 
 What it does: builds a pycolmap reconstruction from a session (one camera + one image per rig
 camera, one 3D point per (frame, marker) seen by >= 2 cameras), refines every camera pose (and on
 request focal length, principal point, distortion) jointly with the points, rejects outliers
-iteratively, fixes the gauge as documented below, and estimates each camera's pose covariance
-with pycolmap's BA covariance. It can also start from scratch (essential matrix + PnP), with the
-scale from a wand of known length, as easyWand / Argus do. It does not estimate trajectories.
+iteratively, fixes the gauge as documented below, and estimates the joint covariance of the camera
+poses with pycolmap's BA covariance. It can also start from scratch (essential matrix + PnP), with
+the scale from a wand of known length, as easyWand / Argus do. It does not estimate trajectories.
 
 Camera model: pycolmap ``FULL_OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6) with
 k4 = k5 = k6 = 0 is exactly OpenCV's 5-parameter model that calibration.toml stores; ``OPENCV``
@@ -18,28 +18,23 @@ linear least squares on a grid over the image (the fit residual is reported).
 Pose conventions: COLMAP stores cam_from_world (like calibration.toml), so :func:`rigid_from_camera`
 and :func:`camera_pose_from_rigid` only repackage the arrays; GTSAM's Pose3 of a camera is
 world_from_cam with another tangent, and COLMAP's pose covariances are converted to it by
-:func:`batgraph.geometry.pose.pose_cov_gtsam_from_colmap` (importable from here too), like every other pose
-conversion in :mod:`batgraph.geometry.pose`.
+:func:`batgraph.geometry.pose.pose_cov_gtsam_from_colmap` (importable from here too).
 
-Gauge (7 degrees of freedom that images cannot fix):
+Gauge: images fix a rig only up to a similarity of the world (7 degrees of freedom,
+:mod:`batgraph.geometry.gauge`). ``gauge="input"`` (the default without a wand, starting from the
+input rig) fits the refined rig onto the input one by a similarity over every camera's centre and
+orientation, so the user's world frame and scale are kept as well as the input rig states them;
+the pose covariances are those of the fitted poses (the fit's 7 degrees of freedom removed).
+``gauge="camera0"`` (the default with a wand or from scratch) holds the reference camera at its input
+pose (it gets no covariance) and takes the scale from the wand (median triangulated length = its
+length), else from the input centres (least squares about the reference camera), else (centres
+that coincide) arbitrarily (reference-to-nearest camera = 1). Covariances are scaled by the
+a-posteriori pixel variance and do not include the uncertainty of the wand length or input scale.
 
-* origin and axes: ``gauge="camera0"`` (default) holds the reference camera (``ref_camera``,
-  default the first) at its input pose, so the world frame is the input calibration's as seen by
-  that camera; ``gauge="input"`` instead aligns the refined camera centres to the input ones by a
-  7-parameter similarity (Umeyama), for when no single camera is trusted more than the others.
-* scale: from a wand when one is given (``wand=(end_a, end_b, length_m)`` or session.toml's
-  ``[wand] ends = ["wand_a", "wand_b"], length_m = 0.5``): the median triangulated wand length is
-  set to ``length_m``. Otherwise from the input calibration: the least-squares scale between the
-  refined and input camera centres relative to the reference camera. When the input centres
-  coincide (a rig with unknown poses), the scale is arbitrary (reference-to-nearest camera = 1)
-  and the report says so.
-
-Pose covariances (``Camera.pose_cov``, written as ``pose_covariance``) are conditional on that
-gauge: the reference camera's pose and the scale are held fixed (the reference camera gets no
-covariance: it stays a fixed camera; the camera carrying COLMAP's scale gauge has one translation
-direction at ``GAUGE_FLOOR_M``), and the uncertainty of the
-wand length / input scale itself is not included. They are scaled by the a-posteriori pixel
-variance (sum of squared residuals / degrees of freedom).
+The judgement (:func:`calibrate_session`): refuse (InputError) when the observations cannot
+determine the rig; otherwise refine, and without a wand write the refinement only when it is
+significantly different from the input (gauge-free chi-square of the input under the refined
+covariance) and predicts held-out frames better (every camera from the others).
 """
 
 from __future__ import annotations
@@ -55,20 +50,26 @@ import pycolmap
 from . import atomic
 from .camera import Camera, Rig
 from .errors import InputError
+from .geometry import gauge as rig_gauge
 from .geometry import pose
-from .geometry.pose import pose_cov_gtsam_from_colmap
+from .geometry.pose import pose_cov_gtsam_from_colmap as pose_cov_gtsam_from_colmap  # re-exported
 from .session import DenseObservations, Session, calibration_toml, dense_observations
 from .triangulate import triangulate
 
 CHI2_2DOF_999 = 13.8155  # |r|^2 / sigma^2 threshold: 99.9 % of inlier 2D residuals fall below it
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))  # median of |r| / sigma for a 2D Gaussian residual
-GAUGES = ("camera0", "input")
+GAUGES = ("auto", "camera0", "input")
 # The camera holding COLMAP's scale gauge has one translation coordinate fixed (zero variance); a
-# prior needs an invertible covariance, so that coordinate gets this std [m], far below any real one.
+# prior needs an invertible covariance, so that coordinate gets this std [m] ([rad] for a rotation
+# where a 2-camera rig's gauge-free covariance is singular), far below any real one.
 GAUGE_FLOOR_M = 1e-6
 CHI2_3DOF_95 = 7.8147  # chi-square quantile, 3 degrees of freedom, 0.95 (95 % radius of a 3D Gaussian)
-# Without a metric reference the refined rig must predict held-out frames at least this much better (RMS ratio)
-HELD_OUT_GAIN = 0.9
+SIGNIFICANCE = 0.99  # the input rig is rejected when its gauge-free chi-square exceeds this quantile
+# What the observations must hold to determine a rig (below these calibrate refuses, naming which)
+MIN_FRAMES = 10  # frames with a marker seen by 2 or more cameras (the held-out check cuts them into blocks)
+MIN_CAMERA_POINTS = 10  # points a camera shares with the others (a pose has 6 unknowns, a point gives 2 equations)
+LINE_RATIO = 0.02  # points whose spread across their main axis is below this fraction of the spread along it
+EQUATIONS_PER_UNKNOWN = 2  # equations beyond the points' own per unknown of the rig (an a-posteriori sigma needs some)
 
 
 @dataclass
@@ -291,19 +292,14 @@ def _residuals_px(rig: Rig, prob: _Problem, xyz: np.ndarray) -> np.ndarray:
     return err
 
 
+
+
 # ==================================================================================================
 # gauge
 # ==================================================================================================
-def _similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: (s, R, t) minimising sum |s R src + t - dst|^2 over points (n, 3)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a**2).sum(-1).mean()) if with_scale else 1.0
-    return s, R, mu_d - s * R @ mu_s
+def _rig_arrays(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world of every camera: R (C, 3, 3), t (C, 3) [m]."""
+    return np.stack([c.R for c in rig]), np.stack([c.tvec for c in rig])
 
 
 def _transform_rig(rig: Rig, s: float, R: np.ndarray, t: np.ndarray) -> Rig:
@@ -316,6 +312,29 @@ def _transform_rig(rig: Rig, s: float, R: np.ndarray, t: np.ndarray) -> Rig:
     return Rig(out)
 
 
+def _scale_joint(cov: np.ndarray, s: float) -> np.ndarray:
+    """A joint rig covariance (6C, 6C) after a world similarity of scale s (translations scale by s)."""
+    d = np.tile(np.r_[1.0, 1.0, 1.0, s, s, s], len(cov) // 6)
+    return cov * np.outer(d, d)
+
+
+def _with_covariances(rig: Rig, cov: np.ndarray, fixed: list[int]) -> Rig:
+    """Cameras carrying their 6x6 blocks of a joint covariance (6C, 6C); ``fixed`` cameras carry none.
+
+    A block with a direction of (numerically) zero variance (COLMAP's scale gauge, or a 2-camera rig's
+    gauge-free covariance) gets GAUGE_FLOOR_M^2 added on its diagonal so that a prior can invert it.
+    """
+    cams = []
+    for c, cam in enumerate(rig):
+        block = None
+        if c not in fixed:
+            block = 0.5 * (cov[6 * c:6 * c + 6, 6 * c:6 * c + 6] + cov[6 * c:6 * c + 6, 6 * c:6 * c + 6].T)
+            if np.linalg.eigvalsh(block).min() < GAUGE_FLOOR_M**2:
+                block = block + GAUGE_FLOOR_M**2 * np.eye(6)
+        cams.append(Camera(cam.name, cam.size_wh, cam.K, cam.dist, cam.rvec, cam.tvec, block))
+    return Rig(cams, world_mirror=rig.world_mirror)
+
+
 def _wand_lengths(rig: Rig, dense: DenseObservations, wand: Wand, sigma_px: float) -> np.ndarray:
     """Triangulated wand length on every frame where both ends have >= 2 views, (n,) [m]."""
     ia, ib = dense.markers.index(wand.end_a), dense.markers.index(wand.end_b)
@@ -324,6 +343,67 @@ def _wand_lengths(rig: Rig, dense: DenseObservations, wand: Wand, sigma_px: floa
     xyz, _ = triangulate(rig, sub, sigma_px)
     d = np.linalg.norm(xyz[:, 0] - xyz[:, 1], axis=-1)
     return d[np.isfinite(d)]
+
+
+@dataclass
+class _Gauged:
+    """The refined rig in its final gauge, with its joint pose covariance there (6C, 6C)."""
+
+    rig: Rig
+    cov: np.ndarray | None
+    scale: dict
+    lever_m: float  # the similarity fit's lever arm [m] (batgraph.geometry.gauge)
+
+
+def _apply_gauge(fit: _Fit, rig_in: Rig, dense: DenseObservations, wand: Wand | None, gauge_name: str,
+                 ref: int, sigma: float) -> _Gauged:
+    """Move the bundle adjustment's rig (reference camera held, COLMAP's scale) into the chosen gauge."""
+    rig, cov = fit.rig, fit.cov
+    R_in, t_in = _rig_arrays(rig_in)
+    lever = rig_gauge.default_lever_m(np.array([c.center_world for c in rig_in]))
+    info: dict = {}
+    if wand is not None:
+        lengths = _wand_lengths(rig, dense, wand, sigma)
+        if len(lengths) == 0:
+            raise InputError(f"calibrate: the wand ends {wand.end_a!r}, {wand.end_b!r} are never both triangulated")
+        s_w = wand.length_m / float(np.median(lengths))
+        info = {"source": "wand", "wand_length_m": wand.length_m, "n_wand_frames": int(len(lengths)),
+                "median_length_before_m": float(np.median(lengths))}
+    if gauge_name == "input":
+        if wand is not None:  # the wand's scale, then the rigid fit to the input
+            rig, cov = _transform_rig(rig, s_w, np.eye(3), np.zeros(3)), None if cov is None else _scale_joint(cov, s_w)
+        s, R, t = rig_gauge.fit_similarity(*_rig_arrays(rig), R_in, t_in, lever_m=lever, with_scale=wand is None)
+        rig = _transform_rig(rig, s, R, t)
+        if cov is not None:
+            P = rig_gauge.gauge_projection(*_rig_arrays(rig), lever)
+            cov = P @ _scale_joint(cov, s) @ P.T
+        if wand is None:
+            info = {"source": "input calibration (similarity fit over camera centres and orientations)"}
+        info["scale_applied"] = float(s) * (s_w if wand is not None else 1.0)
+        fixed = []
+    else:
+        c_ref = rig[ref].center_world
+        if wand is not None:
+            s = s_w
+        else:
+            rel_out = np.array([c.center_world for c in rig]) - c_ref
+            rel_in = np.array([c.center_world for c in rig_in]) - rig_in[ref].center_world
+            if np.linalg.norm(rel_in, axis=1).max() < 1e-9:
+                d = np.linalg.norm(rel_out, axis=1)
+                s = 1.0 / d[d > 0].min()
+                info = {"source": "arbitrary (input camera centres coincide; nearest camera at 1 unit)"}
+            else:
+                s = float((rel_out * rel_in).sum() / (rel_out**2).sum())
+                info = {"source": "input calibration (least squares over camera centres)"}
+        rig = _transform_rig(rig, s, np.eye(3), (1 - s) * c_ref)  # about the reference camera: it keeps its pose
+        cov = None if cov is None else _scale_joint(cov, s)
+        info["scale_applied"] = float(s)
+        fixed = [ref]
+    if wand is not None:
+        info["median_length_after_m"] = float(np.median(_wand_lengths(rig, dense, wand, sigma)))
+    if cov is not None:
+        rig = _with_covariances(rig, cov, fixed)
+    return _Gauged(rig, cov, info, lever)
 
 
 # ==================================================================================================
@@ -382,13 +462,72 @@ def _initial_rig_from_scratch(rig: Rig, dense: DenseObservations, ref: int, sigm
 
 
 # ==================================================================================================
+# what the observations can determine
+# ==================================================================================================
+def _spread(xyz: np.ndarray) -> np.ndarray:
+    """Principal standard deviations (3,) [m] of points (n, 3), largest first."""
+    return np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(xyz.T)), 0, None))[::-1] if len(xyz) > 2 else np.zeros(3)
+
+
+def _near_line(xyz: np.ndarray) -> tuple[bool, float, float]:
+    """(spread across < LINE_RATIO x spread along, across [m], along [m]) of points (n, 3)."""
+    sd = _spread(xyz)
+    return bool(sd[1] < LINE_RATIO * sd[0]) or sd[0] == 0, float(sd[1]), float(sd[0])
+
+
+def undetermined_reason(rig: Rig, dense: DenseObservations, xyz: np.ndarray, n_unknown: int,
+                        intrinsics: bool = False) -> str | None:
+    """Why the observations cannot determine the rig, in one line, or None when they can.
+
+    xyz: the points triangulated with the starting rig (F, M, 3) [m], NaN where < 2 views.
+    n_unknown: the rig's unknowns beyond the gauge (6C - 7 poses, plus intrinsics when refined).
+    Too few frames (< MIN_FRAMES with a point), too few points (their equations beyond their own
+    positions, sum of 2 k - 3 over points seen k times, fewer than EQUATIONS_PER_UNKNOWN per unknown),
+    points near a line (rotations about it are unobserved), with ``intrinsics`` (focal lengths or lens
+    refined) points near a plane (thinner than LINE_RATIO of their extent: focal length trades against
+    distance), a camera sharing fewer than MIN_CAMERA_POINTS points with the others or seeing them near
+    a line. Poses alone are determined by points in a plane.
+    """
+    seen = dense.seen
+    ok = np.isfinite(xyz[..., 0]) & (seen.sum(0) >= 2)
+    n_frames = int(ok.any(1).sum())
+    if n_frames < MIN_FRAMES:
+        return (f"too few frames: {n_frames} frames have a marker seen by 2 or more cameras "
+                f"(at least {MIN_FRAMES} are needed)")
+    k = seen.sum(0)[ok]
+    eqs = int((2 * k - 3).sum())
+    if eqs < EQUATIONS_PER_UNKNOWN * n_unknown:
+        return (f"too few points: {int(ok.sum())} points seen by 2 or more cameras give {eqs} equations beyond "
+                f"their own positions for the rig's {n_unknown} unknowns (at least "
+                f"{EQUATIONS_PER_UNKNOWN * n_unknown} are needed)")
+    line, across, along = _near_line(xyz[ok])
+    if line:
+        return (f"degenerate motion: the points lie near a line ({1000 * across:.1f} mm across, {1000 * along:.0f} mm "
+                "along it): rotations about it are not observed")
+    sd = _spread(xyz[ok])
+    if intrinsics and sd[2] < LINE_RATIO * sd[0]:
+        return (f"degenerate motion: the points lie near a plane ({1000 * sd[2]:.1f} mm thick, {1000 * sd[0]:.0f} mm "
+                "across): focal lengths and lens distortion are not observed (refine the poses only)")
+    for c, cam in enumerate(rig):
+        mine = ok & seen[c]
+        if mine.sum() < MIN_CAMERA_POINTS:
+            return (f"camera {cam.name!r} sees too little: {int(mine.sum())} points that other cameras also see "
+                    f"(at least {MIN_CAMERA_POINTS} are needed)")
+        line, across, along = _near_line(xyz[mine])
+        if line:
+            return (f"camera {cam.name!r} sees too little: its {int(mine.sum())} points lie near a line "
+                    f"({1000 * across:.1f} mm across, {1000 * along:.0f} mm along it)")
+    return None
+
+
+# ==================================================================================================
 # one adjustment, the held-out check and the verdict
 # ==================================================================================================
 @dataclass
 class _Fit:
     """One bundle adjustment of a rig on some observations (before the gauge's scale)."""
 
-    rig: Rig  # with pose_cov where computed
+    rig: Rig  # poses only (covariances: cov)
     prob: _Problem
     used: np.ndarray  # (n_obs,) inliers that are in the final adjustment
     err: np.ndarray  # (n_obs,) residual [px] under ``rig``
@@ -397,6 +536,42 @@ class _Fit:
     rounds: list
     fit_px: list
     termination: str
+    cov: np.ndarray | None = None  # (6C, 6C) joint pose covariance, GTSAM tangents; zero for held coordinates
+
+
+def _joint_covariance(cov, rig: Rig, ref: int, t_start: dict, var_px2: float) -> np.ndarray | None:
+    """pycolmap's pose covariance -> the joint (6C, 6C) covariance of the rig in GTSAM's tangents.
+
+    The reference camera is constant (zero rows); the camera holding COLMAP's scale gauge has one
+    translation coordinate constant (COLMAP does not say which: the one that did not move at all).
+    """
+    C = len(rig)
+    free = []
+    for c, cam in enumerate(rig):
+        block = cov.get_cam_cov_from_world(_image_id(c, ref, C))
+        if block is None:
+            free.append([])
+        elif block.shape == (6, 6):
+            free.append(list(range(6)))
+        else:
+            fixed = 3 + int(np.argmin(np.abs(cam.tvec - t_start[c])))
+            free.append([d for d in range(6) if d != fixed])
+    full = np.zeros((6 * C, 6 * C))
+    for a in range(C):
+        for b in range(a, C):
+            if not free[a] or not free[b]:
+                continue
+            x = cov.get_cam_cross_cov_from_world(_image_id(a, ref, C), _image_id(b, ref, C))
+            if x is None or x.shape != (len(free[a]), len(free[b])):
+                return None
+            ia, ib = 6 * a + np.array(free[a]), 6 * b + np.array(free[b])
+            full[np.ix_(ia, ib)] = x
+            full[np.ix_(ib, ia)] = x.T
+    J = np.zeros((6 * C, 6 * C))
+    for c, cam in enumerate(rig):
+        J[6 * c:6 * c + 6, 6 * c:6 * c + 6] = pose.pose_cov_jacobian(cam.R, cam.tvec)
+    out = var_px2 * J @ full @ J.T
+    return 0.5 * (out + out.T)
 
 
 def _adjust(rig0: Rig, dense: DenseObservations, ref: int, sigma: float, *, refine_intrinsics: bool,
@@ -454,81 +629,86 @@ def _adjust(rig0: Rig, dense: DenseObservations, ref: int, sigma: float, *, refi
         n_params += 4 * C
     dof = max(2 * int(used.sum()) - n_params, 1)
     var_px2 = float(np.nansum(err[used] ** 2) / dof)
-
-    cams = []
-    for c, cam in enumerate(rig_ba):
-        pc = None if cov is None else cov.get_cam_cov_from_world(_image_id(c, ref, C))
-        full = None
-        if pc is not None and pc.shape == (6, 6):
-            full = pose_cov_gtsam_from_colmap(pc * var_px2, cam.R, cam.tvec)
-        elif pc is not None and pc.shape == (5, 5):
-            # the camera holding the scale gauge: its fixed translation coordinate has zero variance
-            # COLMAP does not say which coordinate it held: it is the one that did not move at all
-            fixed = 3 + int(np.argmin(np.abs(cam.tvec - t_start[c])))
-            free = [d for d in range(6) if d != fixed]
-            cc = np.zeros((6, 6))
-            cc[np.ix_(free, free)] = pc * var_px2
-            cc[fixed, fixed] = GAUGE_FLOOR_M**2  # keeps the prior invertible; see GAUGE_FLOOR_M
-            full = pose_cov_gtsam_from_colmap(cc, cam.R, cam.tvec)
-        cams.append(Camera(cam.name, cam.size_wh, cam.K, cam.dist, cam.rvec, cam.tvec, full))
-    return _Fit(Rig(cams), prob, used, err, int((ids >= 0).sum()), var_px2, rounds, fit_px,
-                str(summary.termination_type))
+    joint = None if cov is None else _joint_covariance(cov, rig_ba, ref, t_start, var_px2)
+    if covariance and joint is None:
+        raise InputError("calibrate: the observations do not determine the rig (the bundle adjustment's "
+                         "covariance is singular)")
+    return _Fit(rig_ba, prob, used, err, int((ids >= 0).sum()), var_px2, rounds, fit_px,
+                str(summary.termination_type), joint)
 
 
 def _subset_frames(dense: DenseObservations, sel: np.ndarray) -> DenseObservations:
     return DenseObservations(dense.cameras, dense.frames[sel], dense.markers, dense.uv_px[:, sel], dense.weight[:, sel])
 
 
+def _prediction_errors(rig: Rig, held: DenseObservations, sigma: float) -> tuple[np.ndarray, np.ndarray, str]:
+    """Each observation predicted from the others: (|error| px (n,), frame index (n,), how).
+
+    Every camera in turn is left out, the points it sees are triangulated by the other cameras (those
+    seen by 2 or more of them) and projected into it. Where no point has 2 other views (2-camera rigs),
+    every point is triangulated by all its views and reprojected instead (how = "all cameras").
+    """
+    seen = held.seen
+    n_views = seen.sum(0)
+    errs, frames = [], []
+    if (seen & (n_views >= 3)[None]).any():
+        for c, cam in enumerate(rig):
+            use = seen[c] & (n_views >= 3)
+            if not use.any():
+                continue
+            uv = held.uv_px.copy()
+            uv[c] = np.nan
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xyz, _ = triangulate(rig, DenseObservations(held.cameras, held.frames, held.markers, uv,
+                                                            held.weight), sigma)
+            errs.append(np.linalg.norm(cam.project(xyz[use]) - held.uv_px[c][use], axis=-1))
+            frames.append(np.nonzero(use)[0])
+        return np.concatenate(errs), np.concatenate(frames), "camera left out"
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xyz, _ = triangulate(rig, held, sigma)
+    for c, cam in enumerate(rig):
+        use = seen[c] & (n_views >= 2)
+        errs.append(np.linalg.norm(cam.project(xyz[use]) - held.uv_px[c][use], axis=-1))
+        frames.append(np.nonzero(use)[0])
+    return np.concatenate(errs), np.concatenate(frames), "all cameras"
+
+
 def _held_out_check(rig0: Rig, dense: DenseObservations, ref: int, sigma: float, fraction: float,
                     **adjust) -> dict:
-    """Refine on most frames, then compare how the starting rig and the refined one explain the others.
+    """Cross-validation over blocks of frames: each fold refined on the others, then predicted.
 
-    Frames are cut into 20 consecutive blocks and every ``round(1 / fraction)``-th block is held out
-    (neighbouring frames see nearly the same points, so single frames would not be held out really).
-    Each rig triangulates the held-out points itself (all cameras) and its reprojection RMS is taken over
-    the observations that the refined rig does not reject as outliers (the same set for both).
-    Returns {} when there are too few frames.
+    Frames are cut into 20 consecutive blocks (neighbouring frames see nearly the same points, so single
+    frames would not be held out really) and dealt into round(1 / fraction) folds; every fold is predicted
+    by the starting rig and by a rig refined on the other folds (:func:`_prediction_errors`). The RMS is
+    taken over the observations the refined rigs do not call outliers (robust threshold on their own
+    prediction errors), the same set for both. Returns {} when there are too few frames.
     """
     F = len(dense.frames)
-    step = max(2, round(1 / fraction))
-    block = np.minimum(np.arange(F) * 20 // max(F, 1), 19)
-    test = block % step == step - 1
-    if test.sum() < 2 or (~test).sum() < 2:
+    n_folds = max(2, round(1 / fraction))
+    fold = np.minimum(np.arange(F) * 20 // max(F, 1), 19) % n_folds
+    e_in, e_ref, how = [], [], ""
+    for k in range(n_folds):
+        test = fold == k
+        if test.sum() < 2 or (~test).sum() < 2:
+            continue
+        try:
+            fit = _adjust(rig0, _subset_frames(dense, ~test), ref, sigma, covariance=False, progress=False, **adjust)
+        except InputError:
+            continue
+        held = _subset_frames(dense, test)
+        a, _, how = _prediction_errors(rig0, held, sigma)
+        b, _, _ = _prediction_errors(fit.rig, held, sigma)
+        e_in.append(a)
+        e_ref.append(b)
+    if not e_in:
         return {}
-    try:
-        fit = _adjust(rig0, _subset_frames(dense, ~test), ref, sigma, covariance=False, progress=False, **adjust)
-    except InputError:
+    a, b = np.concatenate(e_in), np.concatenate(e_ref)
+    fin = np.isfinite(a) & np.isfinite(b)
+    if not fin.any():
         return {}
-    held = _subset_frames(dense, test)
-    errs = []
-    for rig in (rig0, fit.rig):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xyz, _ = triangulate(rig, held, sigma)
-        prob, xyz_p = _problem_from_dense(held, xyz, None)
-        errs.append(_residuals_px(rig, prob, xyz_p))
-    sigma_hat = fit.rounds[-1]["sigma_hat_px"] if fit.rounds else sigma
-    ok = np.isfinite(errs[0]) & np.isfinite(errs[1]) & (errs[1] <= math.sqrt(CHI2_2DOF_999) * sigma_hat)
-    if not ok.any():
-        return {}
-    return {"fraction": float(test.mean()), "n_frames": int(test.sum()), "n_observations": int(ok.sum()),
-            "rms_input_px": _rms(errs[0][ok]), "rms_refined_px": _rms(errs[1][ok])}
-
-
-def _pose_change(cam_in: Camera, cam_out: Camera) -> tuple[float, float, float, float]:
-    """(moved [m], turned [rad], position Mahalanobis^2 and its dof) of cam_in against cam_out's covariance.
-
-    The covariance is GTSAM's, of world_from_cam: the translation block is the centre's in camera axes.
-    The direction held by COLMAP's scale gauge (variance at GAUGE_FLOOR_M) is left out.
-    """
-    moved = float(np.linalg.norm(cam_in.center_world - cam_out.center_world))
-    turned = float(pose.rotation_angle(cam_in.R, cam_out.R))
-    if cam_out.pose_cov is None:
-        return moved, turned, float("nan"), 0
-    d = cam_out.R @ (cam_in.center_world - cam_out.center_world)
-    w, v = np.linalg.eigh(cam_out.pose_cov[3:, 3:])
-    keep = w > (10 * GAUGE_FLOOR_M) ** 2
-    z = (v[:, keep].T @ d) / np.sqrt(w[keep])
-    return moved, turned, float(z @ z), int(keep.sum())
+    ok = fin & (b <= math.sqrt(CHI2_2DOF_999) * float(np.median(b[fin])) / RAYLEIGH_MEDIAN)
+    return {"folds": len(e_in), "fraction": 1.0 / n_folds, "n_frames": F, "n_observations": int(ok.sum()),
+            "prediction": how, "rms_input_px": _rms(a[ok]), "rms_refined_px": _rms(b[ok])}
 
 
 def _r95(cov: np.ndarray | None) -> tuple[float, float]:
@@ -540,91 +720,52 @@ def _r95(cov: np.ndarray | None) -> tuple[float, float]:
             k * math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
 
 
-def _assess(rig_start: Rig, rig_out: Rig, metric: bool, held_out: dict, initial: str) -> dict:
-    """Whether the refinement is determined by the observations, and why not (see :func:`calibrate_session`)."""
-    reasons = []
+def _assess(rig_start: Rig, g: _Gauged, metric: bool, held_out: dict, initial: str, arbitrary_scale: bool) -> dict:
+    """The verdict on the refinement (see :func:`calibrate_session`) and its figures."""
+    from scipy.stats import chi2 as chi2_dist
+
+    rig_out = g.rig
     cams = {}
-    worst_in_pos = worst_in_rot = worst_out_pos = worst_out_rot = 0.0
     for ci, co in zip(rig_start, rig_out, strict=True):
-        moved, turned, d2, dof = _pose_change(ci, co)
         r95_pos, r95_rot = _r95(co.pose_cov)
-        cams[co.name] = {"moved_mm": 1000 * moved, "turned_deg": math.degrees(turned),
-                         "r95_position_mm": 1000 * r95_pos, "r95_rotation_deg": math.degrees(r95_rot),
-                         "position_mahalanobis2": d2, "position_dof": dof}
-        # the input's error is at least |change| - r95 (triangle inequality), the refinement's at most r95
-        worst_in_pos, worst_out_pos = max(worst_in_pos, moved - r95_pos), max(worst_out_pos, r95_pos)
-        worst_in_rot, worst_out_rot = max(worst_in_rot, turned - r95_rot), max(worst_out_rot, r95_rot)
-    if held_out and held_out["rms_refined_px"] > (HELD_OUT_GAIN if not metric else 1.0) * held_out["rms_input_px"]:
-        reasons.append(f"on the {held_out['n_frames']} held-out frames the refined rig predicts the observations "
-                       f"no better than the input ({held_out['rms_refined_px']:.2f} px vs "
-                       f"{held_out['rms_input_px']:.2f} px RMS)")
-    if not metric:
-        if initial == "scratch":
-            reasons.append("no metric reference: started from scratch without a wand, the scale is arbitrary")
-        elif not (worst_in_pos > worst_out_pos and worst_in_rot > worst_out_rot):
-            reasons.append(
-                "no metric reference (wand), and the pose covariances do not show the refinement to be better than "
-                f"the input: a camera moved by at most {_max_of(cams, 'moved_mm'):.2f} mm and "
-                f"{_max_of(cams, 'turned_deg'):.3f} deg, while the refined poses are known to "
-                f"{1000 * worst_out_pos:.2f} mm and {math.degrees(worst_out_rot):.3f} deg (95 %)")
-    return {"determined": not reasons, "reasons": reasons, "metric_reference": metric, "held_out": held_out,
-            "cameras": cams,
-            "input_error_at_least_mm": 1000 * max(worst_in_pos, 0.0),
-            "input_error_at_least_deg": math.degrees(max(worst_in_rot, 0.0)),
-            "refined_error_at_most_mm": 1000 * worst_out_pos,
-            "refined_error_at_most_deg": math.degrees(worst_out_rot)}
-
-
-def _max_of(cams: dict, key: str) -> float:
-    return max((c[key] for c in cams.values()), default=0.0)
+        cams[co.name] = {"moved_mm": 1000 * float(np.linalg.norm(ci.center_world - co.center_world)),
+                         "turned_deg": _angle_deg(ci.R, co.R),
+                         "r95_position_mm": 1000 * r95_pos, "r95_rotation_deg": math.degrees(r95_rot)}
+    out = {"metric_reference": metric, "held_out": held_out, "cameras": cams, "determined": True, "reasons": []}
+    if arbitrary_scale:
+        out.update(determined=False, significant=None,
+                   reasons=["no metric reference: started from scratch without a wand, the scale is arbitrary"])
+        return out
+    test = {}
+    if g.cov is not None and initial == "input":
+        R_out, t_out = _rig_arrays(rig_out)
+        delta = rig_gauge.rig_difference(*_rig_arrays(rig_start), R_out, t_out)
+        x2, dof = rig_gauge.gauge_free_chi2(delta, g.cov, R_out, t_out, g.lever_m)
+        test = {"chi2": x2, "dof": dof, "level": SIGNIFICANCE, "bound": float(chi2_dist.ppf(SIGNIFICANCE, dof)),
+                "p_value": float(chi2_dist.sf(x2, dof))}
+    out["poses"] = test
+    reasons = []
+    if held_out and held_out["rms_refined_px"] >= held_out["rms_input_px"]:
+        reasons.append(f"the refined rigs predict the held-out frames no better than the input ("
+                       f"{held_out['rms_refined_px']:.2f} px vs {held_out['rms_input_px']:.2f} px RMS, "
+                       f"{held_out['prediction']})")
+    if test and not metric and test["chi2"] <= test["bound"]:
+        reasons.append(f"the input rig lies within the refinement's noise (gauge-free chi-square {test['chi2']:.1f} "
+                       f"for {test['dof']} degrees of freedom, {100 * SIGNIFICANCE:.0f} % bound {test['bound']:.1f})")
+    out["significant"] = not reasons
+    out["reasons"] = reasons
+    return out
 
 
 # ==================================================================================================
 # the public entry points
 # ==================================================================================================
-def calibrate_session(
-    session: Session, *, refine_intrinsics: bool = False, refine_distortion: bool = False,
-    gauge: str = "camera0", ref_camera: int = 0, wand: Wand | tuple[str, str, float] | None = None,
-    initial: str = "auto", max_iterations: int = 10, max_points: int | None = 20000,
-    progress: bool = True, hold_out: float = 0.2, keep_input_if_undetermined: bool = True,
-) -> tuple[Rig, dict]:
-    """Refine the session's rig by bundle adjustment of all cameras at once.
-
-    refine_intrinsics: also refine focal lengths and principal points (per camera).
-    refine_distortion: also refine distortion (refitted to the 5-parameter model, see module doc).
-    gauge: "camera0" or "input" (see module docstring); ref_camera: index of the reference camera.
-    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present.
-    initial: "input" starts from the session's calibration, "scratch" from the essential matrix
-        and PnP (intrinsics from the session), "auto" = "scratch" when a wand is given, else "input".
-    max_iterations: outlier-rejection rounds (each a full adjustment).
-    max_points: at most this many (frame, marker) points (evenly thinned), None = all.
-    hold_out: fraction of frames (in blocks) held out of a second adjustment to check that the
-        refinement predicts observations it did not see better than the starting rig; 0 skips it.
-    keep_input_if_undetermined: when the refinement is not determined (see below) and it started from
-        the input rig, return the input rig unchanged (``report["kept_input"]``); False returns the
-        refined rig anyway.
-
-    Determined (``report["assessment"]``): with a wand (metric reference), when the refined rig predicts
-    the held-out frames at least as well as the starting rig. Without one, the scale and the world frame
-    come from the input rig, which the images cannot check, so the refinement must also show that it is
-    better than the input: it must predict the held-out frames at least 10 % better (RMS), and the
-    largest change of a camera (minus its 95 % radius from the pose covariance: a lower bound of the
-    input's error) must exceed the largest 95 % radius of a refined camera (an upper bound of the
-    refinement's error), for positions and for rotations. From scratch without a wand the scale is
-    arbitrary: never determined. These bounds are conditional on the gauge: with ``gauge="camera0"``
-    the reference camera is taken as exact.
-
-    Returns (rig, report). rig: the refined rig with pose_cov (6, 6) per camera, or the input rig when it
-    was kept. report has "cameras" (per camera of the refined rig: rms_before_px, rms_after_px,
-    median_after_px, n_obs, n_used, n_rejected, moved_mm, turned_deg, and with a true rig error_mm /
-    error_deg, input_error_mm / input_error_deg), "pixel_sigma_px" (a-posteriori), "gauge", "scale",
-    "rounds", "n_points", "assessment" (determined, reasons, held_out, per-camera bounds) and
-    "kept_input".
-    """
-    if gauge not in GAUGES:
-        raise InputError(f"calibrate: gauge must be one of {', '.join(GAUGES)}, got {gauge!r}")
-    rig_in = session.rig
-    C = len(rig_in)
+def _check_arguments(session: Session, gauge_name: str, ref_camera: int, wand, initial: str,
+                     hold_out: float) -> tuple[Wand | None, str, str]:
+    """Validate calibrate_session's arguments; resolve the wand, initial="auto" and gauge="auto"."""
+    if gauge_name not in GAUGES:
+        raise InputError(f"calibrate: gauge must be one of {', '.join(GAUGES)}, got {gauge_name!r}")
+    C = len(session.rig)
     if C < 2:
         raise InputError("calibrate: at least 2 cameras are needed")
     if not 0 <= ref_camera < C:
@@ -639,9 +780,51 @@ def calibrate_session(
         raise InputError(f"calibrate: initial must be 'auto', 'input' or 'scratch', got {initial!r}")
     if not 0 <= hold_out < 1:
         raise InputError(f"calibrate: hold_out must be in [0, 1), got {hold_out}")
+    centres = np.array([c.center_world for c in session.rig])
+    no_poses = np.linalg.norm(centres - centres[0], axis=1).max() < 1e-9
+    if gauge_name == "auto":
+        gauge_name = "camera0" if wand is not None or initial == "scratch" else "input"
+    if gauge_name == "input" and no_poses:
+        raise InputError("calibrate: gauge 'input' fits the refined rig to the input camera poses, but every input "
+                         "camera is at the same place (use gauge 'camera0')")
+    return wand, initial, gauge_name
+
+
+def calibrate_session(
+    session: Session, *, refine_intrinsics: bool = False, refine_distortion: bool = False,
+    gauge: str = "auto", ref_camera: int = 0, wand: Wand | tuple[str, str, float] | None = None,
+    initial: str = "auto", max_iterations: int = 10, max_points: int | None = 20000,
+    progress: bool = True, hold_out: float = 0.2, keep_input_if_undetermined: bool = True,
+) -> tuple[Rig, dict]:
+    """Refine the session's rig by bundle adjustment of all cameras at once, and judge the refinement.
+
+    refine_intrinsics: also refine focal lengths and principal points (per camera).
+    refine_distortion: also refine distortion (refitted to the 5-parameter model, see module doc).
+    gauge: "auto", "input" or "camera0" (module docstring); ref_camera: index of the reference camera
+        (held fixed by the adjustment; with "camera0" it keeps its input pose).
+    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present.
+    initial: "input" starts from the session's calibration, "scratch" from the essential matrix
+        and PnP (intrinsics from the session), "auto" = "scratch" when a wand is given, else "input".
+    max_iterations: outlier-rejection rounds; max_points: at most this many (frame, marker) points.
+    hold_out: 1 / the number of folds of the held-out check (blocks of frames); 0 skips it.
+    keep_input_if_undetermined: False returns the refinement even when the verdict keeps the input.
+
+    Raises InputError (one line) when the observations cannot determine the rig (undetermined_reason).
+    The verdict (``report["assessment"]``): with a wand, the refinement is written when it predicts the
+    held-out frames at least as well as the starting rig. Without one, starting from the input rig, it is
+    written when both (a) the input rig is outside the refinement's noise: its gauge-free chi-square under
+    the refined poses' covariance exceeds the SIGNIFICANCE quantile (6C - 7 degrees of freedom), and
+    (b) the refined rigs predict held-out frames (each camera from the others) better than the input rig;
+    otherwise the input rig is returned unchanged (``report["kept_input"]``). From scratch without a wand
+    and input poses the scale is arbitrary: "determined" is False.
+    Returns (rig, report): the rig with pose_cov (6, 6) per camera (see the gauge), or the input rig.
+    """
+    wand, initial, gauge_name = _check_arguments(session, gauge, ref_camera, wand, initial, hold_out)
+    rig_in = session.rig
+    C = len(rig_in)
+    given = session.pixel_sigma_px
     # the starting noise scale of the robust loss and thresholds: the session's, else 1 px (the bundle
     # adjustment's rounds measure the a-posteriori sigma themselves; the input rig may be far off)
-    given = session.pixel_sigma_px
     sigma = float(np.median(list(given.values()))) if isinstance(given, dict) else float(given or 1.0)
     dense = dense_observations(session)
     if wand is not None:
@@ -649,77 +832,78 @@ def calibrate_session(
             if e not in dense.markers:
                 raise InputError(f"calibrate: wand end {e!r} has no observations")
     rig0 = _initial_rig_from_scratch(rig_in, dense, ref_camera, sigma) if initial == "scratch" else rig_in
+    n_unknown = 6 * C - 7 + (4 * C if refine_intrinsics else 0) + (5 * C if refine_distortion else 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xyz_start, _ = triangulate(rig0, dense, sigma)
+    why = undetermined_reason(rig0, dense, xyz_start, n_unknown, refine_intrinsics or refine_distortion)
+    if why is not None:
+        raise InputError(f"calibrate: the observations cannot determine the rig: {why}")
     adjust = {"refine_intrinsics": refine_intrinsics, "refine_distortion": refine_distortion,
               "max_iterations": max_iterations, "max_points": max_points}
     fit = _adjust(rig0, dense, ref_camera, sigma, progress=progress, **adjust)
-    rig_out, prob, used, err, fit_px = fit.rig, fit.prob, fit.used, fit.err, fit.fit_px
     held_out = _held_out_check(rig0, dense, ref_camera, sigma, hold_out, **adjust) if hold_out > 0 else {}
+    g = _apply_gauge(fit, rig_in, dense, wand, gauge_name, ref_camera, sigma)
 
-    # gauge: origin/axes, then scale
-    scale_info: dict
-    if gauge == "input":
-        s, R, t = _similarity(np.array([c.center_world for c in rig_out]), np.array([c.center_world for c in rig_in]))
-        rig_out = _transform_rig(rig_out, s, R, t)
-    c_ref = rig_out[ref_camera].center_world
-    if wand is not None:
-        lengths = _wand_lengths(rig_out, dense, wand, sigma)
-        if len(lengths) == 0:
-            raise InputError(f"calibrate: the wand ends {wand.end_a!r}, {wand.end_b!r} are never both triangulated")
-        s = wand.length_m / float(np.median(lengths))
-        scale_info = {"source": "wand", "wand_length_m": wand.length_m, "n_wand_frames": int(len(lengths)),
-                      "median_length_before_m": float(np.median(lengths))}
-    else:
-        rel_out = np.array([c.center_world for c in rig_out]) - c_ref
-        rel_in = np.array([c.center_world for c in rig_in]) - rig_in[ref_camera].center_world
-        if np.linalg.norm(rel_in, axis=1).max() < 1e-9:
-            d = np.linalg.norm(rel_out, axis=1)
-            s = 1.0 / d[d > 0].min()
-            scale_info = {"source": "arbitrary (input camera centres coincide; nearest camera at 1 unit)"}
-        else:
-            s = float((rel_out * rel_in).sum() / (rel_out**2).sum())
-            scale_info = {"source": "input calibration (least squares over camera centres)"}
-    if gauge == "camera0" or wand is not None:
-        # scale about the reference camera's centre so that camera keeps its pose
-        rig_out = _transform_rig(rig_out, s, np.eye(3), (1 - s) * c_ref)
-    scale_info["scale_applied"] = float(s)
-    if wand is not None:
-        scale_info["median_length_after_m"] = float(np.median(_wand_lengths(rig_out, dense, wand, sigma)))
-
-    report = _report(session, rig0, rig_out, prob, used, err, dense, sigma)
-    assessment = _assess(rig_in, rig_out, wand is not None, held_out, initial)
-    if gauge == "camera0":
-        assessment["gauge_note"] = (f"camera {rig_in[ref_camera].name!r} is held at its input pose: the bounds take "
-                                    "it as exact (if it is off, every camera is off with it; --gauge input fits the "
-                                    "world frame to all input cameras instead)")
-    kept = not assessment["determined"] and keep_input_if_undetermined and initial == "input"
-    report.update({"gauge": {"origin_axes": gauge, "ref_camera": rig_in[ref_camera].name}, "scale": scale_info,
-                   "initial": initial, "rounds": fit.rounds, "n_points": fit.n_points,
+    report = _report(session, rig0, g.rig, fit, dense, sigma)
+    arbitrary = g.scale["source"].startswith("arbitrary")
+    assessment = _assess(rig_in, g, wand is not None, held_out, initial, arbitrary)
+    if gauge_name == "camera0":
+        assessment["gauge_note"] = (f"camera {rig_in[ref_camera].name!r} is held at its input pose (it carries no "
+                                    "covariance: the others' are relative to it)")
+    kept = (initial == "input" and keep_input_if_undetermined
+            and not (assessment["determined"] and assessment["significant"]))
+    report.update({"gauge": {"origin_axes": gauge_name, "ref_camera": rig_in[ref_camera].name,
+                             "note": gauge_note(gauge_name, rig_in[ref_camera].name, g.scale["source"])},
+                   "scale": g.scale, "initial": initial, "rounds": fit.rounds, "n_points": fit.n_points,
                    "pixel_sigma_px": math.sqrt(fit.var_px2), "refine_intrinsics": refine_intrinsics,
                    "refine_distortion": refine_distortion,
-                   "distortion_refit_max_px": dict(zip(rig_in.names, fit_px, strict=True)),
+                   "distortion_refit_max_px": dict(zip(rig_in.names, fit.fit_px, strict=True)),
                    "ceres_termination": fit.termination,
                    "camera_model": "FULL_OPENCV with k4 = k5 = k6 = 0 (= OpenCV k1 k2 p1 p2 k3)",
                    "assessment": assessment, "kept_input": kept})
-    return (rig_in if kept else rig_out), report
+    return (rig_in if kept else g.rig), report
 
 
-def _report(session: Session, rig_in: Rig, rig_out: Rig, prob: _Problem, used: np.ndarray,
-            err_after: np.ndarray, dense: DenseObservations, sigma: float) -> dict:
+def gauge_note(gauge_name: str, ref_name: str, scale_source: str) -> str:
+    """One sentence for calibration.toml's [metadata]: where the written rig's world frame and scale come from."""
+    if gauge_name == "input":
+        frame = ("world frame and scale fitted to the input calibration (a similarity over every camera's centre and "
+                 "orientation; the images do not observe them)")
+        if scale_source == "wand":
+            frame = "scale from the wand; world frame fitted to the input calibration (rigid, over every camera)"
+        return frame + "; pose_covariance: that fit's degrees of freedom removed (relative to the fitted frame)"
+    return (f"world frame from camera {ref_name!r} held at its input pose; scale: {scale_source}; "
+            f"pose_covariance: relative to camera {ref_name!r}")
+
+
+def _aligned_errors(rig: Rig, truth: Rig) -> list[tuple[float, float]]:
+    """(position [mm], rotation [deg]) error of every camera after a similarity fit of ``rig`` to ``truth``."""
+    s, R, t = rig_gauge.fit_similarity(*_rig_arrays(rig), *_rig_arrays(truth))
+    moved = _transform_rig(Rig([Camera(c.name, c.size_wh, c.K, c.dist, c.rvec, c.tvec) for c in rig]), s, R, t)
+    return [(1000 * float(np.linalg.norm(a.center_world - b.center_world)), _angle_deg(a.R, b.R))
+            for a, b in zip(moved, truth, strict=True)]
+
+
+def _report(session: Session, rig_in: Rig, rig_out: Rig, fit: _Fit, dense: DenseObservations, sigma: float) -> dict:
     """Per-camera figures on the observations used. "before" = the starting rig (input, or the
     from-scratch initialisation) with every point re-triangulated by it; moved/turned are relative
-    to that rig; error_* compare with the session's true rig (simulations)."""
+    to that rig; error_* / input_error_* compare with the session's true rig (simulations) after a
+    similarity fit of each rig to it (what the images can determine)."""
+    prob, used = fit.prob, fit.used
     with np.errstate(divide="ignore", invalid="ignore"):
         xyz_before, _ = triangulate(rig_in, dense, sigma)
     err_before = _residuals_px(rig_in, prob, xyz_before[prob.point_fm[:, 0], prob.point_fm[:, 1]])
     truth = session.true_rig
+    if truth is not None:
+        err_out, err_in = _aligned_errors(rig_out, truth), _aligned_errors(session.rig, truth)
     cams = {}
     for c, (ci, co) in enumerate(zip(rig_in, rig_out, strict=True)):
         sel = prob.cam_idx == c
         u = sel & used
         row = {
             "n_obs": int(sel.sum()), "n_used": int(u.sum()), "n_rejected": int((sel & ~used).sum()),
-            "rms_before_px": _rms(err_before[u]), "rms_after_px": _rms(err_after[u]),
-            "median_after_px": float(np.median(err_after[u])) if u.any() else float("nan"),
+            "rms_before_px": _rms(err_before[u]), "rms_after_px": _rms(fit.err[u]),
+            "median_after_px": float(np.median(fit.err[u])) if u.any() else float("nan"),
             "moved_mm": 1000 * float(np.linalg.norm(co.center_world - ci.center_world)),
             "turned_deg": _angle_deg(co.R, ci.R),
         }
@@ -728,11 +912,8 @@ def _report(session: Session, rig_in: Rig, rig_out: Rig, prob: _Problem, used: n
             row["sd_rotation_deg"] = np.degrees(sd[:3]).tolist()
             row["sd_translation_mm"] = (1000 * sd[3:]).tolist()
         if truth is not None:
-            ct = truth[c]
-            row["error_mm"] = 1000 * float(np.linalg.norm(co.center_world - ct.center_world))
-            row["error_deg"] = _angle_deg(co.R, ct.R)
-            row["input_error_mm"] = 1000 * float(np.linalg.norm(ci.center_world - ct.center_world))
-            row["input_error_deg"] = _angle_deg(ci.R, ct.R)
+            row["error_mm"], row["error_deg"] = err_out[c]
+            row["input_error_mm"], row["input_error_deg"] = err_in[c]
         cams[co.name] = row
     return {"cameras": cams}
 
@@ -762,8 +943,18 @@ def _progress(total: int, show: bool):
     return tqdm(total=total, desc="calibrate (BA rounds)", unit="round", leave=False)
 
 
-def write_calibration(path: str | Path, rig: Rig) -> Path:
-    """Write ``rig`` (with pose covariances) as calibration.toml, atomically. Returns the path."""
+def write_calibration(path: str | Path, rig: Rig, note: str | None = None) -> Path:
+    """Write ``rig`` (with pose covariances) as calibration.toml, atomically; ``note`` goes to
+    ``[metadata] gauge`` (where the world frame, scale and covariances come from). Returns the path."""
     path = Path(path)
-    atomic.write_text(path, calibration_toml(rig))
+    text = calibration_toml(rig)
+    if note:
+        import tomllib
+
+        import tomli_w
+
+        doc = tomllib.loads(text)
+        doc["metadata"]["gauge"] = note
+        text = tomli_w.dumps(doc)
+    atomic.write_text(path, text)
     return path

@@ -451,8 +451,10 @@ def _add_calibrate(sub):
                                    "and write a calibration.toml with pose covariances.")
     p.add_argument("session", metavar="SESSION")
     p.add_argument("--out", help="calibration file to write (default SESSION/out/calibration.toml)")
-    p.add_argument("--gauge", choices=["camera0", "input"], default="camera0",
-                   help="origin and axes from the reference camera (default) or fitted to the input rig")
+    p.add_argument("--gauge", choices=["auto", "input", "camera0"], default="auto",
+                   help="world frame and scale: fitted to the input rig by a similarity over every camera (input; "
+                        "auto without a wand), or the reference camera held at its input pose (camera0; auto with "
+                        "a wand or --from-scratch)")
     p.add_argument("--ref-camera", type=nonnegative_int, default=0, help="index of the reference camera (default 0)")
     p.add_argument("--wand", nargs=3, metavar=("END_A", "END_B", "LENGTH_M"),
                    help="two markers a known distance apart [m] (default: session.toml [wand])")
@@ -461,10 +463,10 @@ def _add_calibrate(sub):
     p.add_argument("--refine-intrinsics", action="store_true", help="also refine focal lengths, principal points")
     p.add_argument("--refine-distortion", action="store_true", help="also refine distortion")
     p.add_argument("--hold-out", type=fraction, default=0.2, metavar="FRACTION",
-                   help="fraction of frames (in blocks) held out to check the refinement on observations it did "
-                        "not see (default 0.2; 0 skips the check)")
+                   help="1 / the number of folds (blocks of frames) of the held-out check: each fold is predicted "
+                        "by a rig refined on the others (default 0.2: 5 folds; 0 skips the check)")
     p.add_argument("--force", action="store_true",
-                   help="write the refined rig even when the checks say the observations do not determine it")
+                   help="write the refined rig even when the verdict keeps the input rig")
     p.add_argument("--quiet", action="store_true", help="no progress bar or table (the verdict and the file "
                                                          "written are still printed)")
     p.set_defaults(func=_cmd_calibrate)
@@ -519,54 +521,54 @@ def _cmd_calibrate(args) -> int:
     verdict = report["assessment"]
     if not args.quiet:
         print("\n".join(calibration_lines(report, session.true_rig is not None)))
-    if not verdict["determined"]:
-        why = "; ".join(verdict["reasons"])
-        explicit = [f for f, on in (("--from-scratch", args.from_scratch), ("--refine-intrinsics",
-                    args.refine_intrinsics), ("--refine-distortion", args.refine_distortion)) if on]
-        if explicit and not args.force:  # the user asked for this refinement: failing is clearer than a copy
-            raise InputError(f"{args.session}: calibrate {' '.join(explicit)}: the observations do not determine the "
-                             f"refinement ({why}); nothing written (give a wand: --wand or session.toml [wand], "
-                             "or --force to write it anyway)")
-        if report["kept_input"]:
-            print(f"batgraph: warning: calibrate kept the input rig, the refinement is not determined: {why} "
-                  "(give a wand: --wand or session.toml [wand]; --force writes the refinement anyway)",
-                  file=sys.stderr)
-        else:
-            print(f"batgraph: warning: the refinement is not determined: {why}", file=sys.stderr)
-    write_calibration(out, rig)
+    why = "; ".join(verdict["reasons"])
+    if not verdict["determined"] and not args.force:
+        raise InputError(f"{args.session}: calibrate: the observations do not determine the rig ({why}); nothing "
+                         "written (give a wand: --wand or session.toml [wand], or --force to write it anyway)")
+    if report["kept_input"]:
+        print(f"batgraph: calibrate kept the input rig: {why} (--force writes the refinement anyway)",
+              file=sys.stderr)
+    elif why:
+        print(f"batgraph: warning: the refinement is written although {why}", file=sys.stderr)
+    write_calibration(out, rig, None if report["kept_input"] else report["gauge"]["note"])
     kept = " (the input rig, unchanged)" if report["kept_input"] else ""
     print(f"wrote {out}{kept}")
     return 0
 
 
 def calibration_lines(report: dict, truth: bool) -> list[str]:
-    """The terminal's calibrate table (the refined rig, per camera) and the checks behind the verdict."""
+    """The terminal's calibrate table (per camera: fit, how far it moved with its 95 % bound) and the verdict."""
     lines = [f"{'camera':<10}{'RMS before px':>14}{'RMS after px':>13}{'used':>8}{'rejected':>9}"
-             f"{'moved mm':>9}{'turned deg':>11}{'r95 mm':>8}{'r95 deg':>8}"
-             + (f"{'error mm':>9}{'error deg':>10}" if truth else "")]
+             f"{'moved mm':>10}{'(95 %)':>8}{'turned deg':>11}{'(95 %)':>8}"
+             + (f"{'error mm':>16}{'error deg':>16}" if truth else "")]
     a = report["assessment"]
     for name, c in report["cameras"].items():
         b = a["cameras"].get(name, {})
         line = (f"{name:<10}{c['rms_before_px']:>14.2f}{c['rms_after_px']:>13.2f}{c['n_used']:>8}"
-                f"{c['n_rejected']:>9}{c['moved_mm']:>9.2f}{c['turned_deg']:>11.3f}"
-                f"{b.get('r95_position_mm', 0.0):>8.2f}{b.get('r95_rotation_deg', 0.0):>8.3f}")
+                f"{c['n_rejected']:>9}{b.get('moved_mm', c['moved_mm']):>10.2f}{b.get('r95_position_mm', 0.0):>8.2f}"
+                f"{b.get('turned_deg', c['turned_deg']):>11.3f}{b.get('r95_rotation_deg', 0.0):>8.3f}")
         if truth and c.get("error_mm") is not None:
-            line += f"{c['error_mm']:>9.2f}{c['error_deg']:>10.3f}"
+            line += (f"{c['input_error_mm']:>8.2f} ->{c['error_mm']:>6.2f}"
+                     f"{c['input_error_deg']:>8.3f} ->{c['error_deg']:>6.3f}")
         lines.append(line)
-    scale = report["scale"]["source"]
-    lines.append(f"scale: {scale}" + ("" if a["metric_reference"] else " (not observed by the images)"))
-    if a.get("gauge_note"):
-        lines.append(f"gauge: {a['gauge_note']}")
+    lines.append("moved / turned: the written rig against the input; (95 %): the refined pose's 95 % radius"
+                 + ("; error: input -> refined against the true rig after a similarity fit" if truth else ""))
+    lines.append(f"frame: {report['gauge']['note']}")
     h = a.get("held_out") or {}
     if h:
-        lines.append(f"held-out check: refined on the other frames, {h['n_frames']} frames "
-                     f"({100 * h['fraction']:.0f} %) predicted with RMS {h['rms_refined_px']:.2f} px "
-                     f"(input rig: {h['rms_input_px']:.2f} px)")
-    lines.append(f"bounds: input off by at least {a['input_error_at_least_mm']:.2f} mm / "
-                 f"{a['input_error_at_least_deg']:.3f} deg; refinement within {a['refined_error_at_most_mm']:.2f} mm "
-                 f"/ {a['refined_error_at_most_deg']:.3f} deg (95 %, per camera)")
-    lines.append("verdict: " + ("the refinement is determined" if a["determined"] else
-                                "not determined: " + "; ".join(a["reasons"])))
+        lines.append(f"held-out check: {h['folds']} folds of frames, each predicted ({h['prediction']}) by a rig "
+                     f"refined on the others: RMS {h['rms_refined_px']:.2f} px (input rig: {h['rms_input_px']:.2f} px, "
+                     f"{h['n_observations']} observations)")
+    t = a.get("poses") or {}
+    if t:
+        lines.append(f"input vs refinement: gauge-free chi-square {t['chi2']:.1f} for {t['dof']} degrees of freedom "
+                     f"({100 * t['level']:.0f} % bound {t['bound']:.1f})")
+    if not a["determined"]:
+        lines.append("verdict: not determined: " + "; ".join(a["reasons"]))
+    elif report["kept_input"]:
+        lines.append("verdict: the input rig is kept: " + "; ".join(a["reasons"]))
+    else:
+        lines.append("verdict: the refinement is written" + (" (forced)" if a["reasons"] else ""))
     return lines
 
 

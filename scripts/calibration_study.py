@@ -1,0 +1,197 @@
+#!/usr/bin/env python3
+"""`calibrate` without a wand, measured end to end through the command line on scenes with a known rig.
+
+Each scene: 5 cameras, 72 frames, 14 markers, 1 px noise, cameras 2-5 of the written calibration turned
+by 0.5 deg and shifted by 5 mm (``batgraph.wingbeat`` with ``batgraph.simulate.perturb_rig``, and
+``simulate_flight``). For each: `batgraph calibrate S --out refined.toml`, then
+`batgraph reconstruct S --calibration X --methods smoother` with X = the written (wrong) calibration, the
+refined one and the true one; the smoother's RMSE on observed points against truth.csv. The refined rig is
+first moved onto the true rig by the similarity fit over camera centres and orientations that
+``batgraph.geometry.gauge`` defines (images cannot observe the world frame and scale); "aligned pts" moves
+the smoother's observed points onto the truth by a similarity as well. Pose errors: every camera of a rig
+after the same similarity fit to the true rig. The same with the true rig as the written calibration
+(an exact input must not be made worse). Prints markdown tables; takes ~25 min on 2 cores.
+
+    python scripts/calibration_study.py [--seeds 1 2 3] [--generators wingbeat flight] [--work DIR]
+        [--rot-deg 0.5] [--trans-mm 5] [--frames 72] [--json FILE] [--tables FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from batgraph.calibrate import write_calibration  # noqa: E402
+from batgraph.camera import Camera, Rig  # noqa: E402
+from batgraph.geometry import gauge, pose  # noqa: E402
+from batgraph.session import read_calibration, write_session  # noqa: E402
+from batgraph.simulate import perturb_rig, simulate_flight  # noqa: E402
+from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
+
+ERROR = {"rot_deg": 0.5, "trans_mm": 5.0, "frames": 72}  # the calibration error and length of every scene
+
+
+def scene(generator: str, seed: int, exact: bool):
+    """The session (written rig perturbed unless ``exact``; true_rig set)."""
+    rot, trans, frames = ERROR["rot_deg"], ERROR["trans_mm"], ERROR["frames"]
+    if generator == "wingbeat":
+        s = simulate_wingbeat(np.random.default_rng(seed), n_cameras=5, n_frames=frames, pixel_sigma_px=1.0)
+        wrong = perturb_rig(np.random.default_rng(1000 + seed), s.rig, rot, trans, [1, 2, 3, 4])
+        s = dataclasses.replace(s, rig=wrong, true_rig=s.rig)
+    else:
+        s = simulate_flight(np.random.default_rng(seed), n_cameras=5, n_markers=14, n_frames=frames,
+                            calib_rot_deg=rot, calib_trans_mm=trans)
+    if exact:
+        s = dataclasses.replace(s, rig=s.true_rig)
+    return s
+
+
+def cli(*args) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "batgraph", *map(str, args)], capture_output=True, text=True,
+                       cwd=ROOT, timeout=1800)
+    if r.returncode != 0:
+        raise RuntimeError(f"batgraph {' '.join(map(str, args))}: {r.stderr.strip()}")
+    return r
+
+
+def arrays(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    return np.stack([c.R for c in rig]), np.stack([c.tvec for c in rig])
+
+
+def aligned(rig: Rig, truth: Rig) -> Rig:
+    """``rig`` moved by the similarity fit of its cameras onto ``truth``'s (covariances scaled along)."""
+    s, R, t = gauge.fit_similarity(*arrays(rig), *arrays(truth))
+    cams = []
+    for c in rig:
+        Rc, tc = pose.similarity_cam_from_world(c.R, c.tvec, s, R, t)
+        cov = None if c.pose_cov is None else pose.similarity_pose_cov(c.pose_cov, s)
+        cams.append(Camera(c.name, c.size_wh, c.K, c.dist, pose.rvec_from_R(Rc), tc, cov))
+    return Rig(cams)
+
+
+def pose_errors(rig: Rig, truth: Rig) -> tuple[list[float], list[float]]:
+    a = aligned(rig, truth)
+    return ([1000 * float(np.linalg.norm(x.center_world - y.center_world)) for x, y in zip(a, truth, strict=True)],
+            [float(np.degrees(pose.rotation_angle(x.R, y.R))) for x, y in zip(a, truth, strict=True)])
+
+
+def smoother_rmse(folder: Path, calibration: Path, out: Path) -> dict:
+    """RMSE on observed points [mm] from summary.json, after a point similarity too, and per-camera RMS px."""
+    cli("reconstruct", folder, "--calibration", calibration, "--methods", "smoother", "--viewer", "none",
+        "--out", out, "--quiet")
+    m = json.loads((out / "summary.json").read_text())["methods"]["smoother"]
+    est = pd.read_csv(out / "trajectories.csv")
+    est = est[(est["method"] == "smoother") & (est["status"] == "observed")]
+    truth = pd.read_csv(folder / "truth.csv").set_index(["frame", "marker"])
+    X = est[["x", "y", "z"]].to_numpy()
+    Y = truth.loc[list(zip(est["frame"], est["marker"], strict=True)), ["x", "y", "z"]].to_numpy()
+    mx, my = X.mean(0), Y.mean(0)
+    U, S, Vt = np.linalg.svd((Y - my).T @ (X - mx))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    s = np.trace(np.diag(S) @ D) / ((X - mx) ** 2).sum()
+    Xa = s * (X - mx) @ (U @ D @ Vt).T + my
+    rms = [c["rms_px"] for c in m["reprojection"].values()]
+    return {"rmse_mm": 1000 * m["truth"]["rmse_m"]["observed"],
+            "rmse_pts_mm": 1000 * float(np.sqrt(((Xa - Y) ** 2).sum(-1).mean())),
+            "reproj_ratio": max(rms) / min(rms)}
+
+
+def measure(generator: str, seed: int, work: Path) -> dict:
+    row = {"generator": generator, "seed": seed}
+    for exact in (False, True):
+        s = scene(generator, seed, exact)
+        tag = "exact" if exact else "wrong"
+        folder = work / f"{generator}{seed}_{tag}"
+        write_session(s, folder)
+        refined = folder / "refined.toml"
+        r = cli("calibrate", folder, "--out", refined, "--quiet")
+        row[f"{tag}_kept"] = "input rig, unchanged" in r.stdout
+        written = read_calibration(refined)
+        if not exact:
+            row["pose_before"], row["pose_after"] = pose_errors(s.rig, s.true_rig), pose_errors(written, s.true_rig)
+            for label, cal in (("input", folder / "calibration.toml"), ("true", folder / "calibration_true.toml")):
+                row[label] = smoother_rmse(folder, cal, work / f"out_{generator}{seed}_{label}")
+        write_calibration(folder / "refined_aligned.toml", aligned(written, s.true_rig))
+        row[f"{tag}_refined"] = smoother_rmse(folder, folder / "refined_aligned.toml",
+                                              work / f"out_{generator}{seed}_{tag}_refined")
+    return row
+
+
+def _median_row(rows: list[dict], cells) -> str:
+    vals = np.array([cells(r) for r in rows])
+    return " | ".join(f"{v:.2f}" for v in np.median(vals, axis=0))
+
+
+def tables(rows: list[dict]) -> str:
+    """Markdown: the smoother's RMSE (rig aligned by cameras; points aligned), pose errors, exact input."""
+    def rmse(r):
+        i, t, f = r["input"], r["true"], r["wrong_refined"]
+        return [i["rmse_mm"], t["rmse_mm"], f["rmse_mm"], f["rmse_mm"] / t["rmse_mm"], t["rmse_pts_mm"],
+                f["rmse_pts_mm"], f["rmse_pts_mm"] / t["rmse_pts_mm"], t["reproj_ratio"], f["reproj_ratio"]]
+
+    out = ["| scene | seed | input rig mm | true rig mm | refined mm | refined / true | true, points aligned mm | "
+           "refined, points aligned mm | refined / true | per-camera RMS worst / best, true | refined | written |",
+           "|---|---|" + "---|" * 10]
+    for g in dict.fromkeys(r["generator"] for r in rows):
+        sub = [r for r in rows if r["generator"] == g]
+        for r in sub:
+            out.append(f"| {g} | {r['seed']} | " + " | ".join(f"{v:.2f}" for v in rmse(r))
+                       + f" | {'input' if r['wrong_kept'] else 'refined'} |")
+        out.append(f"| {g} | median | {_median_row(sub, rmse)} | |")
+    out += ["", "| scene | seed | position error mm, input -> refined | rotation error deg, input -> refined | "
+            "median ratio input / refined: position, rotation |", "|---|---|---|---|---|"]
+    for r in rows:
+        (pb, rb), (pa, ra) = r["pose_before"], r["pose_after"]
+        out.append(f"| {r['generator']} | {r['seed']} | "
+                   + ", ".join(f"{a:.1f}->{b:.1f}" for a, b in zip(pb, pa, strict=True)) + " | "
+                   + ", ".join(f"{a:.2f}->{b:.2f}" for a, b in zip(rb, ra, strict=True))
+                   + f" | {np.median(np.divide(pb, pa)):.1f}, {np.median(np.divide(rb, ra)):.1f} |")
+    out += ["", "| scene | seed | exact input: written | smoother mm with it | with the true rig | ratio |",
+            "|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['generator']} | {r['seed']} | {'input' if r['exact_kept'] else 'refined'} | "
+                   f"{r['exact_refined']['rmse_mm']:.2f} | {r['true']['rmse_mm']:.2f} | "
+                   f"{r['exact_refined']['rmse_mm'] / r['true']['rmse_mm']:.3f} |")
+    return "\n".join(out)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--generators", nargs="+", default=["wingbeat", "flight"], choices=["wingbeat", "flight"])
+    ap.add_argument("--work", type=Path, help="folder for the sessions and results (default: a temporary one)")
+    ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    ap.add_argument("--tables", type=Path, help="only print the tables of rows written earlier by --json")
+    ap.add_argument("--rot-deg", type=float, default=ERROR["rot_deg"], help="cameras 2-5 turned by [deg]")
+    ap.add_argument("--trans-mm", type=float, default=ERROR["trans_mm"], help="cameras 2-5 moved by [mm]")
+    ap.add_argument("--frames", type=int, default=ERROR["frames"])
+    args = ap.parse_args()
+    ERROR.update(rot_deg=args.rot_deg, trans_mm=args.trans_mm, frames=args.frames)
+    if args.tables:
+        print(tables(json.loads(args.tables.read_text())))
+        return 0
+    work = args.work or Path(tempfile.mkdtemp(prefix="calibration_study_"))
+    rows = []
+    for g in args.generators:
+        for seed in args.seeds:
+            rows.append(measure(g, seed, work))
+            print(f"{g} seed {seed}: done", file=sys.stderr, flush=True)
+            if args.json:
+                args.json.write_text(json.dumps(rows, indent=1))
+    print(tables(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
