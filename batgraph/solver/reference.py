@@ -254,3 +254,79 @@ def _fit_unit(setup, models, levels, start, members, seg_ids, covariances, out) 
         out.length_m, out.length_sd_m = np.concatenate([out.length_m, lengths]), np.concatenate([out.length_sd_m, sd])
 
 
+
+
+RELINEARIZE_THRESHOLD = 1e-5  # [m]: iSAM2 relinearises a variable when its delta exceeds it
+EXTRA_UPDATES = 2  # further iSAM2 steps per frame while the newest points still move by more than SETTLED_M
+SETTLED_M = 1e-7
+
+
+def run_filter(session, dense, ideal, options, on_frame=None):
+    """The ``filter`` method by GTSAM's iSAM2 fed one frame at a time (the reference of batgraph.solver.filter):
+    a marker joins at its first frame with a triangulation, with the gauge priors there; from then on it gets its
+    state on every frame, the motion factor even when unobserved."""
+    import time
+
+    from ..result import Estimate
+    from .filter import filter_motion, join_frames
+    from .problem import Cameras, Loss, Rows
+
+    t0 = time.perf_counter()
+    name, level, info = filter_motion(session, options)
+    C, F, M = ideal.seen.shape
+    join, tri = join_frames(session.rig, ideal)
+    loss = Loss(options.robust, options.robust_k)
+    rows = Rows.of(ideal)
+    rows = rows.placed(name, F)
+    prob = Problem(rows, Cameras.of(session.rig), session.fps, F, name, np.full(M, level), loss, np.zeros((M, 3)))
+    isam = _isam()
+    nb = prob.d // 3
+    cams = [_camera(c) for c in session.rig]
+    last = np.zeros((M, prob.d))
+    xyz, cov = np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan)
+    _, Qi, _ = prob.motion_blocks()
+    W = np.linalg.cholesky(Qi[0]).T @ np.hstack([-prob.A, np.eye(prob.d)])
+    R0 = np.linalg.cholesky(prob.P0).T
+    for k in range(F):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for m in np.flatnonzero((join >= 0) & (join <= k)):
+            if join[m] == k:
+                last[m] = 0.0
+                last[m, :3] = tri[m]
+                graph.push_back(_linear(R0, last[m].copy(), [state_key(j, int(m), k) for j in range(nb)]))
+            else:
+                last[m] = prob.A @ last[m]
+                keys = [state_key(j, int(m), k - 1) for j in range(nb)] + [state_key(j, int(m), k) for j in range(nb)]
+                graph.push_back(_linear(W, np.zeros(2 * prob.d), keys))
+            for j in range(nb):
+                values.insert(state_key(j, int(m), k), last[m, 3 * j:3 * j + 3])
+        on = np.flatnonzero((rows.frame == k) & (join[rows.marker] >= 0) & (join[rows.marker] <= k))
+        for i in on:
+            noise = _noise(rows.Linv[:, i], loss)
+            graph.push_back(gtsam.TriangulationFactorCal3_S2(cams[rows.cam[i]], rows.uv[:, i], noise,
+                                                             state_key(0, int(rows.marker[i]), k)))
+        isam.update(graph, values)
+        ms = np.flatnonzero((join >= 0) & (join <= k))
+        for _ in range(EXTRA_UPDATES):
+            before = np.array([isam.calculateEstimatePoint3(state_key(0, int(m), k)) for m in ms]).reshape(-1, 3)
+            isam.update()
+            after = np.array([isam.calculateEstimatePoint3(state_key(0, int(m), k)) for m in ms]).reshape(-1, 3)
+            if not len(ms) or np.abs(after - before).max() <= SETTLED_M:
+                break
+        for m in ms:
+            for j in range(nb):
+                last[m, 3 * j:3 * j + 3] = isam.calculateEstimatePoint3(state_key(j, int(m), k))
+            xyz[k, m] = last[m, :3]
+            cov[k, m] = isam.marginalCovariance(state_key(0, int(m), k))
+        if on_frame is not None:
+            on_frame(k, xyz[k], cov[k])
+    info.update({"solver": "gtsam", "motion_model": name, "robust": options.robust, "robust_k": options.robust_k})
+    return Estimate("filter", xyz, cov, np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
+
+
+def _isam() -> gtsam.ISAM2:
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
+    params.relinearizeSkip = 1
+    params.setFactorization("QR")
+    return gtsam.ISAM2(params)

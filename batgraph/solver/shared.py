@@ -1,17 +1,20 @@
-"""Variables shared by every marker: each camera's time offset and rolling-shutter readout, solved jointly with the
-trajectories.
+"""Variables shared by every marker: each camera's time offset, rolling-shutter readout and pose, solved jointly
+with the trajectories.
 
 Camera c's row v (raw pixels) of its frame j is captured at j / fps_c + offset_c + readout_c v / height on the
-session clock (batgraph.measurement's time_frac holds it with the rig's known timing); the variables are each
-camera's corrections (d_offset_c, d_readout_c) [s]. The reference camera's offset is not one: only differences of
-offsets show in the images. Weak Gaussian priors (PRIOR_SD_S) keep the system regular where the data says little.
+session clock (batgraph.measurement's time_frac holds it with the rig's known timing); the timing variables are
+each camera's corrections (d_offset_c, d_readout_c) [s], under weak priors (PRIOR_SD_S). The reference camera's
+offset is not one: only differences of offsets show in the images. A pose variable is a perturbation
+(d_omega, d_t) of cam_from_world on the left, R' = exp(d_omega) R, t' = exp(d_omega) t + d_t [rad, m], under the
+prior N(0, pose_cov) (the calibration's covariance; its sign convention is GTSAM's Pose3 tangent of
+world_from_cam, whose covariance it equals); the priors also fix the gauge.
 
 The joint minimiser by variable projection: for the current corrections, the markers' minimiser x*(theta) (any
 backend's fit); then, with the rows' Jacobians at x*, the Schur complement on theta of the joint Gauss-Newton
 system, S = H_tt - sum_m H_tx H_xx^-1 H_xt (each marker's block-tridiagonal H_xx, the structure bundle adjustment
 uses), a damped step of theta, and the markers re-solved from x* - H_xx^-1 H_xt d_theta (their first-order move);
 a step is kept when the total cost decreases. At the minimiser theta's covariance is S^-1, and each point's covariance
-gains Y_k S^-1 Y_k^T (Y = H_xx^-1 H_xt): the timing's uncertainty reaches the 3D.
+gains Y_k S^-1 Y_k^T (Y = H_xx^-1 H_xt): the rig's uncertainty reaches the 3D.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..camera import Camera, Rig
+from ..geometry.pose import R_from_rvec, rvec_from_R, skew
 from . import fit as fit_mod
 from . import kernels, segments
 from . import model as mm
@@ -32,47 +37,90 @@ TRACE = False
 STEP_TOL_S = 1e-7  # [s]: converged when every correction moves by less
 
 
+KINDS = ("offset", "readout", "pose")
+WIDTH = {"offset": 1, "readout": 1, "pose": 6}
+
+
 @dataclass(frozen=True)
-class Timing:
-    """Which timing quantities are variables: offset (C,) bool, readout (C,) bool (the reference camera's offset
-    is never one). A variable's index in theta: offsets first, then readouts."""
+class Shared:
+    """Which camera quantities are variables: offset, readout, pose (C,) bool each (the reference camera's offset
+    never is); pose_cov (C, 6, 6) the pose priors' covariances. theta holds the offsets, then the readouts, then
+    6 values per pose."""
 
     offset: np.ndarray
     readout: np.ndarray
+    pose: np.ndarray
+    pose_cov: np.ndarray | None = None
+
+    @classmethod
+    def none(cls, C: int) -> Shared:
+        z = np.zeros(C, bool)
+        return cls(z, z, z)
 
     @property
-    def columns(self) -> tuple[np.ndarray, np.ndarray]:
-        """(offset column (C,), readout column (C,)) in theta, -1 where not a variable."""
-        n_o = int(self.offset.sum())
-        o, r = np.full(len(self.offset), -1), np.full(len(self.readout), -1)
-        o[self.offset] = np.arange(n_o)
-        r[self.readout] = n_o + np.arange(int(self.readout.sum()))
-        return o, r
+    def columns(self) -> dict[str, np.ndarray]:
+        """Each kind's first column in theta per camera (C,), -1 where not a variable."""
+        out, start = {}, 0
+        for kind in KINDS:
+            on = getattr(self, kind)
+            col = np.full(len(on), -1)
+            col[on] = start + WIDTH[kind] * np.arange(int(on.sum()))
+            out[kind] = col
+            start += WIDTH[kind] * int(on.sum())
+        return out
 
     @property
     def n(self) -> int:
-        return int(self.offset.sum() + self.readout.sum())
+        return sum(WIDTH[k] * int(getattr(self, k).sum()) for k in KINDS)
 
-    def split(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(d_offset (C,), d_readout (C,)) [s] of theta (0 where not a variable)."""
-        o, r = self.columns
-        return np.where(o >= 0, theta[np.maximum(o, 0)], 0.0), np.where(r >= 0, theta[np.maximum(r, 0)], 0.0)
+    def split(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d_offset (C,), d_readout (C,) [s], d_pose (C, 6) [rad, m]) of theta (0 where not a variable)."""
+        cols = self.columns
+        C = len(self.offset)
+        out = [np.zeros(C), np.zeros(C), np.zeros((C, 6))]
+        for i, kind in enumerate(KINDS):
+            on = cols[kind] >= 0
+            idx = cols[kind][on][:, None] + np.arange(WIDTH[kind])
+            out[i][on] = theta[idx].reshape(out[i][on].shape)
+        return tuple(out)
+
+    def prior_info(self) -> np.ndarray:
+        """The priors' information (n, n): PRIOR_SD_S^-2 on the timing, pose_cov^-1 per pose."""
+        P = np.eye(self.n) / PRIOR_SD_S**2
+        cols = self.columns
+        for c in np.flatnonzero(self.pose):
+            k = cols["pose"][c]
+            P[k:k + 6, k:k + 6] = np.linalg.inv(self.pose_cov[c])
+        return P
 
 
-def shifted(setup: fit_mod.Setup, timing: Timing, theta: np.ndarray) -> fit_mod.Setup:
-    """``setup`` with every observation's capture time moved by theta's corrections."""
-    d_off, d_ro = timing.split(theta)
+def applied(setup: fit_mod.Setup, shared: Shared, theta: np.ndarray) -> fit_mod.Setup:
+    """``setup`` with theta's corrections: capture times moved, poses perturbed."""
+    d_off, d_ro, d_pose = shared.split(theta)
     ideal = setup.ideal
     C, F, M = ideal.seen.shape
-    base = np.zeros((C, F, M)) if ideal.time_frac is None else ideal.time_frac
     row = np.zeros((C, F, M)) if ideal.row_frac is None else ideal.row_frac
-    frac = base + setup.fps * (d_off[:, None, None] + d_ro[:, None, None] * row)
-    return replace(setup, ideal=replace(ideal, time_frac=frac, row_frac=row, linear_xyz=None))
+    if shared.offset.any() or shared.readout.any():
+        base = np.zeros((C, F, M)) if ideal.time_frac is None else ideal.time_frac
+        frac = base + setup.fps * (d_off[:, None, None] + d_ro[:, None, None] * row)
+        ideal = replace(ideal, time_frac=frac, row_frac=row, linear_xyz=None)
+    rig = setup.rig
+    if shared.pose.any():
+        rig = Rig([_moved(cam, d_pose[c]) if shared.pose[c] else cam for c, cam in enumerate(rig)],
+                  world_mirror=rig.world_mirror)
+    return replace(setup, ideal=ideal, rig=rig)
+
+
+def _moved(cam: Camera, xi: np.ndarray) -> Camera:
+    """cam with cam_from_world perturbed on the left by xi = (d_omega, d_t) [rad, m]."""
+    dR = R_from_rvec(xi[:3])
+    R = dR @ cam.R
+    return replace(cam, rvec=rvec_from_R(R), tvec=dR @ cam.tvec + xi[3:])
 
 
 @dataclass
 class Linear:
-    """The timing's part of the joint Gauss-Newton system at a fit: g (n,), H_tt (n, n), and the Schur complement
+    """The shared variables' part of the joint Gauss-Newton system at a fit: g (n,), H_tt (n, n), the Schur complement
     S = H_tt - H_tx H_xx^-1 H_xt (n, n) with Y = H_xx^-1 H_xt per point, (F, M, 9, n) (scaled states)."""
 
     g: np.ndarray
@@ -81,16 +129,16 @@ class Linear:
     Y: np.ndarray
 
 
-def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, timing: Timing) -> Linear:
-    """The timing's gradient, Hessian, Schur complement and Y at ``fit`` (IRLS weights)."""
+def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared) -> Linear:
+    """The shared variables' gradient, Hessian, Schur complement and Y at ``fit`` (IRLS weights)."""
     F, M = setup.shape
-    n = timing.n
+    n = shared.n
     g, H, S = np.zeros(n), np.zeros((n, n)), np.zeros((n, n))
     Y = np.zeros((F, M, 9, n))
     for name, ms, group in _units(setup, fit):
         prob = setup.problem(ms, name, np.ones(len(ms)))
         x = np.ascontiguousarray(fit.state[:, ms, :prob.d])
-        Hxt, gu, Hu = _row_terms(prob, x, timing, setup.fps)
+        Hxt, gu, Hu = _row_terms(prob, x, shared, setup)
         g += gu
         H += Hu
         y = _solve_x(prob, x, group, Hxt, setup, fit)
@@ -113,36 +161,55 @@ def _units(setup: fit_mod.Setup, fit: fit_mod.Fit):
         yield fit.models[members[0]], members, seg_ids
 
 
-def _row_terms(prob, x, timing: Timing, fps: float):
+def _row_terms(prob, x, shared: Shared, setup):
     """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (IRLS weights)."""
     rows = prob.rows
     t = kernels.row_terms(x, rows, prob.cams.P, prob.cams.behind, prob.loss.code, float(prob.loss.k))
-    o, r = timing.columns
-    jt = np.einsum("nij,nj->ni", t["J"], t["dp"]) * fps  # d r / d time [1/s], (n, 2)
-    cols = np.stack([o[rows.cam], r[rows.cam]], axis=1)  # (n, 2): each row's offset and readout columns
-    scale = np.stack([np.ones(len(rows.cam)), rows.row], axis=1)
-    jw = t["w"][:, None] * np.einsum("nij,ni->nj", t["J"], jt)  # w J_x^T j_t, (n, 3)
+    cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
+    w, r, J = t["w"], t["r"], t["J"]
     F, M, d = x.shape
-    n = timing.n
-    Hxt = np.zeros((F, M, d, n))
-    g, H = np.zeros(n), np.zeros((n, n))
-    wr = t["w"] * np.einsum("ni,ni->n", jt, t["r"])
-    ww = t["w"] * np.einsum("ni,ni->n", jt, jt)
-    for a in range(2):
+    n = shared.n
+    Hxt, g, H = np.zeros((F, M, d, n)), np.zeros(n), np.zeros((n, n))
+    jw = w[:, None, None] * np.einsum("nia,nib->nab", J, Jt)  # w J_x^T J_t per row, (n_rows, 3, p)
+    for a in range(cols.shape[1]):
         on = cols[:, a] >= 0
-        ca, sa = cols[on, a], scale[on, a]
-        np.add.at(g, ca, sa * wr[on])
-        for b in range(2):
+        ca = cols[on, a]
+        np.add.at(g, ca, w[on] * np.einsum("ni,ni->n", Jt[on, :, a], r[on]))
+        for b in range(cols.shape[1]):
             both = on & (cols[:, b] >= 0)
-            np.add.at(H, (cols[both, a], cols[both, b]), scale[both, a] * scale[both, b] * ww[both])
+            np.add.at(H, (cols[both, a], cols[both, b]), w[both] * np.einsum("ni,ni->n", Jt[both, :, a],
+                                                                               Jt[both, :, b]))
         for e in range(2):
             frame = rows.k[on] + e
             ok = frame < F
             for j in range(d // 3):
-                w = rows.W[on, e, j][ok] * sa[ok]
+                wj = rows.W[on, e, j][ok]
                 for q in range(3):
-                    np.add.at(Hxt, (frame[ok], rows.marker[on][ok], 3 * j + q, ca[ok]), w * jw[on][ok, q])
+                    np.add.at(Hxt, (frame[ok], rows.marker[on][ok], 3 * j + q, ca[ok]), wj * jw[on][ok, q, a])
     return Hxt, g, H
+
+
+def _theta_jacobians(rows, t: dict, shared: Shared, setup) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's theta columns (n_rows, 8) (-1: none) and whitened Jacobians (n_rows, 2, 8): offset, readout, and
+    the pose's six (left perturbation of cam_from_world: d p_cam = -[p_cam]x d_omega + d_t)."""
+    cols = shared.columns
+    cam = rows.cam
+    out_c = np.full((len(cam), 8), -1)
+    out_j = np.zeros((len(cam), 2, 8))
+    jt = np.einsum("nij,nj->ni", t["J"], t["dp"]) * setup.fps  # d r / d capture time [1/s]
+    out_c[:, 0], out_j[:, :, 0] = cols["offset"][cam], jt
+    out_c[:, 1], out_j[:, :, 1] = cols["readout"][cam], jt * rows.row[:, None]
+    if shared.pose.any():
+        R = np.stack([c.R for c in setup.rig])[cam]  # (n, 3, 3)
+        tv = np.stack([c.tvec for c in setup.rig])[cam]
+        p_cam = np.einsum("nij,nj->ni", R, t["p"]) + tv
+        Jc = np.einsum("nij,nkj->nik", t["J"], R)  # d r / d p_cam = J R^T
+        base = cols["pose"][cam]
+        for i in range(6):
+            out_c[:, 2 + i] = np.where(base >= 0, base + i, -1)
+        out_j[:, :, 2:5] = -np.einsum("nij,njk->nik", Jc, skew(p_cam))
+        out_j[:, :, 5:8] = Jc
+    return out_c, out_j
 
 
 def _solve_x(prob, x, seg_ids, Hxt, setup, fit):
@@ -159,31 +226,31 @@ def _solve_x(prob, x, seg_ids, Hxt, setup, fit):
     return segments.bordered_solve(T, BG, C, E, rhs, np.zeros((len(L), rhs.shape[-1])))[0].reshape(F, gm, d, -1)
 
 
-def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray, start: tuple, timing: Timing,
+def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray, start: tuple, shared: Shared,
           theta0: np.ndarray | None = None) -> tuple:
-    """The joint minimiser of the markers and the timing corrections from theta0 (module docstring): (fit at the
-    minimiser with the timing's uncertainty in its covariances, theta (n,) [s], its covariance (n, n) [s^2],
+    """The joint minimiser of the markers and the shared variables from theta0 (module docstring): (fit at the
+    minimiser with theta's uncertainty in its covariances, theta (n,) [s, rad, m], its covariance (n, n),
     setup with the corrections applied, steps taken).
 
     The steps are Levenberg-Marquardt's on the reduced problem with the Hessian S + A: S the Gauss-Newton Schur
     complement, A a structured secant correction (Dennis, Gay and Welsch's, as NL2SOL) built from the exact reduced
     gradients along the steps. Gauss-Newton alone converged linearly (a step 0.7x the last) where the data barely
     tell an offset from a readout (every camera sees the bat over a band of rows)."""
-    n = timing.n
+    n = shared.n
     theta = np.zeros(n) if theta0 is None else np.asarray(theta0, float).copy()
-    prior = 1.0 / PRIOR_SD_S**2
-    cur = shifted(setup, timing, theta)
+    prior = shared.prior_info()
+    cur = applied(setup, shared, theta)
     fit = backend.fit(cur, models, levels, start)
     total = _total(fit, theta, prior)
-    lin = linearise(cur, fit, timing)
+    lin = linearise(cur, fit, shared)
     A, lam, steps = np.zeros((n, n)), 1e-3, 0
-    g = lin.g + prior * theta
+    g = lin.g + prior @ theta
     while steps < MAX_STEPS and lam < 1e8:
         steps += 1
-        S = lin.S + prior * np.eye(n)
+        S = lin.S + prior
         step = -np.linalg.solve(S + A + lam * np.diag(np.diag(S)), g)
         new_theta = theta + step
-        new_setup = shifted(setup, timing, new_theta)
+        new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
         new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps))
         new_total = _total(new_fit, new_theta, prior)
@@ -192,14 +259,14 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         if not new_total <= total:
             lam *= 10
             continue
-        new_lin = linearise(new_setup, new_fit, timing)
-        new_g = new_lin.g + prior * new_theta
-        A = _secant(A, step, new_g - g, new_lin.S + prior * np.eye(n))
+        new_lin = linearise(new_setup, new_fit, shared)
+        new_g = new_lin.g + prior @ new_theta
+        A = _secant(A, step, new_g - g, new_lin.S + prior)
         theta, fit, total, cur, lin, g = new_theta, new_fit, new_total, new_setup, new_lin, new_g
         lam = max(lam / 10, 1e-9)
         if np.abs(step).max() < STEP_TOL_S:
             break
-    cov_t = np.linalg.inv(lin.S + prior * np.eye(n))
+    cov_t = np.linalg.inv(lin.S + prior)
     if fit.cov is not None:
         Yp = lin.Y[..., :3, :]
         fit.cov = fit.cov + np.einsum("fmin,no,fmjo->fmij", Yp, cov_t, Yp)
@@ -216,9 +283,9 @@ def _secant(A: np.ndarray, s: np.ndarray, y: np.ndarray, S_new: np.ndarray) -> n
     return A + (np.outer(r, y) + np.outer(y, r)) / ys - float(r @ s) * np.outer(y, y) / ys**2
 
 
-def _total(fit: fit_mod.Fit, theta: np.ndarray, prior: float) -> float:
+def _total(fit: fit_mod.Fit, theta: np.ndarray, prior: np.ndarray) -> float:
     solved = np.array([m is not None for m in fit.models])
-    return float(fit.cost[solved].sum() + 0.5 * prior * theta @ theta)
+    return float(fit.cost[solved].sum() + 0.5 * theta @ prior @ theta)
 
 
 def _motion(x: np.ndarray, fit: fit_mod.Fit, fps: float) -> tuple:
