@@ -27,11 +27,15 @@ class IdealObservations:
     triangulation is then the smoother's and the triangulation method's start, not computed again (0.2-0.3 s
     each at 30 x 180 x 160). The pixels are never changed in place (batgraph.graph.cost.without_observations
     makes new ones).
+    time_frac, row_frac: (C, F, M) or None, as batgraph.session.DenseObservations has them: each observation's
+    capture time minus its frame's, in frames, from the rig's known timing; its raw row / image height.
     """
 
     uv_px: np.ndarray
     cov_px2: np.ndarray
     linear_xyz: tuple | None = field(default=None, repr=False, compare=False)
+    time_frac: np.ndarray | None = None
+    row_frac: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -44,7 +48,15 @@ class IdealObservations:
         without undistorting again.
         """
         sigma = np.broadcast_to(np.asarray(pixel_sigma_px, dtype=float), self.uv_px.shape[:1])
-        return IdealObservations(self.uv_px, self.cov_px2 * (sigma ** 2)[:, None, None, None, None], self.linear_xyz)
+        return IdealObservations(self.uv_px, self.cov_px2 * (sigma ** 2)[:, None, None, None, None], self.linear_xyz,
+                                 self.time_frac, self.row_frac)
+
+    def take(self, sl: slice) -> IdealObservations:
+        """The frames ``sl`` (one take) on their own (views); the linear triangulation is not carried."""
+        def cut(a):
+            return None if a is None else a[:, sl]
+
+        return IdealObservations(self.uv_px[:, sl], self.cov_px2[:, sl], None, cut(self.time_frac), cut(self.row_frac))
 
 
 def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float | np.ndarray) -> IdealObservations:
@@ -64,4 +76,4 @@ def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float
         uv[c][s], J = cam.undistort_with_jacobian(raw)
         var = sigma[c] ** 2 / dense.weight[c][s]
         cov[c][s] = var[:, None, None] * (J @ np.swapaxes(J, -1, -2))
-    return IdealObservations(uv, cov)
+    return IdealObservations(uv, cov, time_frac=dense.time_frac, row_frac=dense.row_frac)
