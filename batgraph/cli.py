@@ -403,6 +403,10 @@ def _add_import(sub):
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
     d.add_argument("--pixel-sigma", type=positive_float,
                    help="click noise std [px] (default: measured per camera by reconstruct)")
+    d.add_argument("--offsets", nargs="+", metavar="FILE", default=[],
+                   help="camera offsets: DLTdv8 *offsets.csv or Argus clicker *-offsets.csv (which video frame each "
+                        "row shows; non-integer allowed) and/or Argus sync *_offsets.csv (to a fraction of a frame); "
+                        "they become calibration.toml's time_offset_s (docs/timing.md)")
     d.add_argument("--force", action="store_true", help="overwrite an existing session folder")
     d.set_defaults(func=_cmd_import_dltdv)
 
@@ -486,11 +490,15 @@ def _cmd_import_dltdv(args) -> int:
               "read from the coefficients (use --pixel-origin to override)", file=sys.stderr)
     session = import_dltdv(args.xypts, args.coefs, args.fps, args.out, pixel_origin=args.pixel_origin,
                            units=args.units, image_size=tuple(args.image_size) if args.image_size else None,
-                           xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma)
+                           xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma, offsets=args.offsets)
     imp = session.extra_toml["import"]
     print(f"pixel origin: {imp['pixel_origin']} ({imp['pixel_origin_note']}); world: {imp['world']}; "
           f"units: {imp['units']}" + ("; image size guessed from the principal point (give --image-size W H)"
                                       if imp["image_size"] == "inferred" else ""))
+    if args.offsets:
+        print("time offsets [ms]: " + ", ".join(f"{c.name} {1e3 * c.time_offset_s:+.3f}" for c in session.rig)
+              + (f"; {imp['clicks_before_first_video_frame']} click(s) before a video's first frame dropped"
+                 if imp.get("clicks_before_first_video_frame") else ""))
     print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.observations)} observations)")
     return 0

@@ -372,8 +372,10 @@ def to_session_clock(table: pd.DataFrame, rig: Rig, fps: float, where: str) -> t
     check_clock(rig, fps, where)
     own = (table["camera_frame"] if "camera_frame" in table else table["frame"]).to_numpy(np.int64)
     if rig.on_session_clock(fps):
-        return (table if "camera_frame" not in table
-                else table.assign(frame=own).drop(columns="camera_frame")), []
+        if "camera_frame" not in table:
+            return table, []
+        back = table.assign(frame=own).drop(columns="camera_frame")
+        return back.sort_values(["frame", "camera", "marker"], kind="stable").reset_index(drop=True), []
     k = session_frames(own, table["camera"].to_numpy(), rig, fps)
     out = table.assign(frame=k, camera_frame=own)
     notes = []
@@ -396,20 +398,26 @@ def retime(session: Session, rig: Rig) -> Session:
 # ----------------------------------------------------------------------------------------------
 # reading (every file through batgraph.inputs: encodings, permissions, CSV dialects, frame limits)
 # ----------------------------------------------------------------------------------------------
+def near_miss(key: str, known) -> str | None:
+    """The known key that ``key`` most likely misspells (difflib ratio >= CLOSE_MATCH, or the same letters in
+    another order), or None."""
+    close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=CLOSE_MATCH)
+    swapped = [k for k in sorted(known) if sorted(k) == sorted(key)]
+    return close[0] if close else (swapped[0] if swapped else None)
+
+
 def check_keys(keys, known, where: str, warnings: list[str]) -> None:
-    """Unknown keys of one TOML table: InputError for a near miss of a known key (a typo such as
+    """Unknown keys of one TOML table: InputError for a near miss of a known key (:func:`near_miss`: a typo such as
     ``time_ofset_s`` would silently change the result), else one warning line naming them (keys other tools
     write must not stop a file from loading). where: the file and table, for the messages."""
     unknown = [k for k in keys if k not in known]
     for k in unknown:
-        close = difflib.get_close_matches(k, sorted(known), n=1, cutoff=CLOSE_MATCH)
+        close = near_miss(k, known)
         if close:
-            raise InputError(f"{where}: unknown key {k!r} (did you mean {close[0]!r}?)")
+            raise InputError(f"{where}: unknown key {k!r} (did you mean {close!r}?)")
     if unknown:
-        maybe = [difflib.get_close_matches(k, sorted(known), n=1, cutoff=0.6) for k in unknown]
-        named = ", ".join(f"{k!r}" + (f" (did you mean {m[0]!r}?)" if m else "") for k, m in zip(unknown, maybe,
-                                                                                                   strict=True))
-        warnings.append(f"{where}: unknown key(s) {named} ignored")
+        warnings.append(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} ignored "
+                        f"(known: {', '.join(sorted(known))})")
 
 
 def _timing(tab: dict, where: str) -> dict:
@@ -629,9 +637,9 @@ def _session_config(path: Path, warnings: list[str]) -> dict:
     data = inputs.read_toml(path)
     for table, value in data.items():
         if table not in SESSION_KEYS:
-            close = difflib.get_close_matches(table, sorted(SESSION_KEYS), n=1, cutoff=CLOSE_MATCH)
+            close = near_miss(table, SESSION_KEYS)
             if close:
-                raise InputError(f"{path}: unknown table [{table}] (did you mean [{close[0]}]?)")
+                raise InputError(f"{path}: unknown table [{table}] (did you mean [{close}]?)")
             warnings.append(f"{path}: unknown table [{table}] ignored (known: {', '.join(sorted(SESSION_KEYS))})")
         elif SESSION_KEYS[table] is not None and isinstance(value, dict):
             check_keys(value, SESSION_KEYS[table], f"{path} [{table}]", warnings)

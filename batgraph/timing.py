@@ -27,10 +27,12 @@ from .geometry import pinhole
 from .measurement import IdealObservations
 
 SIGNIFICANT_Z = 5.0  # |offset| / sd above which an offset is significant
-MATERIAL_PX = 0.5  # ... and material when it moves the camera's median marker by more than this [px]
-MATERIAL_FRAMES = 0.05  # ... or, for slow markers, by more than this fraction of a frame
+MATERIAL_PX = 0.5  # ... and material when it moves the camera's faster markers by more than this [px]
+SPEED_PERCENTILE = 90  # the faster markers: this percentile of a camera's image speeds
+MATERIAL_SIGMA = 0.25  # ... and by more than this fraction of the camera's pixel noise
 AMBIGUOUS_RATIO = 1.5  # a lag is ambiguous when one 2+ frames away costs less than this times the best
 HUBER_K = 3.0  # robust weight of a residual above this many sigmas: k / |r| (mislabels, occlusion swaps)
+BLOCK_S = 0.1  # a marker's residuals within this time [s] count as one cluster (_cluster_cov)
 
 
 @dataclass
@@ -39,8 +41,10 @@ class TimingCheck:
 
     table: per camera: camera, n_obs (observations used), offset_s, offset_sd_s (relative to the reference camera,
         beyond the rig's known offset), readout_s, readout_sd_s (beyond its known readout), step_s, step_sd_s (its
-        offset relative to the median camera), image_speed_px_s (median |image velocity| of its markers), flagged
-        (out of step), rolling (reads its rows over a time the rig does not state).
+        offset relative to the median camera), image_speed_px_s (|image velocity| of its faster markers: the
+        SPEED_PERCENTILE-th percentile), flagged
+        (out of step), rolling (reads its rows over a time the rig does not state), sigma_px (its pixel noise,
+        from the observations' covariance).
     reference: the camera offsets are stated against. warnings: one line per camera out of step, one for the
         rolling shutters.
     """
@@ -62,7 +66,7 @@ def _raw_rows(rig: Rig, ideal: IdealObservations) -> np.ndarray:
 
 def _linearise(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, vel_mps: np.ndarray, fps: float):
     """Per observation (C, F, M): residual r (.., 2) [px] at the known capture time, Jacobian J (.., 2, 3) [px/m],
-    inverse covariance Sinv (.., 2, 2), regressors x (.., 2, 2) [px/s] (offset, readout), usable (C, F, M)."""
+    inverse covariance Sinv (.., 2, 2), image velocity w (.., 2) [px/s], row / height, usable (C, F, M)."""
     C, F, M = ideal.uv_px.shape[:3]
     dt = np.zeros((C, F, M)) if ideal.time_frac is None else ideal.time_frac / fps
     rows = _raw_rows(rig, ideal) if ideal.row_frac is None else ideal.row_frac
@@ -73,18 +77,18 @@ def _linearise(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, vel_mps: n
     J = pinhole.point_jacobian(P, X)
     r = np.where(ok[..., None], ideal.uv_px - pinhole.project_ideal(P, X), 0.0)
     w = np.einsum("cfmij,fmj->cfmi", J, np.nan_to_num(vel_mps))
-    x = np.stack([w, w * rows[..., None]], axis=-1)
     cov = np.where(ok[..., None, None], ideal.cov_px2, np.eye(2))
     Sinv = np.linalg.inv(cov)
-    ok &= np.isfinite(r).all(-1) & np.isfinite(J).all((-1, -2))
-    return np.nan_to_num(r), np.nan_to_num(J), Sinv, np.nan_to_num(x), ok
+    ok &= np.isfinite(r).all(-1) & np.isfinite(J).all((-1, -2)) & np.isfinite(w).all(-1)
+    return np.nan_to_num(r), np.nan_to_num(J), Sinv, np.nan_to_num(w), rows, ok
 
 
-def _solve(r, J, Sinv, x, wgt, ref: int):
+def _solve(r, J, Sinv, x, wgt, ref: int, block: int):
     """Weighted least squares of the residuals on the regressors, the points re-triangulated (see module docstring).
 
-    wgt (C, F, M): robust weights (0 = unused). Returns (params (C, 2) with the reference offset fixed at 0, their
-    covariance (2C, 2C) scaled by the residual scatter, whitened residual norms (C, F, M), used (C, F, M))."""
+    wgt (C, F, M): robust weights (0 = unused). block: frames per cluster of :func:`_cluster_cov`. Returns (params
+    (C, 2) with the reference offset fixed at 0, their covariance (2C, 2C), whitened residual norms (C, F, M), used
+    (C, F, M))."""
     C = r.shape[0]
     WS = wgt[..., None, None] * Sinv
     used = (wgt > 0) & ((wgt > 0).sum(0) >= 2)[None]  # a point one camera sees says nothing
@@ -117,9 +121,32 @@ def _solve(r, J, Sinv, x, wgt, ref: int):
     dof = max(2 * n_obs - 3 * n_pts - int(free.sum()), 1)
     s2 = float((wgt * e2)[used].sum()) / dof
     cov = np.full((2 * C, 2 * C), np.nan)
-    cov[np.ix_(free, free)] = s2 * Ninv
+    scores = np.einsum("cfmkp,cfmkl,cfml->fmcp", x, WS, res).reshape(*res.shape[1:3], 2 * C)[..., free]
+    cov[np.ix_(free, free)] = _cluster_cov(scores, Ninv, block, s2)
     cov[2 * ref, :] = cov[:, 2 * ref] = 0.0
     return theta.reshape(C, 2), cov, np.sqrt(e2 / max(s2, 1e-300)), used
+
+
+MIN_CLUSTERS = 20
+
+
+def _cluster_cov(scores: np.ndarray, Ninv: np.ndarray, block: int, s2: float) -> np.ndarray:
+    """The parameters' covariance, robust to errors correlated along a marker's track (a detector's bias persists
+    over frames; pixels are not independent): the sandwich ``N^-1 (sum_g s_g s_g^T) N^-1`` over clusters g of
+    ``block`` frames of one marker, seen by every camera (a point's re-triangulation couples its cameras), scaled
+    by G / (G - 1); never below the independent-errors covariance ``s2 N^-1``, the one used with fewer than
+    MIN_CLUSTERS clusters. scores (F, M, P): each point's score per parameter, x^T W r."""
+    F, M, P = scores.shape
+    edges = np.arange(0, F, block)
+    per = np.add.reduceat(scores, edges, axis=0).reshape(-1, P) if F else np.zeros((0, P))
+    per = per[np.abs(per).sum(axis=1) > 0]
+    model = s2 * Ninv
+    G = len(per)
+    if G < MIN_CLUSTERS:
+        return model
+    sandwich = Ninv @ (per.T @ per) @ Ninv * G / (G - 1)
+    scale = max(1.0, float(np.max(np.diag(sandwich) / np.maximum(np.diag(model), 1e-300))))
+    return model * scale
 
 
 def timing_check(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, vel_mps: np.ndarray,
@@ -131,25 +158,47 @@ def timing_check(rig: Rig, ideal: IdealObservations, xyz_m: np.ndarray, vel_mps:
     [m/s] per frame, (F, M, 3), NaN where unknown (e.g. the smoother's, or a triangulation and its np.gradient
     times fps); fps: the session's frame rate [Hz]. Huber weights (HUBER_K) keep mislabels out.
     """
-    r, J, Sinv, x, ok = _linearise(rig, ideal, xyz_m, vel_mps, fps)
-    n_used = ok.sum(axis=(1, 2))
-    ref = int(np.argmax(n_used))
-    wgt = ok.astype(float)
-    for _ in range(4):
-        theta, cov, e, used = _solve(r, J, Sinv, x, wgt, ref)
-        wgt = np.where(ok, np.minimum(1.0, HUBER_K / np.maximum(e, 1e-12)), 0.0)
-    speed = np.linalg.norm(x[..., 0], axis=-1)
+    r, J, Sinv, w, rows, ok = _linearise(rig, ideal, xyz_m, vel_mps, fps)
     C = len(rig)
+    # the readout about each camera's median row: the offset is then that of the rows its markers are on, and
+    # hardly correlated with the readout (a camera that sees the animal in a band of rows cannot tell them apart)
+    mid = np.array([np.median(rows[c][ok[c]]) if ok[c].any() else 0.0 for c in range(C)])
+    x = np.stack([w, w * (rows - mid[:, None, None])[..., None]], axis=-1)
+    ref = int(np.argmax(ok.sum(axis=(1, 2))))
+    wgt = ok.astype(float)
+    block = max(1, round(BLOCK_S * fps))
+    for _ in range(4):
+        theta, cov, e, used = _solve(r, J, Sinv, x, wgt, ref, block)
+        wgt = np.where(ok, np.minimum(1.0, HUBER_K / np.maximum(e, 1e-12)), 0.0)
+    speed = np.linalg.norm(w, axis=-1)
+    sigma = np.sqrt(0.5 * np.trace(ideal.cov_px2, axis1=-2, axis2=-1))
+    noise = np.array([np.median(sigma[c][used[c]]) if used[c].any() else np.nan for c in range(C)])
     step, step_sd = _steps(theta[:, 0], cov[0::2, 0::2])
-    med_speed = np.array([np.median(speed[c][used[c]]) if used[c].any() else np.nan for c in range(C)])
+    at_row0, cov0 = _at_row_zero(theta, cov, mid, ref)
+    med_speed = np.array([np.percentile(speed[c][used[c]], SPEED_PERCENTILE) if used[c].any() else np.nan
+                          for c in range(C)])
     table = pd.DataFrame({
-        "camera": rig.names, "n_obs": used.sum(axis=(1, 2)), "offset_s": theta[:, 0],
-        "offset_sd_s": np.sqrt(np.diag(cov)[0::2]), "readout_s": theta[:, 1],
+        "camera": rig.names, "n_obs": used.sum(axis=(1, 2)), "offset_s": at_row0,
+        "offset_sd_s": np.sqrt(np.diag(cov0)), "readout_s": theta[:, 1],
         "readout_sd_s": np.sqrt(np.diag(cov)[1::2]), "step_s": step, "step_sd_s": step_sd,
-        "image_speed_px_s": med_speed})
-    table["flagged"] = _material(table["step_s"], table["step_sd_s"], table["image_speed_px_s"], fps)
-    table["rolling"] = _material(table["readout_s"], table["readout_sd_s"], 0.5 * table["image_speed_px_s"], fps)
+        "image_speed_px_s": med_speed, "sigma_px": noise})
+    table["flagged"] = _material(table["step_s"], table["step_sd_s"], table["image_speed_px_s"], noise)
+    table["rolling"] = _material(table["readout_s"], table["readout_sd_s"], 0.5 * table["image_speed_px_s"], noise)
     return TimingCheck(table, rig.names[ref], _warnings(table, fps))
+
+
+def _at_row_zero(theta: np.ndarray, cov: np.ndarray, mid: np.ndarray, ref: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets at row 0 (calibration.toml's meaning) relative to the reference camera's, and their covariance (C, C),
+    from offsets at each camera's median row ``mid`` (C,) and readouts: theta (C, 2), cov (2C, 2C)."""
+    C = len(theta)
+    L = np.zeros((C, 2 * C))
+    for c in range(C):
+        L[c, 2 * c], L[c, 2 * c + 1] = 1.0, -mid[c]
+    L -= L[ref]
+    cov0 = L @ np.nan_to_num(cov) @ L.T
+    unknown = (L[:, ~np.isfinite(np.diag(cov))] != 0).any(axis=1)
+    cov0[unknown, :] = cov0[:, unknown] = np.nan
+    return L @ theta.reshape(-1), cov0
 
 
 def _steps(offset_s: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,13 +219,13 @@ def _steps(offset_s: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return step, np.sqrt(np.maximum(var, 0.0))
 
 
-def _material(value_s: pd.Series, sd_s: pd.Series, speed_px_s: pd.Series, fps: float) -> np.ndarray:
-    """Significant (SIGNIFICANT_Z sds) and material timing errors (C,) bool: they move the camera's median marker by
-    MATERIAL_PX or more (at ``speed_px_s``), or are MATERIAL_FRAMES of a frame or more."""
+def _material(value_s: pd.Series, sd_s: pd.Series, speed_px_s: pd.Series, sigma_px: np.ndarray) -> np.ndarray:
+    """Significant (SIGNIFICANT_Z sds) and material timing errors (C,) bool: they move the camera's faster markers
+    (at ``speed_px_s``) by MATERIAL_PX or more, and by MATERIAL_SIGMA of its pixel noise ``sigma_px`` or more."""
     value, sd = np.abs(value_s.to_numpy(float)), sd_s.to_numpy(float)
-    significant = value > SIGNIFICANT_Z * sd
-    material = (value * speed_px_s.to_numpy(float) > MATERIAL_PX) | (value * fps > MATERIAL_FRAMES)
-    return np.nan_to_num(significant & material, nan=False).astype(bool)
+    shift = value * speed_px_s.to_numpy(float)
+    material = (shift > MATERIAL_PX) & (shift > MATERIAL_SIGMA * np.asarray(sigma_px, float))
+    return np.nan_to_num((value > SIGNIFICANT_Z * sd) & material, nan=False).astype(bool)
 
 
 def _warnings(table: pd.DataFrame, fps: float) -> list[str]:
@@ -335,29 +384,38 @@ def scan_lags(rig: Rig, ideal: IdealObservations, frames: np.ndarray, fps: float
     seen = ideal.seen
     ref = int(np.argmax(seen.sum(axis=(1, 2))))
     D = pair_costs(rig, ideal.uv_px, np.asarray(frames, np.int64), 2 * max_lag, min_points)
-    tau = _relative_offsets(*_pair_offsets(D), ref)
-    lags = np.clip(np.ceil(tau - 0.5), -max_lag, max_lag).astype(int)
-    return _lag_table(rig, D, lags, tau, ref, fps, max_lag)
+    tau = _relative_offsets(*_pair_offsets(D), ref)  # on the frames as they are, the known timing included
+    known = np.zeros(len(rig))
+    if ideal.time_frac is not None:
+        known = np.array([np.median(ideal.time_frac[c][seen[c]]) if seen[c].any() else 0.0 for c in range(len(rig))])
+    extra = tau - (known - known[ref])
+    return _lag_table(rig, D, _nearest(tau, max_lag), _nearest(extra, max_lag), extra, ref, fps, max_lag)
 
 
-def _lag_table(rig: Rig, D: np.ndarray, lags: np.ndarray, tau: np.ndarray, ref: int, fps: float,
-               max_lag: int) -> LagScan:
+def _nearest(x: np.ndarray, max_lag: int) -> np.ndarray:
+    return np.clip(np.ceil(x - 0.5), -max_lag, max_lag).astype(int)
+
+
+def _lag_table(rig: Rig, D: np.ndarray, on_frames: np.ndarray, lags: np.ndarray, tau: np.ndarray, ref: int,
+               fps: float, max_lag: int) -> LagScan:
+    """The table of :class:`LagScan`: on_frames (C,) the lags between the frames as they are (the costs' shifts);
+    lags (C,) and tau (C,) [frames] beyond the rig's known timing."""
     rows, warnings = [], []
     for c, cam in enumerate(rig):
-        prof = _profile(D, lags, c, max_lag)
+        prof = _profile(D, on_frames, c, max_lag)
         if not np.isfinite(prof).any():
             rows.append((cam.name, np.nan, np.nan, np.nan, np.nan, np.nan, True,
                          "too few markers seen with another camera"))
             warnings.append(f"{cam.name}: its lag cannot be told (too few markers seen with another camera)")
             continue
-        best = int(lags[c])
-        i = best + max_lag
-        far = np.abs(np.arange(-max_lag, max_lag + 1) - best) >= 2
+        best, i = int(lags[c]), int(on_frames[c]) + max_lag
+        far = np.abs(np.arange(-max_lag, max_lag + 1) - on_frames[c]) >= 2
         ambiguous = bool(far.any() and np.nanmin(prof[far]) < AMBIGUOUS_RATIO * prof[i])
         notes = []
         if ambiguous:
             alt = int(np.arange(-max_lag, max_lag + 1)[far][np.nanargmin(prof[far])])
-            notes.append(f"ambiguous: a lag of {alt} costs {np.nanmin(prof[far]):.2g} px against {prof[i]:.2g} px")
+            notes.append(f"ambiguous: a shift of {alt} frames costs {np.nanmin(prof[far]):.2g} px against "
+                         f"{prof[i]:.2g} px")
         if abs(tau[c]) > max_lag + 0.5:
             notes.append(f"beyond the scan (+-{max_lag} frames): about {tau[c]:+.1f} frames")
         elif abs(tau[c] - best) > 0.35:
@@ -365,9 +423,9 @@ def _lag_table(rig: Rig, D: np.ndarray, lags: np.ndarray, tau: np.ndarray, ref: 
         rows.append((cam.name, float(best), float(tau[c]), cam.time_offset_s + best / fps, float(prof[i]),
                      float(prof[max_lag]), ambiguous, "; ".join(notes)))
         if c != ref and (best != 0 or ambiguous):
-            warnings.append(f"{cam.name}: its frame k shows the instant of {rig.names[ref]}'s frame k{best:+d} "
-                            f"(time_offset_s ~{cam.time_offset_s + best / fps:.4g})"
-                            + (f"; {'; '.join(notes)}" if notes else ""))
+            warnings.append(f"{cam.name} runs ~{abs(best)} frame(s) {'late' if best > 0 else 'early'} against "
+                            f"{rig.names[ref]}: time_offset_s ~{cam.time_offset_s + best / fps:.4g} s"
+                            + (f" ({'; '.join(notes)})" if notes else ""))
     table = pd.DataFrame(rows, columns=["camera", "lag_frames", "offset_frames", "time_offset_s", "cost_px",
                                         "cost_at_zero_px", "ambiguous", "note"])
     return LagScan(table, rig.names[ref], warnings)
