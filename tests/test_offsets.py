@@ -162,3 +162,16 @@ def test_cli_import_with_offsets(tmp_path, capsys):
     assert "cam2 -23.000" in out and "cam3 +17.000" in out and "before a video's first frame dropped" in out
     cal = (tmp_path / "s" / "calibration.toml").read_text()
     assert "time_offset_s = -0.023" in cal
+
+
+def test_dltdv_8_4_headers(tmp_path):
+    """DLTdv 8.4 names the xypts columns pt1_cam1_U, pt1_cam1_V: the same clicks as _X, _Y."""
+    paths = _trial(tmp_path / "trial", [0.0, 0.0, 0.0], lambda r, o: r)
+    text = paths["xypts"].read_text().splitlines()
+    header = text[0].replace("_X", "_U").replace("_Y", "_V")
+    assert "_U" in header and "_X" not in header
+    renamed = tmp_path / "trial" / "u_xypts.csv"
+    renamed.write_text("\n".join([header] + text[1:]) + "\n")
+    a = dltdv.read_xypts(paths["xypts"])
+    b = dltdv.read_xypts(renamed)
+    pd.testing.assert_frame_equal(a, b)

@@ -2,7 +2,8 @@
 
 DLTdv's files (Hedrick lab; Argus writes the same layout):
 
-* ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1),
+* ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1; DLTdv 8.4 writes
+  ``_U, _V``),
   ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's own GUI
   counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
 * ``*dltCoefs.csv``: 11 rows (L1..L11) x one column per camera, no header;
@@ -37,7 +38,7 @@ from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
-_XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
+_XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XYUV])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
 _XYZPTS = (re.compile(r"^pt(\d+)_([XYZ])$", re.IGNORECASE), "pt{p}_X / pt{p}_Y / pt{p}_Z")
 _XYZRES = (re.compile(r"^pt(\d+)_(dltres)$", re.IGNORECASE), "pt{p}_dltres")
 
@@ -129,6 +130,7 @@ def read_xypts(path: str | Path, n_cams: int | None = None) -> pd.DataFrame:
     """
     path = Path(path)
     values, keys = _read_wide(path, _XYPTS, "DLTdv xypts: pt{p}_cam{c}_X, pt{p}_cam{c}_Y columns")
+    keys = [(p, c, {"U": "X", "V": "Y"}.get(a.upper(), a)) for p, c, a in keys]  # DLTdv 8.4 writes _U, _V
     pts = np.array([int(k[0]) for k in keys])
     cams = np.array([int(k[1]) for k in keys])
     axis = np.array([0 if k[2].upper() == "X" else 1 for k in keys])
