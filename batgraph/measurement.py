@@ -10,6 +10,7 @@ a k3 = 0 rig.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,3 +78,22 @@ def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float
         var = sigma[c] ** 2 / dense.weight[c][s]
         cov[c][s] = var[:, None, None] * (J @ np.swapaxes(J, -1, -2))
     return IdealObservations(uv, cov, time_frac=dense.time_frac, row_frac=dense.row_frac)
+
+
+def of_markers(ideal: IdealObservations, markers: np.ndarray) -> IdealObservations:
+    """The observations of ``markers`` (int indices or a bool mask over M): every (C, F, M, ...) array sliced."""
+    return _each_array(ideal, lambda a: a[:, :, markers])
+
+
+def without(ideal: IdealObservations, drop: np.ndarray) -> IdealObservations:
+    """The observations with those where ``drop`` (bool (C, F, M)) made unseen (NaN pixels)."""
+    uv = ideal.uv_px.copy()
+    uv[drop] = np.nan
+    return dataclasses.replace(ideal, uv_px=uv)
+
+
+def _each_array(ideal: IdealObservations, op) -> IdealObservations:
+    shape = ideal.uv_px.shape[:3]
+    changes = {f.name: op(getattr(ideal, f.name)) for f in dataclasses.fields(ideal)
+               if isinstance(getattr(ideal, f.name), np.ndarray) and getattr(ideal, f.name).shape[:3] == shape}
+    return dataclasses.replace(ideal, **changes, linear_xyz=None)

@@ -33,6 +33,26 @@ def random_walk_sigma_m(motion: MotionConfig, fps: float) -> float:
     return max_motion_per_frame_m(motion, fps) / math.sqrt(CHI2_3DOF_95)
 
 
+CAUSAL_Q_FLOOR = 1.0  # [m^2/s^3] the causal q without a flap: a filter that sees no data should not assume rigidity
+
+
+def causal_accel_psd(motion: MotionConfig, fps: float) -> float:
+    """Constant-velocity q [m^2/s^3] from the motion config alone (the filter's default: it sees no data).
+
+    The paper's eq. 4 bounds a wing's speed by the flap's peak speed alpha_f l_w f_f; a sinusoidal flap with that
+    peak speed has peak acceleration a = 2 pi f_f alpha_f l_w f_f, and its velocity changes per frame by
+    a sin(.) dt, of mean square a^2 dt^2 / 2 (3-D); white-noise acceleration of PSD q changes it by 3 q dt per frame,
+    so q = a^2 dt / 6 (8.7 m^2/s^3 for the paper's flight), at least CAUSAL_Q_FLOOR. Without physics:
+    ``causal_accel_psd_m2_s3``, measured by reconstruct from the triangulated track (:func:`noise_from_track`).
+    """
+    if not motion.has_physics:
+        if motion.causal_accel_psd_m2_s3 is None:
+            raise ValueError("[motion] has no physics and no measured q (batgraph.motion.noise_from_track)")
+        return float(motion.causal_accel_psd_m2_s3)
+    a = 2 * math.pi * motion.flap_hz * math.radians(motion.flap_angle_deg) * motion.span_m * motion.flap_hz
+    return max(a * a / fps / 6.0, CAUSAL_Q_FLOOR)
+
+
 def constant_velocity_Q(accel_psd_m2_s3: float, dt_s: float) -> np.ndarray:
     """Process covariance of one step of the constant-velocity model, shape (6, 6).
 

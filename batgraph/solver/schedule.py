@@ -1,0 +1,200 @@
+"""The smoother's schedule, written once over a backend (batgraph.solver.backends: the fast solver, or GTSAM's
+graph as the reference): clean -> exclude -> choose model and noise -> final solves until the rejected set is
+stable -> the steps after the solve.
+
+1. Cleaning (with a robust loss and outlier rejection): minimise with the Cauchy loss from the initial track,
+   constant velocity at the causal q (the random walk at its sigma). The initial track interpolates >= 2-view
+   triangulations only, so a mislabel that is a frame's only view does not attract it, and Cauchy's
+   redescending influence leaves it unfitted (Huber's bounded one fits it wherever bending the motion is cheaper).
+2. Exclude the observations with |r|^2 > 25 (|r| > 5 sigma) at the cleaning solution, by :func:`to_exclude`.
+3. Each marker's model (for "auto") and noise level by the marginal likelihood (batgraph.solver.search) on the
+   observations left, from the cleaning solution, without the segments (each marker's evidence alone).
+4. Final solves with the chosen loss and the segments, from the search's solutions; the rejection of step 2
+   again at each solution over all observations, until the excluded set is stable (at most REJECTION_ROUNDS;
+   a later round solves only the markers whose exclusions changed, with their segment groups).
+5. The marginal covariances of the last solve; outlier flags |r|^2 > 13.8155 (chi-square 2 DOF, 99.9 %).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..measurement import IdealObservations
+from ..motion import causal_accel_psd, random_walk_sigma_m
+from ..result import Estimate, Options
+from ..session import DenseObservations, Session
+from ..triangulate import dlt_points
+from . import fit as fit_mod
+from . import lm, search, segments
+from . import model as mm
+from .problem import Loss, gradient
+from .threads import one_blas_thread
+
+CLEANING_LOSS = Loss("cauchy")
+REJECT_SQ_RESIDUAL = 25.0  # |r| > 5 sigma: at 13.8 an excluded inlier drifts off the solution and stays out
+OUTLIER_SQ_RESIDUAL = 13.8155  # chi-square 2 DOF, 99.9 %: the flags reported
+REJECTION_ROUNDS = 3
+
+
+def initial_track(xyz_tri_m: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(p_init, v_init (F, M, 3) [m, m/s], estimated (M,)) from per-frame triangulations (F, M, 3) (NaN where
+    < 2 views): linear interpolation over missing frames, constant beyond the ends, np.gradient for v; a marker
+    never triangulated is not estimated (NaN)."""
+    F, M = xyz_tri_m.shape[:2]
+    ok = np.isfinite(xyz_tri_m).all(axis=-1)
+    estimated = ok.any(axis=0)
+    p = np.full((F, M, 3), np.nan)
+    frames = np.arange(F)
+    for m in np.flatnonzero(estimated):
+        for a in range(3):
+            p[:, m, a] = np.interp(frames, frames[ok[:, m]], xyz_tri_m[ok[:, m], m, a])
+    return p, gradient(p, fps), estimated
+
+
+def to_exclude(rejected: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The rejected observations (C, F, M) to leave out: on a point seen once, the view; on one seen by several,
+    a rejected view only when another view of it is not rejected (a mislabel is one observation: when every view
+    of a point is rejected, the motion prior, not the data, is wrong)."""
+    n_ok = (seen & ~rejected).sum(axis=0)
+    return rejected & ((seen.sum(axis=0) == 1) | (n_ok >= 1))[None]
+
+
+def motion_choice(session: Session, options: Options) -> tuple[str, float, float | None]:
+    """(model, the random walk's sigma_m [m], a given constant-velocity q [m^2/s^3] or None): options first, then
+    session.toml. A given q makes "auto" constant velocity, the model q belongs to."""
+    name = options.motion_model or session.motion.model
+    if name not in (*mm.MODELS, mm.AUTO):
+        raise InputError(f"motion model must be one of {', '.join((*mm.MODELS, mm.AUTO))}, got {name!r}")
+    q = options.accel_psd_m2_s3 if options.accel_psd_m2_s3 is not None else session.motion.accel_psd_m2_s3
+    if name == mm.AUTO and q is not None:
+        name = "constant_velocity"
+    return name, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
+
+
+def run(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options, backend) -> Estimate:
+    """The ``smoother`` method on ``backend`` (module docstring). Estimate: xyz (F, M, 3), cov (F, M, 3, 3) (NaN
+    for markers never triangulated), outlier flags (C, F, M), info (figures for summary.json)."""
+    with one_blas_thread():
+        return _run(session, dense, ideal, options, backend)
+
+
+def _run(session, dense, ideal, options, backend) -> Estimate:
+    t0 = time.perf_counter()
+    name, sigma_m, q = motion_choice(session, options)
+    fps, rig = session.fps, session.rig
+    p_init, v_init, estimated = initial_track(dlt_points(rig, ideal), fps)
+    C, F, M = ideal.seen.shape
+    reject = options.outlier_rejection and options.robust != "none"
+    info = {"solver": backend.name, "motion_model": name, "robust": options.robust, "robust_k": options.robust_k,
+            "outlier_rejection": reject}
+    if not estimated.any():
+        return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
+                        np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
+    setup = fit_mod.Setup(ideal, rig, fps, Loss(options.robust, options.robust_k), p_init,
+                          segments.pairs_of(session.rigid, dense.markers), session.rigid_sigma_m)
+    excluded, start = np.zeros((C, F, M), bool), (p_init, v_init, None)
+    if reject:
+        excluded, start, info["cleaning"] = _clean(setup, backend, name, sigma_m, q, session)
+    models, levels, start = _choose(setup.without(excluded), backend, name, sigma_m, q, start, estimated, options,
+                                    info, dense.markers)
+    fit, excluded, rounds = _final(setup, backend, models, levels, start, excluded, reject)
+    flags = np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > OUTLIER_SQ_RESIDUAL
+    info.update(_figures(fit, models, dense.markers, setup, rounds, excluded, reject))
+    return Estimate("smoother", fit.xyz, fit.cov, flags, time.perf_counter() - t0, info)
+
+
+def _clean(setup, backend, name, sigma_m, q, session) -> tuple:
+    """Steps 1-2: (excluded (C, F, M), the final solves' start, figures)."""
+    est = setup.estimated
+    clean_name, level = ("random_walk", sigma_m) if name == "random_walk" else (
+        "constant_velocity", q if q is not None else causal_accel_psd(session.motion, session.fps))
+    models = np.where(est, clean_name, None)
+    fit = backend.fit(replace(setup, loss=Loss(CLEANING_LOSS.name, setup.loss.k)), models,
+                      np.full(len(est), level), (setup.p_init, None, None), lm.LOOSE, covariances=False,
+                      with_segments=False)
+    excluded = to_exclude(np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > REJECT_SQ_RESIDUAL,
+                          setup.ideal.seen)
+    v = fit.velocity if clean_name != "random_walk" else gradient(setup.p_init, setup.fps)
+    figures = {"loss": CLEANING_LOSS.name, "robust_k": setup.loss.k, "iterations": int(fit.iterations.max()),
+               "n_flagged": int(excluded.sum()), mm.LEVEL_NAME[clean_name]: level}
+    return excluded, (fit.xyz, v, None), figures
+
+
+def _choose(setup, backend, name, sigma_m, q, start, estimated, options, info, names) -> tuple:
+    """Step 3: (models (M,), levels (M,), the final solves' start)."""
+    M = len(estimated)
+    if name == "random_walk" or q is not None:
+        level = sigma_m if name == "random_walk" else q
+        info[mm.LEVEL_NAME[name]] = level
+        info["noise_source"] = "given"
+        info["motion_model_per_marker"] = {names[m]: name for m in np.flatnonzero(estimated)}
+        return np.where(estimated, name, None), np.full(M, level), start
+    candidates = mm.AUTO_CANDIDATES if name == mm.AUTO else (name,)
+    groups = [members for members, _ in segments.groups(setup.pairs, estimated)]
+    choice = backend.choose(setup, start, candidates, groups, options.progress)
+    models = np.where(estimated, choice.model, None)
+    info.update(_choice_figures(choice, models, names, candidates))
+    x = np.full(start[0].shape[:2] + (9,), np.nan)
+    for n in candidates:  # the search's solutions at the chosen models and levels: the final solves' start
+        sol = choice.solution[n]
+        x[..., :sol.shape[-1]] = np.where(np.isfinite(sol), sol, x[..., :sol.shape[-1]])
+    p, v, a = search.motion_of(x, setup.fps)
+    have = np.isfinite(p).all(axis=(0, 2))[None, :, None]
+    p = np.where(have, p, start[0])
+    v = np.where(have & np.isfinite(v).all(axis=(0, 2))[None, :, None], v,
+                 start[1] if start[1] is not None else gradient(p, setup.fps))
+    return models, choice.level, (p, v, np.where(np.isfinite(a), a, gradient(v, setup.fps)))
+
+
+def _final(setup, backend, models, levels, start, excluded, reject) -> tuple:
+    """Step 4: (the last fit, the excluded set, iterations per round)."""
+    rounds, fit = [], None
+    redo = models != None  # noqa: E711  (an object array)
+    for r in range(REJECTION_ROUNDS if reject else 1):
+        solved = backend.fit(setup.without(excluded), np.where(redo, models, None), levels, start)
+        fit = solved if fit is None else fit.merge(solved, redo)
+        rounds.append(int(solved.iterations[redo].max(initial=0)))
+        if not reject:
+            break
+        again = to_exclude(np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > REJECT_SQ_RESIDUAL,
+                           setup.ideal.seen)
+        if r == REJECTION_ROUNDS - 1 or (again == excluded).all():
+            break
+        redo = segments.with_groups((again != excluded).any(axis=(0, 1)), setup.pairs, models != None)  # noqa: E711
+        excluded, start = again, (fit.xyz, fit.velocity, fit.acceleration)
+    return fit, excluded, rounds
+
+
+def _choice_figures(choice, models, names, candidates) -> dict:
+    est = [m for m in range(len(models)) if models[m] is not None]
+    out = {"noise_source": "data", "motion_model_per_marker": {names[m]: str(models[m]) for m in est},
+           "noise_solves": {n: int(choice.n_solves[n]) for n in candidates}}
+    for n in candidates:
+        out[mm.LEVEL_NAME[n]] = {names[m]: float(choice.level[m]) for m in est if models[m] == n}
+    if len(candidates) > 1:
+        out["log_evidence_per_marker"] = {names[m]: {n: float(choice.evidence_by_model[n][m]) for n in candidates}
+                                          for m in est}
+    return out
+
+
+def _figures(fit, models, names, setup, rounds, excluded, reject) -> dict:
+    est = models != None  # noqa: E711
+    out = {"iterations": int(sum(rounds)), "final_error": float(fit.cost[est].sum()),
+           "markers_not_converged": int((est & ~fit.converged).sum())}
+    if (models == "constant_acceleration").any():
+        out["acceleration_rms_mps2"] = {names[m]: float(np.sqrt(np.mean(np.sum(fit.acceleration[:, m] ** 2, -1))))
+                                        for m in np.flatnonzero(models == "constant_acceleration")}
+    if reject:
+        out.update(iterations_per_round=rounds, rejected=int(excluded.sum()))
+    if len(fit.pairs):
+        out["rigid_sigma_m"] = setup.rigid_sigma_m
+        excess = segments.triangulated_excess(setup, fit.pairs)
+        out["segments"] = {f"{names[a]}-{names[b]}": {
+            "length_m": float(L), "length_sigma_m": float(sd), "triangulated_excess_m": float(e),
+            "scatter_rms_m": float(np.sqrt(np.mean((np.linalg.norm(fit.xyz[:, a] - fit.xyz[:, b], axis=-1) - L) ** 2)))}
+            for (a, b), L, sd, e in zip(fit.pairs, fit.length_m, fit.length_sd_m, excess, strict=True)}
+    return out
