@@ -42,6 +42,10 @@ class Camera:
     tvec: translation of cam_from_world, shape (3,) [m].
     pose_cov: optional covariance of the pose, shape (6, 6), in GTSAM's Pose3 tangent order
         (rotation [rad], then translation [m]) of world_from_cam; see :mod:`batgraph.session`.
+    fps: this camera's frame rate [Hz]; None = the session's.
+    time_offset_s: its frame j is exposed at ``j / fps + time_offset_s`` on the session clock [s].
+    readout_s: rolling-shutter readout [s]: raw image row v is read ``readout_s * v / height`` after row 0
+        (0 = global shutter). time_offset_sd_s, readout_sd_s: their standard deviations when estimated.
     """
 
     name: str
@@ -51,6 +55,11 @@ class Camera:
     rvec: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tvec: np.ndarray = field(default_factory=lambda: np.zeros(3))
     pose_cov: np.ndarray | None = None
+    fps: float | None = None
+    time_offset_s: float = 0.0
+    readout_s: float = 0.0
+    time_offset_sd_s: float | None = None
+    readout_sd_s: float | None = None
 
     def __post_init__(self):
         self.K = _as_float(self.K, (3, 3), f"camera {self.name!r} matrix")
@@ -63,6 +72,22 @@ class Camera:
         self._R = pose.R_from_rvec(self.rvec)
         self._K_inv = np.linalg.inv(self.K)
         self._r_max = max_valid_radius(self.dist)
+        self.fps = None if self.fps is None else float(self.fps)
+        self.time_offset_s, self.readout_s = float(self.time_offset_s), float(self.readout_s)
+
+    # ----- timing -----------------------------------------------------------------------------
+    def frame_rate(self, session_fps: float) -> float:
+        """This camera's frame rate [Hz]: its own ``fps``, else the session's."""
+        return float(session_fps) if self.fps is None else self.fps
+
+    def on_session_clock(self, session_fps: float) -> bool:
+        """True when its frame k is the session's frame k, exposed all at once (no offset, no readout)."""
+        return self.frame_rate(session_fps) == float(session_fps) and self.time_offset_s == 0 and self.readout_s == 0
+
+    def capture_time_s(self, frame: np.ndarray, v_raw_px: np.ndarray, session_fps: float) -> np.ndarray:
+        """Session-clock time [s] at which raw row ``v_raw_px`` of this camera's own frame ``frame`` was read."""
+        rate = self.frame_rate(session_fps)
+        return np.asarray(frame) / rate + self.time_offset_s + self.readout_s * np.asarray(v_raw_px) / self.size_wh[1]
 
     # ----- pose -------------------------------------------------------------------------------
     @property
@@ -209,6 +234,10 @@ class Rig:
 
     def __iter__(self):
         return iter(self.cameras)
+
+    def on_session_clock(self, session_fps: float) -> bool:
+        """True when every camera exposes the session's frame k all at once (:meth:`Camera.on_session_clock`)."""
+        return all(c.on_session_clock(session_fps) for c in self.cameras)
 
     def project(self, xyz_world_m: np.ndarray, distort: bool = True) -> np.ndarray:
         """Project points (..., 3) into every camera: uv_px of shape (n_cams, ..., 2), NaN if not visible."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import math
 import sys
 from pathlib import Path
 
@@ -278,8 +279,57 @@ def _add_simulate(sub):
                    help="calibration error: rotation of each affected camera [deg]")
     p.add_argument("--calib-trans-mm", type=nonnegative_float, default=0.0,
                    help="calibration error: translation of each affected camera [mm]")
+    t = p.add_argument_group("timing (flight, ear; docs/timing.md)")
+    t.add_argument("--time-offsets-ms", type=_numbers, metavar="A,B,...",
+                   help="each camera's time offset [ms]: its frame j is exposed at j / fps + offset (whole-frame lags "
+                        "are multiples of 1000 / fps)")
+    t.add_argument("--readout-ms", type=_numbers, metavar="R[,R2,...]",
+                   help="rolling-shutter readout [ms], one value or one per camera (default 0: global shutter)")
+    t.add_argument("--camera-fps", type=_numbers, metavar="F1,F2,...",
+                   help="each camera's frame rate [Hz], none above --fps (the session's)")
+    t.add_argument("--timing-known", action="store_true",
+                   help="write the true offsets and readouts into calibration.toml (default: it states only the "
+                        "cameras' fps; the truth goes to truth_timing.toml)")
     p.add_argument("--force", action="store_true", help="overwrite an existing session folder")
     p.set_defaults(func=_cmd_simulate)
+
+
+def _numbers(text: str) -> list[float]:
+    """A comma-separated list of finite numbers (argparse type)."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
+    return values
+
+
+def _timing(args, n_cameras: int):
+    """The simulate command's timing flags as a batgraph.simulate.Timing (None without any); InputError if bad."""
+    from .simulate import Timing
+
+    if args.time_offsets_ms is None and args.readout_ms is None and args.camera_fps is None:
+        if args.timing_known:
+            raise InputError("--timing-known: give the timing (--time-offsets-ms, --readout-ms, --camera-fps)")
+        return None
+    if args.scene == "wand":
+        raise InputError("--time-offsets-ms, --readout-ms, --camera-fps: only for the flight and ear scenes")
+    for flag, values, per_camera in (("--time-offsets-ms", args.time_offsets_ms, True),
+                                     ("--readout-ms", args.readout_ms, False), ("--camera-fps", args.camera_fps, True)):
+        if values is not None and len(values) != n_cameras and (per_camera or len(values) != 1):
+            raise InputError(f"{flag}: expected {n_cameras} values (one per camera){'' if per_camera else ' or one'}, "
+                             f"got {len(values)}")
+    readout = [v / 1000 for v in args.readout_ms] if args.readout_ms is not None else [0.0]
+    offsets = None if args.time_offsets_ms is None else tuple(v / 1000 for v in args.time_offsets_ms)
+    timing = Timing(time_offsets_s=offsets,
+                    readout_s=readout[0] if len(readout) == 1 else tuple(readout),
+                    camera_fps=None if args.camera_fps is None else tuple(args.camera_fps), known=args.timing_known)
+    try:
+        timing.cameras(n_cameras, args.fps or (120.0 if args.scene == "flight" else 250.0))
+    except ValueError as e:
+        raise InputError(f"simulate timing: {e}" + (" (raise --fps)" if "camera_fps" in str(e) else "")) from None
+    return timing
 
 
 def _cmd_simulate(args) -> int:
@@ -301,16 +351,18 @@ def _cmd_simulate(args) -> int:
         common["fps"] = args.fps
     if args.cameras and args.cameras > 30:
         raise InputError(f"--cameras: at most 30, got {args.cameras}")
+    timing = _timing(args, 2 if args.scene == "ear" else args.cameras or 5)
     if args.scene == "flight":
         if args.markers is not None and not 14 <= args.markers <= 180:
             raise InputError(f"--markers: must be between 14 and 180, got {args.markers}")
         session = simulate_flight(rng, n_cameras=args.cameras or 5, n_markers=args.markers,
-                                  calib_rot_deg=args.calib_rot_deg, calib_trans_mm=args.calib_trans_mm, **common)
+                                  calib_rot_deg=args.calib_rot_deg, calib_trans_mm=args.calib_trans_mm, timing=timing,
+                                  **common)
     elif args.scene == "wand":
         session = simulate_wand(rng, n_cameras=args.cameras or 5, calib_rot_deg=args.calib_rot_deg,
                                 calib_trans_mm=args.calib_trans_mm, **common)
     else:
-        session = simulate_ear(rng, **common)
+        session = simulate_ear(rng, timing=timing, **common)
     write_session(session, out)
     print(f"wrote {args.scene} session to {out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.frames)} frames, {len(session.observations)} observations)")
@@ -351,6 +403,10 @@ def _add_import(sub):
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
     d.add_argument("--pixel-sigma", type=positive_float,
                    help="click noise std [px] (default: measured per camera by reconstruct)")
+    d.add_argument("--offsets", nargs="+", metavar="FILE", default=[],
+                   help="camera offsets: DLTdv8 *offsets.csv or Argus clicker *-offsets.csv (which video frame each "
+                        "row shows; non-integer allowed) and/or Argus sync *_offsets.csv (to a fraction of a frame); "
+                        "they become calibration.toml's time_offset_s (docs/timing.md)")
     d.add_argument("--force", action="store_true", help="overwrite an existing session folder")
     d.set_defaults(func=_cmd_import_dltdv)
 
@@ -434,11 +490,15 @@ def _cmd_import_dltdv(args) -> int:
               "read from the coefficients (use --pixel-origin to override)", file=sys.stderr)
     session = import_dltdv(args.xypts, args.coefs, args.fps, args.out, pixel_origin=args.pixel_origin,
                            units=args.units, image_size=tuple(args.image_size) if args.image_size else None,
-                           xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma)
+                           xyzpts=args.xyzpts, pixel_sigma_px=args.pixel_sigma, offsets=args.offsets)
     imp = session.extra_toml["import"]
     print(f"pixel origin: {imp['pixel_origin']} ({imp['pixel_origin_note']}); world: {imp['world']}; "
           f"units: {imp['units']}" + ("; image size guessed from the principal point (give --image-size W H)"
                                       if imp["image_size"] == "inferred" else ""))
+    if args.offsets:
+        print("time offsets [ms]: " + ", ".join(f"{c.name} {1e3 * c.time_offset_s:+.3f}" for c in session.rig)
+              + (f"; {imp['clicks_before_first_video_frame']} click(s) before a video's first frame dropped"
+                 if imp.get("clicks_before_first_video_frame") else ""))
     print(f"wrote session to {args.out} ({len(session.rig)} cameras, {len(session.markers)} markers, "
           f"{len(session.observations)} observations)")
     return 0

@@ -28,6 +28,8 @@ class IdealObservations:
     triangulation is then the smoother's and the triangulation method's start, not computed again (0.2-0.3 s
     each at 30 x 180 x 160). The pixels are never changed in place (batgraph.graph.cost.without_observations
     makes new ones).
+    time_frac, row_frac: (C, F, M) or None, as batgraph.session.DenseObservations has them: each observation's
+    capture time minus its frame's, in frames, from the rig's known timing; its raw row / image height.
     """
 
     uv_px: np.ndarray
@@ -49,6 +51,10 @@ class IdealObservations:
         sigma = np.broadcast_to(np.asarray(pixel_sigma_px, dtype=float), self.uv_px.shape[:1])
         return dataclasses.replace(self, cov_px2=self.cov_px2 * (sigma ** 2)[:, None, None, None, None])
 
+    def take(self, sl: slice) -> IdealObservations:
+        """The frames ``sl`` (one take) on their own (views); the linear triangulation is not carried."""
+        return _each_array(self, lambda a: a[:, sl])
+
 
 def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float | np.ndarray) -> IdealObservations:
     """Undistort every observation and map its noise (see module docstring).
@@ -67,7 +73,7 @@ def ideal_observations(rig: Rig, dense: DenseObservations, pixel_sigma_px: float
         uv[c][s], J = cam.undistort_with_jacobian(raw)
         var = sigma[c] ** 2 / dense.weight[c][s]
         cov[c][s] = var[:, None, None] * (J @ np.swapaxes(J, -1, -2))
-    return IdealObservations(uv, cov)
+    return IdealObservations(uv, cov, time_frac=dense.time_frac, row_frac=dense.row_frac)
 
 
 def of_markers(ideal: IdealObservations, markers: np.ndarray) -> IdealObservations:

@@ -13,6 +13,9 @@ does not estimate anything.
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import warnings as warnings_mod
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +51,36 @@ separates two takes (see :func:`frame_axis`)."""
 
 PAPER_PHYSICS = {"flight_speed_mps": 3.0, "span_m": 0.5, "flap_hz": 4.0, "flap_angle_deg": 90.0}
 """The paper's bat flight (v_f, l_w, f_f, alpha_f); the simulator and tests use it, nothing assumes it."""
+
+TIMING_KEYS = ("fps", "time_offset_s", "readout_s", "time_offset_sd_s", "readout_sd_s")
+"""A camera's timing in calibration.toml (see batgraph.camera.Camera and docs/timing.md)."""
+CAMERA_KEYS = frozenset({
+    "name", "size", "matrix", "distortions", "rotation", "translation", "fisheye",  # aniposelib, Anipose, Pose2Sim
+    "pose_covariance", *TIMING_KEYS,  # batgraph
+    # Caliscope
+    "port", "cam_id", "rotation_count", "error", "exposure", "grid_count", "ignore", "verified_resolutions",
+})
+"""Keys a camera table of calibration.toml may hold: batgraph's and those the peer tools write."""
+METADATA_KEYS = frozenset({
+    "units", "world_mirror", "written_by",  # batgraph
+    "adjusted", "error",  # aniposelib / Anipose / Pose2Sim
+    "charuco_square_size", "charuco_board_object", "charco_board_object", "path_to_recorded_videos",  # FreeMoCap
+    "date_time_calibrated", "groundplane_calibration", "calibration_method", "camera_specs_file",
+    "reprojection_error",
+})
+SESSION_KEYS = {
+    "session": frozenset({"name", "fps", "take_gap_s"}),
+    "motion": frozenset({"model", "noise_rule", *PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"}),
+    "noise": frozenset({"pixel_sigma_px"}),
+    "markers": frozenset({"names", "skeleton", "rigid", "rigid_sigma_m"}),
+    "sync": frozenset({"estimate"}),
+    "wand": frozenset({"ends", "length_m"}),
+    # written by batgraph itself, free-form provenance: their keys are not checked
+    "simulation": None, "wingbeat": None, "import": None,
+}
+"""session.toml's tables and the keys each may hold (None: any). Extend it with every new key."""
+CLOSE_MATCH = 0.75
+"""difflib ratio above which an unknown key is taken for a misspelt known one (an error, not a warning)."""
 
 
 @dataclass
@@ -98,6 +131,12 @@ class Session:
     rigid: [markers] rigid, pairs of markers on one rigid segment (a bone): the smoother ties their
         distance to one estimated length per segment (batgraph.graph.rigid); none by default.
     rigid_sigma_m: [markers] rigid_sigma_m, the std of such a distance about its length [m].
+    true_timing: simulated sessions (truth_timing.toml): columns camera, fps, time_offset_s, readout_s, the
+        timing the observations were rendered with (the rig may state less: nothing by default).
+
+    When the rig's timing puts a camera off the session clock (batgraph.camera.Camera.on_session_clock),
+    ``observations.frame`` holds the session frame nearest each observation's exposure and ``camera_frame`` the
+    camera's own frame number, as read (:func:`to_session_clock`).
     """
 
     name: str
@@ -118,6 +157,7 @@ class Session:
     take_gap_s: float = DEFAULT_TAKE_GAP_S
     rigid: list[tuple[str, str]] = field(default_factory=list)
     rigid_sigma_m: float = DEFAULT_RIGID_SIGMA_M
+    true_timing: pd.DataFrame | None = None
 
     @property
     def markers(self) -> list[str]:
@@ -183,6 +223,10 @@ class DenseObservations:
     weight: shape (C, F, M), 0 where unseen.
     frames: frame numbers along F, shape (F,) (the session's compacted axis: :func:`frame_axis`);
     cameras, markers: names along C and M. takes: slices of F solved on their own; empty = one take.
+    time_frac: (C, F, M) each observation's capture time minus its session frame's time, in session frames,
+        from the rig's known timing (offset, and readout times the row: :func:`capture_fractions`); 0 where unseen.
+    row_frac: (C, F, M) raw row / image height of each observation (0 where unseen): what a readout multiplies.
+    Both None when every camera exposes the session's frames all at once (nothing to model).
     """
 
     cameras: list[str]
@@ -191,6 +235,8 @@ class DenseObservations:
     uv_px: np.ndarray
     weight: np.ndarray
     takes: list[slice] = field(default_factory=list)
+    time_frac: np.ndarray | None = None
+    row_frac: np.ndarray | None = None
 
     @property
     def take_slices(self) -> list[slice]:
@@ -199,7 +245,9 @@ class DenseObservations:
 
     def take(self, sl: slice) -> DenseObservations:
         """The frames ``sl`` (one take) as a DenseObservations of their own (views, not copies)."""
-        return DenseObservations(self.cameras, self.frames[sl], self.markers, self.uv_px[:, sl], self.weight[:, sl])
+        return DenseObservations(self.cameras, self.frames[sl], self.markers, self.uv_px[:, sl], self.weight[:, sl],
+                                 time_frac=None if self.time_frac is None else self.time_frac[:, sl],
+                                 row_frac=None if self.row_frac is None else self.row_frac[:, sl])
 
     @property
     def seen(self) -> np.ndarray:
@@ -225,9 +273,11 @@ def span_distance(n_views: np.ndarray) -> np.ndarray:
     return np.where(has, dist, -1)
 
 
-def dense_observations(session: Session) -> DenseObservations:
+def dense_observations(session: Session, timing: bool | None = None) -> DenseObservations:
     """Scatter the long observations table into (C, F, M) arrays (see :class:`DenseObservations`).
 
+    timing: fill ``time_frac`` and ``row_frac`` (True), leave them None (False), or fill them only when the rig
+    puts a camera off the session clock (None, the default). An estimator of the timing asks for True.
     Raises InputError, before allocating, when they would not fit in memory (batgraph.inputs.check_dense_memory).
     """
     obs = session.observations
@@ -245,12 +295,145 @@ def dense_observations(session: Session) -> DenseObservations:
     w = np.zeros((C, F, M))
     uv[ci, fi, mi] = obs[["u", "v"]].to_numpy(float)
     w[ci, fi, mi] = obs["weight"].to_numpy(float)
-    return DenseObservations(cams, frames, markers, uv, w, takes if len(takes) > 1 else [])
+    dense = DenseObservations(cams, frames, markers, uv, w, takes if len(takes) > 1 else [])
+    if timing or (timing is None and not session.rig.on_session_clock(session.fps)):
+        time_frac, row_frac = capture_fractions(session.rig, obs, ci, session.fps)
+        dense.time_frac, dense.row_frac = np.zeros((C, F, M)), np.zeros((C, F, M))
+        dense.time_frac[ci, fi, mi], dense.row_frac[ci, fi, mi] = time_frac, row_frac
+    return dense
+
+
+def exposure_frames(camera_frame: np.ndarray, camera: Camera, fps: float) -> np.ndarray:
+    """When a camera's own frames (N,) int start their exposure, in session frames (float, session clock).
+
+    Exact for a camera at the session's rate with no offset (the frames as given)."""
+    rate = camera.frame_rate(fps)
+    return np.asarray(camera_frame, np.int64) * (float(fps) / rate) + camera.time_offset_s * float(fps)
+
+
+def nearest_frame(x_frames: np.ndarray) -> np.ndarray:
+    """The session frame nearest each time ``x_frames`` [session frames], a half going to the earlier frame
+    (so DLTdv's rows, which round a half up when they pick a camera's frame, come back as they were)."""
+    return np.ceil(np.asarray(x_frames, float) - 0.5).astype(np.int64)
+
+
+def capture_fractions(rig: Rig, obs: pd.DataFrame, cam_index: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation row: (capture time minus its session frame, in session frames; raw row / height).
+
+    obs: the session's observations (frame = session frame; camera_frame = the camera's own, when present);
+    cam_index (N,): each row's camera in ``rig``. The capture time adds readout_s * v / height to the exposure.
+    """
+    own = obs["camera_frame"].to_numpy(np.int64) if "camera_frame" in obs else obs["frame"].to_numpy(np.int64)
+    v = obs["v"].to_numpy(float)
+    time_frac, row_frac = np.zeros(len(obs)), np.zeros(len(obs))
+    for c, cam in enumerate(rig):
+        sel = cam_index == c
+        row_frac[sel] = v[sel] / cam.size_wh[1]
+        start = exposure_frames(own[sel], cam, fps) - obs["frame"].to_numpy(np.int64)[sel]
+        time_frac[sel] = start + cam.readout_s * float(fps) * row_frac[sel]
+    return time_frac, row_frac
+
+
+def check_clock(rig: Rig, fps: float, where: str) -> None:
+    """InputError when a camera cannot live on a session clock of ``fps``: it runs faster, or reads out for a
+    frame or more. where: the calibration file, for the message."""
+    for cam in rig:
+        rate = cam.frame_rate(fps)
+        if rate > float(fps) * (1 + 1e-9):
+            raise InputError(f"{where}: camera {cam.name} runs at {rate:g} fps, faster than the session's {fps:g} "
+                             f"fps: raise [session] fps in session.toml to at least {rate:g} (the session's frames "
+                             f"must be as fine as its fastest camera's)")
+        if cam.readout_s >= 1.0 / rate:
+            raise InputError(f"{where}: camera {cam.name} readout_s {cam.readout_s:g} s is not shorter than one of "
+                             f"its frames (1 / {rate:g} fps = {1.0 / rate:g} s)")
+
+
+def session_frames(camera_frame: np.ndarray, camera: np.ndarray, rig: Rig, fps: float) -> np.ndarray:
+    """The session frame (N,) int64 of each camera's own frame: ``nearest_frame((j / fps_c + time_offset_s) * fps)``.
+
+    camera_frame (N,) int: the cameras' own frame numbers; camera (N,): their camera names (all in ``rig``)."""
+    ci = factorize(pd.Series(camera)).positions(rig.names)
+    own = np.asarray(camera_frame, np.int64)
+    k = own.copy()
+    for c, cam in enumerate(rig):
+        sel = ci == c
+        k[sel] = nearest_frame(exposure_frames(own[sel], cam, fps))
+    return k
+
+
+def to_session_clock(table: pd.DataFrame, rig: Rig, fps: float, where: str) -> tuple[pd.DataFrame, list[str]]:
+    """A table with frame and camera columns (observations, mislabels) from each camera's own frames to the
+    session's frames; (table, warnings).
+
+    Camera c's frame j goes to :func:`session_frames`; the table keeps j as ``camera_frame``. A rig on the session
+    clock returns the table as it is (or, for a table mapped before, with its camera frames back). Rows that land
+    before session frame 0 are dropped, with a warning; the rows are sorted by frame, camera, marker.
+    """
+    check_clock(rig, fps, where)
+    own = (table["camera_frame"] if "camera_frame" in table else table["frame"]).to_numpy(np.int64)
+    if rig.on_session_clock(fps):
+        if "camera_frame" not in table:
+            return table, []
+        back = table.assign(frame=own).drop(columns="camera_frame")
+        return back.sort_values(["frame", "camera", "marker"], kind="stable").reset_index(drop=True), []
+    k = session_frames(own, table["camera"].to_numpy(), rig, fps)
+    out = table.assign(frame=k, camera_frame=own)
+    notes = []
+    early = k < 0
+    if early.any():
+        per = pd.Series(table["camera"].to_numpy()[early]).value_counts(sort=False)
+        notes.append(f"{where}: {int(early.sum())} observation(s) fall before session frame 0 with the cameras' "
+                     f"time offsets ({', '.join(f'{n} of {c}' for c, n in per.items())}); dropped")
+        out = out[~early]
+    return out.sort_values(["frame", "camera", "marker"], kind="stable").reset_index(drop=True), notes
+
+
+def retime(session: Session, rig: Rig) -> Session:
+    """The session with another rig (e.g. estimated time offsets), its observations put on that rig's clock."""
+    where = f"session {session.name!r}" if session.path is None else str(session.path)
+    obs, notes = to_session_clock(session.observations, rig, session.fps, where)
+    return dataclasses.replace(session, rig=rig, observations=obs, warnings=list(session.warnings) + notes)
 
 
 # ----------------------------------------------------------------------------------------------
 # reading (every file through batgraph.inputs: encodings, permissions, CSV dialects, frame limits)
 # ----------------------------------------------------------------------------------------------
+def near_miss(key: str, known) -> str | None:
+    """The known key that ``key`` most likely misspells (difflib ratio >= CLOSE_MATCH, or the same letters in
+    another order), or None."""
+    close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=CLOSE_MATCH)
+    swapped = [k for k in sorted(known) if sorted(k) == sorted(key)]
+    return close[0] if close else (swapped[0] if swapped else None)
+
+
+def check_keys(keys, known, where: str, warnings: list[str]) -> None:
+    """Unknown keys of one TOML table: InputError for a near miss of a known key (:func:`near_miss`: a typo such as
+    ``time_ofset_s`` would silently change the result), else one warning line naming them (keys other tools
+    write must not stop a file from loading). where: the file and table, for the messages."""
+    unknown = [k for k in keys if k not in known]
+    for k in unknown:
+        close = near_miss(k, known)
+        if close:
+            raise InputError(f"{where}: unknown key {k!r} (did you mean {close!r}?)")
+    if unknown:
+        warnings.append(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} ignored "
+                        f"(known: {', '.join(sorted(known))})")
+
+
+def _timing(tab: dict, where: str) -> dict:
+    """A camera table's timing keys (TIMING_KEYS), validated: finite, fps > 0, readout and the sds >= 0, the
+    readout shorter than one frame when the camera's fps is given (else checked against the session's: check_clock)."""
+    out = {}
+    for k in TIMING_KEYS:
+        if k in tab:
+            out[k] = inputs.number(tab[k], f"{where} {k}", positive=k != "time_offset_s",
+                                   allow_zero=k in ("readout_s", "time_offset_sd_s", "readout_sd_s"))
+    if "fps" in out and out.get("readout_s", 0.0) >= 1.0 / out["fps"]:
+        raise InputError(f"{where} readout_s: {out['readout_s']:g} s is not shorter than one frame "
+                         f"(1 / fps = {1.0 / out['fps']:g} s)")
+    return out
+
+
 def _pose_covariance(value, where: str) -> np.ndarray:
     """A 6x6 pose covariance: finite, symmetric and positive definite (the estimators invert it)."""
     cov = inputs.array(value, (6, 6), where)
@@ -267,15 +450,19 @@ def _pose_covariance(value, where: str) -> np.ndarray:
     return cov
 
 
-def read_calibration(path: Path, units: str | None = None) -> Rig:
+def read_calibration(path: Path, units: str | None = None, warnings: list[str] | None = None) -> Rig:
     """Read an aniposelib-style calibration.toml into a :class:`Rig` (order of the tables), in metres.
 
     Translations are in ``[metadata] units`` ("m" default, "cm", "mm"); ``units`` overrides it (an
-    importer's --units). ``[metadata] world_mirror`` (three +-1) marks a left-handed user frame.
+    importer's --units). ``[metadata] world_mirror`` (three +-1) marks a left-handed user frame. A camera's
+    timing (TIMING_KEYS) is optional. Unknown keys: :func:`check_keys`; their warnings are appended to
+    ``warnings``, or issued as Python warnings when it is None (never silent).
     """
+    notes = [] if warnings is None else warnings
     data = inputs.read_toml(path)
     meta = data.get("metadata", {})
     meta = meta if isinstance(meta, dict) else {}
+    check_keys(meta, METADATA_KEYS, f"{path} [metadata]", notes)
     units = units if units is not None else meta.get("units", "m")
     if not isinstance(units, str) or units not in UNITS_M:
         raise InputError(f"{path} [metadata] units: {units!r} is not one of {', '.join(UNITS_M)}")
@@ -285,44 +472,51 @@ def read_calibration(path: Path, units: str | None = None) -> Rig:
         mirror = inputs.array(meta["world_mirror"], (3,), f"{path} [metadata] world_mirror")
         if not np.all(np.abs(mirror) == 1):
             raise InputError(f"{path} [metadata] world_mirror: expected three values of 1 or -1, got {mirror.tolist()}")
-    cams = []
-    for key, tab in data.items():
-        if key == "metadata" or not isinstance(tab, dict):
-            continue
-        where = f"{path} [{key}]"
-        for k in ("size", "matrix", "rotation", "translation"):
-            if k not in tab:
-                raise InputError(f"{where}: missing key '{k}'")
-        if tab.get("fisheye", False):
-            raise InputError(f"{where}: fisheye calibrations are not supported (use the 5-parameter model)")
-        name = tab.get("name", key)
-        if not isinstance(name, str | int) or isinstance(name, bool) or not str(name).strip():
-            raise InputError(f"{where} name: expected a camera name, got {name!r}")
-        name = str(name)
-        size = inputs.array(tab["size"], (2,), f"{where} size")
-        if (size <= 0).any() or (size != np.round(size)).any() or (size > 100_000).any():
-            raise InputError(f"{where} size: expected two positive integers [width, height], got {tab['size']!r}")
-        K = inputs.array(tab["matrix"], (3, 3), f"{where} matrix")
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-            raise InputError(f"{where} matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        dist = tab.get("distortions", [0.0] * 5)
-        if not isinstance(dist, list) or len(dist) > 5:
-            raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], got {dist!r}")
-        dist = inputs.array(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
-        rvec = inputs.array(tab["rotation"], (3,), f"{where} rotation")
-        tvec = inputs.array(tab["translation"], (3,), f"{where} translation") * scale
-        cov = None
-        if "pose_covariance" in tab:
-            s_t = np.diag([1.0, 1.0, 1.0, scale, scale, scale])  # tangent [rot rad, trans units]
-            cov = s_t @ _pose_covariance(tab["pose_covariance"], f"{where} pose_covariance") @ s_t
-        cams.append(Camera(name, (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov))
+    loose = [k for k, v in data.items() if not isinstance(v, dict)]
+    if loose:
+        notes.append(f"{path}: top-level key(s) {', '.join(map(repr, loose))} outside any camera table ignored")
+    cams = [_camera(tab, f"{path} [{key}]", key, scale, notes) for key, tab in data.items()
+            if key != "metadata" and isinstance(tab, dict)]
     if not cams:
         raise InputError(f"{path}: no camera tables (expected [cam_0], [cam_1], ...)")
     names = [c.name for c in cams]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise InputError(f"{path}: camera name {dup[0]!r} appears more than once")
+    if warnings is None:
+        for line in notes:
+            warnings_mod.warn(line, stacklevel=2)
     return Rig(cams, world_mirror=mirror)
+
+
+def _camera(tab: dict, where: str, key: str, scale: float, notes: list[str]) -> Camera:
+    """One camera table of calibration.toml (see :func:`read_calibration`); translations times ``scale``."""
+    check_keys(tab, CAMERA_KEYS, where, notes)
+    for k in ("size", "matrix", "rotation", "translation"):
+        if k not in tab:
+            raise InputError(f"{where}: missing key '{k}'")
+    if tab.get("fisheye", False):
+        raise InputError(f"{where}: fisheye calibrations are not supported (use the 5-parameter model)")
+    name = tab.get("name", key)
+    if not isinstance(name, str | int) or isinstance(name, bool) or not str(name).strip():
+        raise InputError(f"{where} name: expected a camera name, got {name!r}")
+    size = inputs.array(tab["size"], (2,), f"{where} size")
+    if (size <= 0).any() or (size != np.round(size)).any() or (size > 100_000).any():
+        raise InputError(f"{where} size: expected two positive integers [width, height], got {tab['size']!r}")
+    K = inputs.array(tab["matrix"], (3, 3), f"{where} matrix")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise InputError(f"{where} matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    dist = tab.get("distortions", [0.0] * 5)
+    if not isinstance(dist, list) or len(dist) > 5:
+        raise InputError(f"{where} distortions: expected up to 5 values [k1, k2, p1, p2, k3], got {dist!r}")
+    dist = inputs.array(list(dist) + [0.0] * (5 - len(dist)), (5,), f"{where} distortions")
+    rvec = inputs.array(tab["rotation"], (3,), f"{where} rotation")
+    tvec = inputs.array(tab["translation"], (3,), f"{where} translation") * scale
+    cov = None
+    if "pose_covariance" in tab:
+        s_t = np.diag([1.0, 1.0, 1.0, scale, scale, scale])  # tangent [rot rad, trans units]
+        cov = s_t @ _pose_covariance(tab["pose_covariance"], f"{where} pose_covariance") @ s_t
+    return Camera(str(name), (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov, **_timing(tab, where))
 
 
 def read_observations(path: Path, rig: Rig,
@@ -414,8 +608,41 @@ def read_mislabels(path: Path) -> pd.DataFrame:
                          "marker": inputs.label_column(df, "marker", path, is_csv).to_numpy(dtype=object)})
 
 
-def _session_config(path: Path) -> dict:
+TRUTH_TIMING = "truth_timing.toml"
+TRUTH_TIMING_COLUMNS = ["camera", "fps", "time_offset_s", "readout_s"]
+
+
+def read_truth_timing(path: Path) -> pd.DataFrame:
+    """truth_timing.toml (simulated sessions): one table per camera with name, fps, time_offset_s, readout_s."""
+    rows = []
+    for key, tab in inputs.read_toml(path).items():
+        where = f"{path} [{key}]"
+        if not isinstance(tab, dict) or not set(TRUTH_TIMING_COLUMNS[1:]) <= set(tab) or "name" not in tab:
+            raise InputError(f"{where}: expected name, fps, time_offset_s and readout_s")
+        rows.append({"camera": str(tab["name"]), "fps": inputs.number(tab["fps"], f"{where} fps", positive=True),
+                     "time_offset_s": inputs.number(tab["time_offset_s"], f"{where} time_offset_s"),
+                     "readout_s": inputs.number(tab["readout_s"], f"{where} readout_s", positive=True,
+                                                allow_zero=True)})
+    return pd.DataFrame(rows, columns=TRUTH_TIMING_COLUMNS)
+
+
+def truth_timing_toml(table: pd.DataFrame) -> str:
+    """The text of truth_timing.toml from a camera, fps, time_offset_s, readout_s table."""
+    return tomli_w.dumps({f"cam_{i}": {"name": str(r.camera), "fps": float(r.fps),
+                                       "time_offset_s": float(r.time_offset_s), "readout_s": float(r.readout_s)}
+                          for i, r in enumerate(table.itertuples())})
+
+
+def _session_config(path: Path, warnings: list[str]) -> dict:
     data = inputs.read_toml(path)
+    for table, value in data.items():
+        if table not in SESSION_KEYS:
+            close = near_miss(table, SESSION_KEYS)
+            if close:
+                raise InputError(f"{path}: unknown table [{table}] (did you mean [{close}]?)")
+            warnings.append(f"{path}: unknown table [{table}] ignored (known: {', '.join(sorted(SESSION_KEYS))})")
+        elif SESSION_KEYS[table] is not None and isinstance(value, dict):
+            check_keys(value, SESSION_KEYS[table], f"{path} [{table}]", warnings)
     sess = data.get("session")
     if not isinstance(sess, dict):
         raise InputError(f"{path}: missing table [session]")
@@ -470,9 +697,10 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     if not folder.is_dir():
         raise InputError(f"{folder}: session folder not found" if not folder.exists()
                          else f"{folder}: not a folder (a session is a folder holding session.toml, ...)")
-    cfg = _session_config(folder / "session.toml")
+    notes: list[str] = []
+    cfg = _session_config(folder / "session.toml", notes)
     cal_path = Path(calibration) if calibration is not None else folder / "calibration.toml"
-    rig = read_calibration(cal_path)
+    rig = read_calibration(cal_path, warnings=notes)
     obs_path = folder / "observations.csv"
     if not obs_path.exists() and (folder / "observations.parquet").exists():
         obs_path = folder / "observations.parquet"
@@ -480,6 +708,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
         raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
     observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path))
     sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})
+    observations, clock_notes = to_session_clock(observations, rig, float(sess["fps"]), str(cal_path))
+    warnings = notes + warnings + clock_notes
     known = {f for f in MotionConfig.__dataclass_fields__} - {"causal_accel_psd_m2_s3"}
     mcfg = MotionConfig(**{k: v for k, v in motion.items() if k in known})
     markers = cfg.get("markers", {})
@@ -505,6 +735,9 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     mislabels = None
     if (folder / "truth_mislabels.csv").exists():  # header-only is fine: a clean simulation
         mislabels = read_mislabels(folder / "truth_mislabels.csv")
+    if mislabels is not None:
+        mislabels = to_session_clock(mislabels, rig, float(sess["fps"]), str(cal_path))[0]
+    true_timing = read_truth_timing(folder / TRUTH_TIMING) if (folder / TRUTH_TIMING).exists() else None
     extra = {k: v for k, v in cfg.items() if k not in ("session", "motion", "noise", "markers")}
     return Session(
         name=str(sess.get("name", folder.name)), fps=float(sess["fps"]), rig=rig,
@@ -513,7 +746,7 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
         marker_names=names, skeleton=skeleton,
         truth=truth, reference=ref, true_rig=true_rig, mislabels=mislabels, extra_toml=extra, path=folder,
         warnings=warnings, take_gap_s=take_gap_s, rigid=rigid,
-        rigid_sigma_m=float(markers.get("rigid_sigma_m", DEFAULT_RIGID_SIGMA_M)),
+        rigid_sigma_m=float(markers.get("rigid_sigma_m", DEFAULT_RIGID_SIGMA_M)), true_timing=true_timing,
     )
 
 
@@ -534,6 +767,10 @@ def calibration_toml(rig: Rig) -> str:
         }
         if c.pose_cov is not None:
             tab["pose_covariance"] = c.pose_cov.tolist()
+        for k in TIMING_KEYS:  # only what is stated: a rig without timing writes as it always did
+            value = getattr(c, k)
+            if value is not None and (value != 0 or k.endswith("_sd_s")):
+                tab[k] = float(value)
         doc[f"cam_{i}"] = tab
     doc["metadata"] = {"written_by": "batgraph", "units": "m"}
     if rig.mirrored:
@@ -572,6 +809,8 @@ def write_session(session: Session, folder: str | Path) -> Path:
     atomic.write_text(folder / "session.toml", session_toml(session))
     atomic.write_text(folder / "calibration.toml", calibration_toml(session.rig))
     obs = session.observations
+    if "camera_frame" in obs:  # the file holds each camera's own frame numbers (to_session_clock)
+        obs = obs.assign(frame=obs["camera_frame"]).sort_values(["frame", "camera", "marker"], kind="stable")
     cols = OBS_COLUMNS + (["weight"] if "weight" in obs and not np.allclose(obs["weight"], 1.0) else [])
     write_csv(folder / "observations.csv", obs[cols], "%.6f")
     if session.truth is not None:
@@ -581,6 +820,10 @@ def write_session(session: Session, folder: str | Path) -> Path:
     if session.true_rig is not None:
         atomic.write_text(folder / "calibration_true.toml", calibration_toml(session.true_rig))
     if session.mislabels is not None:
-        atomic.write_text(folder / "truth_mislabels.csv",
-                          session.mislabels[["frame", "camera", "marker"]].to_csv(index=False))
+        mis = session.mislabels
+        if "camera_frame" in mis:
+            mis = mis.assign(frame=mis["camera_frame"]).sort_values(["frame", "camera", "marker"], kind="stable")
+        atomic.write_text(folder / "truth_mislabels.csv", mis[["frame", "camera", "marker"]].to_csv(index=False))
+    if session.true_timing is not None:
+        atomic.write_text(folder / TRUTH_TIMING, truth_timing_toml(session.true_timing))
     return folder

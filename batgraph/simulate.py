@@ -15,6 +15,7 @@ renders scenes; it does not estimate anything and does not write files (see
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -23,7 +24,7 @@ import pandas as pd
 
 from .camera import Camera, Rig
 from .geometry import pose
-from .session import MotionConfig, Session
+from .session import MotionConfig, Session, exposure_frames, nearest_frame, to_session_clock
 
 # ----- the paper's flight numbers (PAPER.md, "Motion model") ---------------------------------------
 FLIGHT_SPEED_MPS = 3.0
@@ -301,7 +302,7 @@ def _membrane_barycentric(n: int, areas: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def flight_scene(
     n_frames: int, fps: float, n_markers: int = 14, phase0_rad: float = 0.0,
-    offset_yz_m: tuple[float, float] = (0.0, 0.0),
+    offset_yz_m: tuple[float, float] = (0.0, 0.0), times_s: np.ndarray | None = None,
 ) -> Scene:
     """The flying bat: markers, membrane triangles and body/head ellipsoids at every frame.
 
@@ -309,11 +310,12 @@ def flight_scene(
     n_markers: 14 named markers (body1, body2, shoulder/elbow/wrist/digit3-5 on each wing) plus
         n_markers - 14 membrane markers ("mem_r_001", ...) split between the wings.
     phase0_rad: wingbeat phase at frame 0; offset_yz_m: the flight line's offset from the tunnel axis [m].
+    times_s: evaluate the same flight at these times [s] instead of the frames' (closed form: any instant).
     Deterministic (no randomness): :func:`simulate_flight` draws these arguments.
     """
     if not 14 <= n_markers <= MAX_FLIGHT_MARKERS:
         raise ValueError(f"n_markers must be in 14..{MAX_FLIGHT_MARKERS}, got {n_markers}")
-    t = np.arange(n_frames) / fps
+    t = np.arange(n_frames) / fps if times_s is None else np.asarray(times_s, float)
     phase = phase0_rad + 2 * np.pi * FLAP_HZ * t
     # body: constant speed along -x, bob (up during the downstroke), slight sway and pitch oscillation
     x0 = FLIGHT_SPEED_MPS * (n_frames - 1) / fps / 2
@@ -374,6 +376,7 @@ def flight_skeleton(marker_names: list[str]) -> list[tuple[str, str]]:
 def ear_scene(
     n_frames: int, fps: float, phase0_rad: float = 0.0, drift_hz: tuple[float, ...] = (0.4, 0.7, 1.1),
     drift_phase_rad: tuple[float, ...] = (0.0, 0.0, 0.0), drift_amp_m: float = 2e-4,
+    times_s: np.ndarray | None = None,
 ) -> Scene:
     """A bat head (3 markers) with one ear (6 markers) bending through 90 deg at 10 Hz.
 
@@ -381,9 +384,10 @@ def ear_scene(
     amount (one sinusoid of amplitude ``drift_amp_m`` per axis, frequencies ``drift_hz`` (3,),
     phases ``drift_phase_rad`` (3,)). The ear is a 0.05 m strip of constant curvature whose tip
     angle goes 0 -> 90 deg -> 0 each cycle, so distal points bend more; markers sit at 1/6 .. 6/6
-    of its length. The head is an opaque ellipsoid. Deterministic.
+    of its length. The head is an opaque ellipsoid. times_s: these times [s] instead of the frames'. Deterministic.
     """
-    t = np.arange(n_frames) / fps
+    t = np.arange(n_frames) / fps if times_s is None else np.asarray(times_s, float)
+    n_frames = len(t)
     phase = phase0_rad + 2 * np.pi * EAR_HZ * t
     drift = drift_amp_m * np.sin(2 * np.pi * np.outer(t, drift_hz) + np.asarray(drift_phase_rad))  # (F, 3)
     head_pts = np.array([[0.021, 0.0, 0.002], [0.008, 0.008, 0.0112], [0.008, -0.008, 0.0112]])
@@ -450,10 +454,17 @@ def render(
     noise) that the same camera sees on the same frame, or a uniform pixel if there is none.
     """
     uv_true = rig.project(scene.points_m)  # (C, F, M, 2), raw pixels
-    C, F, M = uv_true.shape[:3]
     uv = uv_true + pixel_sigma_px * rng_noise.standard_normal(uv_true.shape)
     in_img = np.stack([cam.in_image(uv[c]) for c, cam in enumerate(rig)])
     seen = np.isfinite(uv_true[..., 0]) & in_img & scene_visibility(scene, rig)
+    return _observe(rig, scene.marker_names, uv_true, uv, seen, outlier_rate, rng_outliers)
+
+
+def _observe(rig: Rig, marker_names: list[str], uv_true: np.ndarray, uv: np.ndarray, seen: np.ndarray,
+             outlier_rate: float, rng_outliers: np.random.Generator) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(observations, mislabels) from true and noisy raw pixels (C, F, M, 2) and what is seen (C, F, M); F is
+    each camera's own frame number. Mislabels: see :func:`render`."""
+    M = uv_true.shape[2]
     c_idx, f_idx, m_idx = np.nonzero(seen)
     obs_uv = uv[c_idx, f_idx, m_idx]
     n_bad = int(round(outlier_rate * len(c_idx)))
@@ -468,13 +479,222 @@ def render(
         uniform = rng_outliers.random((n_bad, 2)) * wh - 0.5
         swapped = uv_true[c_idx[bad], f_idx[bad], other] + (obs_uv[bad] - uv_true[c_idx[bad], f_idx[bad], m_idx[bad]])
         obs_uv[bad] = np.where((n_cand > 0)[:, None], swapped, uniform)
-    names, markers = np.array(rig.names), np.array(scene.marker_names)
+    names, markers = np.array(rig.names), np.array(marker_names)
     obs = pd.DataFrame({"frame": f_idx.astype(np.int64), "camera": names[c_idx], "marker": markers[m_idx],
                         "u": obs_uv[:, 0], "v": obs_uv[:, 1], "weight": np.ones(len(c_idx))})
     mis = obs.iloc[bad][["frame", "camera", "marker"]]
     key = ["frame", "camera", "marker"]
     return (obs.sort_values(key, kind="stable").reset_index(drop=True),
             mis.sort_values(key, kind="stable").reset_index(drop=True))
+
+
+# ==================================================================================================
+# timing: cameras that are not synchronised, rolling shutters, mixed frame rates
+# ==================================================================================================
+@dataclass
+class Timing:
+    """How the simulated cameras really record (batgraph.camera.Camera's meaning of each value).
+
+    time_offsets_s: per camera [s] (None: all 0): its frame j is exposed at ``j / fps_c + offset`` on the
+        session clock (whole-frame lags are offsets of whole frames).
+    readout_s: rolling-shutter readout [s], one value or one per camera (0: global shutter).
+    camera_fps: per camera [Hz] (None: all at the session's fps), none faster than the session.
+    known: the written calibration.toml states the true offsets and readouts; by default it states only what a
+        user knows without estimating (each camera's fps), and the truth goes to truth_timing.toml.
+    """
+
+    time_offsets_s: tuple[float, ...] | None = None
+    readout_s: float | tuple[float, ...] = 0.0
+    camera_fps: tuple[float, ...] | None = None
+    known: bool = False
+
+    def cameras(self, n: int, fps: float) -> list[dict]:
+        """Per camera the Camera keyword arguments fps, time_offset_s, readout_s (ValueError when invalid)."""
+        offsets = np.zeros(n) if self.time_offsets_s is None else np.asarray(self.time_offsets_s, float)
+        readout = np.broadcast_to(np.asarray(self.readout_s, float), (n,)) if np.ndim(self.readout_s) == 0 \
+            else np.asarray(self.readout_s, float)
+        rates = np.full(n, float(fps)) if self.camera_fps is None else np.asarray(self.camera_fps, float)
+        for what, a in (("time_offsets_s", offsets), ("readout_s", readout), ("camera_fps", rates)):
+            if a.shape != (n,) or not np.isfinite(a).all():
+                raise ValueError(f"timing {what}: expected {n} finite values (one per camera), got {a.tolist()}")
+        if (rates <= 0).any() or (rates > fps * (1 + 1e-9)).any():
+            raise ValueError(f"timing camera_fps: each must be > 0 and at most the session's {fps:g} fps, "
+                             f"got {rates.tolist()}")
+        if (readout < 0).any() or (readout >= 1.0 / rates).any():
+            raise ValueError(f"timing readout_s: must be >= 0 and shorter than a frame, got {readout.tolist()}")
+        return [{"fps": None if r == fps else float(r), "time_offset_s": float(o), "readout_s": float(q)}
+                for r, o, q in zip(rates, offsets, readout, strict=True)]
+
+    def trivial(self, n: int, fps: float) -> bool:
+        """True when every camera records the session's frames all at once (the plain renderer applies)."""
+        return all(k["fps"] is None and k["time_offset_s"] == 0 and k["readout_s"] == 0 for k in self.cameras(n, fps))
+
+
+def with_timing(rig: Rig, timing: list[dict]) -> Rig:
+    """A copy of ``rig`` whose cameras carry ``timing`` (per camera: Camera keyword arguments)."""
+    return Rig([dataclasses.replace(cam, **kw) for cam, kw in zip(rig, timing, strict=True)],
+               world_mirror=rig.world_mirror)
+
+
+def timing_table(rig: Rig, fps: float) -> pd.DataFrame:
+    """camera, fps, time_offset_s, readout_s of a rig (what truth_timing.toml holds)."""
+    return pd.DataFrame({"camera": rig.names, "fps": [c.frame_rate(fps) for c in rig],
+                         "time_offset_s": [c.time_offset_s for c in rig], "readout_s": [c.readout_s for c in rig]})
+
+
+class SceneSpline:
+    """A scene between its frames: every coordinate (markers, membrane vertices, solids) as a cubic spline of
+    time through the exact scene on a grid 16 times finer than the frames (its error: tests/test_timing_sim.py).
+
+    scene_at(times (G,) [s]) -> Scene: the closed-form scene at any instant; t0_s, t1_s: the span to cover [s].
+    """
+
+    def __init__(self, scene_at, t0_s: float, t1_s: float, fps: float):
+        from scipy.interpolate import CubicSpline
+
+        step = 1.0 / (16.0 * fps)
+        n = int(np.ceil((t1_s - t0_s) / step)) + 7
+        grid = t0_s - 3 * step + step * np.arange(n)
+        sc = scene_at(grid)
+        self.marker_names, self.M = sc.marker_names, sc.points_m.shape[1]
+        self.T, self.semi = sc.triangles_m.shape[1], [e.semi_axes_m for e in sc.ellipsoids]
+        parts = [sc.points_m.reshape(n, -1), sc.triangles_m.reshape(n, -1)]
+        parts += [np.concatenate([e.center_m, e.axes.reshape(n, 9)], axis=1) for e in sc.ellipsoids]
+        self.grid, self.coef = grid, CubicSpline(grid, np.concatenate(parts, axis=1), axis=0).c  # (4, n - 1, D)
+
+    def _at(self, t_s: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The spline at times (N,) for columns (N, K) or (K,): (N, K)."""
+        i = np.clip(np.searchsorted(self.grid, t_s) - 1, 0, len(self.grid) - 2)
+        dt = (t_s - self.grid[i])[:, None]
+        cols = np.broadcast_to(cols, (len(t_s),) + np.shape(cols)[-1:])
+        c = self.coef
+        return ((c[0][i[:, None], cols] * dt + c[1][i[:, None], cols]) * dt + c[2][i[:, None], cols]) * dt \
+            + c[3][i[:, None], cols]
+
+    def points(self, t_s: np.ndarray, marker: np.ndarray) -> np.ndarray:
+        """Marker ``marker[n]`` at time ``t_s[n]``, (N, 3) [m]."""
+        return self._at(t_s, 3 * np.asarray(marker)[:, None] + np.arange(3))
+
+    def visible(self, center_m: np.ndarray, t_s: np.ndarray, marker: np.ndarray) -> np.ndarray:
+        """Clear line of sight from a camera centre (3,) to marker[n] at time t_s[n], with every blocker at that
+        time too (the rows of an occluder and of the marker behind it are read together); bool (N,)."""
+        pts = self.points(t_s, marker)
+        base = 3 * self.M
+        tri = self._at(t_s, base + np.arange(9 * self.T)).reshape(len(t_s), self.T, 3, 3)
+        hidden = _segments_hit_triangles_each(center_m, pts, tri)
+        base += 9 * self.T
+        for semi in self.semi:
+            e = self._at(t_s, base + np.arange(12))
+            hidden |= _segments_hit_ellipsoid_each(center_m, pts, e[:, :3], e[:, 3:].reshape(-1, 3, 3), semi)
+            base += 12
+        return ~hidden
+
+
+def _segments_hit_triangles_each(origin_m: np.ndarray, points_m: np.ndarray, triangles_m: np.ndarray) -> np.ndarray:
+    """:func:`segments_hit_triangles` for one origin (3,), N points (N, 3), each with its own triangles (N, T, 3, 3)."""
+    D = (points_m - origin_m)[:, None, :]  # (N, 1, 3)
+    v0 = triangles_m[:, :, 0]
+    e1, e2 = triangles_m[:, :, 1] - v0, triangles_m[:, :, 2] - v0
+    p = np.cross(D, e2)
+    det = np.einsum("...i,...i->...", e1, p)
+    scale = np.linalg.norm(D, axis=-1) * np.linalg.norm(e1, axis=-1) * np.linalg.norm(e2, axis=-1)
+    ok = np.abs(det) > 1e-12 * scale
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = origin_m - v0
+    u = np.einsum("...i,...i->...", s, p) * inv
+    q = np.cross(s, e1)
+    v = np.einsum("...i,...i->...", D, q) * inv
+    t = np.einsum("...i,...i->...", e2, q) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > HIT_EPS) & (t < 1 - HIT_EPS)
+    return hit.any(axis=-1)
+
+
+def _segments_hit_ellipsoid_each(origin_m: np.ndarray, points_m: np.ndarray, center_m: np.ndarray,
+                                 axes: np.ndarray, semi_axes_m: np.ndarray) -> np.ndarray:
+    """:func:`segments_hit_ellipsoid` for one origin (3,), N points (N, 3), each with its own solid's centre (N, 3)
+    and axes (N, 3, 3); bool (N,)."""
+    o = np.einsum("ni,nij->nj", origin_m - center_m, axes) / semi_axes_m
+    d = np.einsum("ni,nij->nj", points_m - origin_m, axes) / semi_axes_m
+    a, b, c = (d * d).sum(-1), (o * d).sum(-1), (o * o).sum(-1) - 1.0
+    disc = b * b - a * c
+    t1 = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+    return (disc > 0) & (t1 > HIT_EPS) & (t1 < 1 - HIT_EPS)
+
+
+def render_timed(
+    scene_at, n_frames: int, fps: float, rig: Rig, pixel_sigma_px: float, outlier_rate: float,
+    rng_noise: np.random.Generator, rng_outliers: np.random.Generator,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`render` for cameras with their own timing (rig: the cameras as they really record).
+
+    Each observation is the projection of the marker at its exact capture time: camera c's own frame j starts at
+    ``j / fps_c + offset_c`` and raw row v is read ``readout_c * v / height`` later, the row being that of the
+    projection itself (fixed-point iterations, converged to 1e-9 s). Camera frames j in [0, n_frames) whose nearest
+    session frame k (batgraph.session.session_frames) is one of the n_frames are rendered. The noise of (c, j, m)
+    is the draw :func:`render` gives (c, k, m), so a synchronised twin with the same seed has the same noise.
+    Returns tables in each camera's own frames.
+    """
+    C, F = len(rig), int(n_frames)
+    span = SceneSpline(scene_at, -1.0 / fps, F / fps + 1.0 / min(c.frame_rate(fps) for c in rig), fps)
+    M = span.M
+    noise = pixel_sigma_px * rng_noise.standard_normal((C, F, M, 2))
+    uv_true = np.full((C, F, M, 2), np.nan)
+    uv = np.full((C, F, M, 2), np.nan)
+    seen = np.zeros((C, F, M), bool)
+    for c, cam in enumerate(rig):
+        j = np.arange(F)
+        k = nearest_frame(exposure_frames(j, cam, fps))
+        j, k = j[(k >= 0) & (k < F)], k[(k >= 0) & (k < F)]
+        jj, mm = np.repeat(j, M), np.tile(np.arange(M), len(j))
+        start = jj / cam.frame_rate(fps) + cam.time_offset_s
+        t = start.copy()
+        for _ in range(20):
+            px = cam.project(span.points(t, mm))
+            t_new = start + cam.readout_s * np.nan_to_num(px[:, 1]) / cam.size_wh[1]
+            done = np.max(np.abs(t_new - t), initial=0.0) < 1e-9
+            t = t_new
+            if done:
+                break
+        px = cam.project(span.points(t, mm))
+        noisy = px + noise[c, np.repeat(k, M), mm]
+        uv_true[c, jj, mm], uv[c, jj, mm] = px, noisy
+        seen[c, jj, mm] = np.isfinite(px[:, 0]) & cam.in_image(noisy) & span.visible(cam.center_world, t, mm)
+    return _observe(rig, span.marker_names, uv_true, uv, seen, outlier_rate, rng_outliers)
+
+
+def observe(scene: Scene, scene_at, rig: Rig, fps: float, timing: Timing | None, pixel_sigma_px: float,
+            outlier_rate: float, rng_noise: np.random.Generator, rng_outliers: np.random.Generator):
+    """(observations, mislabels, rig as it records): :func:`render` when ``timing`` is None or trivial (the rig
+    returned is ``rig``), else :func:`render_timed` with the rig given ``timing`` (tables in camera frames).
+    scene_at(times (G,) [s]) -> Scene: the same scene at any instant."""
+    if timing is None or timing.trivial(len(rig), fps):
+        return (*render(scene, rig, pixel_sigma_px, outlier_rate, rng_noise, rng_outliers), rig)
+    true_rig = with_timing(rig, timing.cameras(len(rig), fps))
+    n_frames = scene.points_m.shape[0]
+    return (*render_timed(scene_at, n_frames, fps, true_rig, pixel_sigma_px, outlier_rate, rng_noise, rng_outliers),
+            true_rig)
+
+
+def state_timing(session: Session, recording: Rig, known: bool, table: str) -> Session:
+    """A session rendered by :func:`render_timed` (tables in each camera's own frames) as a user would load it.
+
+    recording: the rig as it really records. The session's rig states each camera's fps, and its offset and
+    readout only when ``known``; the observations and mislabels go on that rig's session clock; ``true_timing``
+    and ``extra_toml[table]`` (the scene's parameters) record the truth.
+    """
+    fps = session.fps
+    stated = [{"fps": c.fps, **({"time_offset_s": c.time_offset_s, "readout_s": c.readout_s} if known else {})}
+              for c in recording]
+    written = with_timing(session.rig, stated)
+    obs, _ = to_session_clock(session.observations, written, fps, f"session {session.name!r}")
+    mis, _ = to_session_clock(session.mislabels, written, fps, f"session {session.name!r}")
+    params = dict(session.extra_toml[table], camera_fps=[c.frame_rate(fps) for c in recording],
+                  time_offsets_s=[c.time_offset_s for c in recording], readout_s=[c.readout_s for c in recording],
+                  timing_known=bool(known))
+    true_rig = None if session.true_rig is None else with_timing(session.true_rig, stated)
+    return dataclasses.replace(session, rig=written, observations=obs, mislabels=mis, true_rig=true_rig,
+                               true_timing=timing_table(recording, fps),
+                               extra_toml=dict(session.extra_toml, **{table: params}))
 
 
 def truth_table(scene: Scene) -> pd.DataFrame:
@@ -489,9 +709,10 @@ def _assemble(
     rng: np.random.Generator, streams: list[np.random.Generator], scene: Scene, rig: Rig, *, name: str,
     fps: float, motion: MotionConfig, skeleton: list[tuple[str, str]], pixel_sigma_px: float,
     outlier_rate: float, calib_rot_deg: float, calib_trans_mm: float, calib_cameras: list[int] | None,
-    params: dict, rigid: list[tuple[str, str]] = (),
+    params: dict, rigid: list[tuple[str, str]] = (), timing: Timing | None = None, scene_at=None,
 ) -> Session:
-    """Render, apply the calibration error, and pack a Session (shared by both scenes)."""
+    """Render, apply the calibration error, and pack a Session (shared by both scenes); with a timing that is not
+    trivial, render each observation at its capture time (:func:`observe`, :func:`state_timing`)."""
     if not 0 <= outlier_rate <= 1:
         raise ValueError(f"outlier_rate must be in [0, 1], got {outlier_rate}")
     if pixel_sigma_px < 0:
@@ -500,7 +721,7 @@ def _assemble(
     if any(not 0 <= c < len(rig) for c in cams):
         raise ValueError(f"calib_cameras must index the {len(rig)} cameras, got {cams}")
     rng_noise, rng_out, rng_calib = streams
-    obs, mis = render(scene, rig, pixel_sigma_px, outlier_rate, rng_noise, rng_out)
+    obs, mis, recording = observe(scene, scene_at, rig, fps, timing, pixel_sigma_px, outlier_rate, rng_noise, rng_out)
     written, true_rig = rig, None
     if calib_rot_deg or calib_trans_mm:
         written, true_rig = perturb_rig(rng_calib, rig, calib_rot_deg, calib_trans_mm, cams), rig
@@ -510,18 +731,20 @@ def _assemble(
                n_observations=len(obs), n_mislabelled=len(mis))
     if seed is not None:
         sim["seed"] = seed
-    return Session(
+    session = Session(
         name=name, fps=float(fps), rig=written, observations=obs, motion=motion,
         pixel_sigma_px=float(pixel_sigma_px), marker_names=list(scene.marker_names), skeleton=skeleton,
         truth=truth_table(scene), true_rig=true_rig, mislabels=mis, extra_toml={"simulation": sim},
         rigid=list(rigid),
     )
+    return session if recording is rig else state_timing(session, recording, timing.known, "simulation")
 
 
 def simulate_flight(
     rng: np.random.Generator, *, n_cameras: int = 5, n_markers: int | None = None, n_frames: int = 160,
     fps: float = 120.0, pixel_sigma_px: float = 1.0, outlier_rate: float = 0.0, calib_rot_deg: float = 0.0,
     calib_trans_mm: float = 0.0, calib_cameras: list[int] | None = None, name: str | None = None,
+    timing: Timing | None = None,
 ) -> Session:
     """The paper's flight scene as a Session with truth (see module docstring).
 
@@ -532,6 +755,8 @@ def simulate_flight(
     outlier_rate: fraction of observations given another marker's pixels (listed in ``mislabels``).
     calib_rot_deg, calib_trans_mm, calib_cameras: the written calibration is the rendering rig with
         these cameras (default all but the first) turned and shifted; ``true_rig`` keeps the truth.
+    timing: how the cameras really record (:class:`Timing`: offsets, readout, frame rates); None = all at once.
+        It draws nothing, so the same seed without it is the synchronised twin of the same scene.
     Random draws (independent streams, so e.g. adding outliers leaves the noise unchanged): wingbeat
     phase at frame 0, the flight line's offset (+-5 cm), per-camera intrinsics, noise, outliers,
     calibration error.
@@ -553,17 +778,18 @@ def simulate_flight(
     return _assemble(rng, streams, scene, rig, name=name or f"flight_{n_cameras}cam", fps=fps, motion=motion,
                      skeleton=flight_skeleton(scene.marker_names), pixel_sigma_px=pixel_sigma_px,
                      outlier_rate=outlier_rate, calib_rot_deg=calib_rot_deg, calib_trans_mm=calib_trans_mm,
-                     calib_cameras=calib_cameras, params=params, rigid=flight_skeleton(scene.marker_names))
+                     calib_cameras=calib_cameras, params=params, rigid=flight_skeleton(scene.marker_names),
+                     timing=timing, scene_at=lambda t: flight_scene(n_frames, fps, n_markers, phase0, offset, t))
 
 
 def simulate_ear(
     rng: np.random.Generator, *, n_frames: int = 250, fps: float = 250.0, pixel_sigma_px: float = 1.0,
     outlier_rate: float = 0.0, calib_rot_deg: float = 0.0, calib_trans_mm: float = 0.0,
-    calib_cameras: list[int] | None = None, name: str | None = None,
+    calib_cameras: list[int] | None = None, name: str | None = None, timing: Timing | None = None,
 ) -> Session:
     """The paper's ear scene (2 low-distortion cameras, 250 fps) as a Session with truth.
 
-    Arguments as in :func:`simulate_flight`. Random draws: ear phase at frame 0, the head's drift
+    Arguments (timing included) as in :func:`simulate_flight`. Random draws: ear phase at frame 0, the head's drift
     frequencies (0.2-1.5 Hz) and phases, per-camera intrinsics, noise, outliers, calibration error.
     """
     if n_frames < 1 or fps <= 0:
@@ -584,7 +810,8 @@ def simulate_ear(
               "ear_length_m": EAR_LENGTH_M, "ear_hz": EAR_HZ, "ear_bend_deg": EAR_BEND_DEG}
     return _assemble(rng, streams, scene, rig, name=name or "ear_2cam", fps=fps, motion=motion, skeleton=skeleton,
                      pixel_sigma_px=pixel_sigma_px, outlier_rate=outlier_rate, calib_rot_deg=calib_rot_deg,
-                     calib_trans_mm=calib_trans_mm, calib_cameras=calib_cameras, params=params)
+                     calib_trans_mm=calib_trans_mm, calib_cameras=calib_cameras, params=params, timing=timing,
+                     scene_at=lambda t: ear_scene(n_frames, fps, phase0, drift_hz, drift_phase, times_s=t))
 
 
 def scene_from_session(session: Session) -> Scene:

@@ -80,7 +80,7 @@ import numpy as np
 from .camera import Camera, Rig
 from .geometry import pose
 from .session import MotionConfig, Session
-from .simulate import Ellipsoid, Scene, render, truth_table
+from .simulate import Ellipsoid, Scene, Timing, observe, state_timing, truth_table
 
 G_MPS2 = 9.81
 FLIGHTS = ("straight", "turn", "glide")
@@ -327,16 +327,17 @@ def section_rig(rng: np.random.Generator, n_cameras: int, path_m: np.ndarray, ha
 # ==================================================================================================
 # scene
 # ==================================================================================================
-def wingbeat_scene(params: dict) -> Scene:
+def wingbeat_scene(params: dict, times_s: np.ndarray | None = None) -> Scene:
     """The flying bat of a parameter set (what :func:`simulate_wingbeat` records under ``[wingbeat]``).
 
     Deterministic. Returns markers (F, 14, 3), membrane triangles (F, 13, 3, 3; then one skin patch per wing
     marker with ``marker_side = "dorsal"``), body and head solids,
     and the stroke phase as ``phase_rad`` (2 pi s; sin > 0 on the downstroke; constant when gliding).
+    times_s: evaluate it at these times [s] instead of frame k's k / fps (closed form: any instant).
     """
     n, fps, flight = int(params["n_frames"]), float(params["fps"]), params["flight"]
-    t = np.arange(n) / fps
-    t_mid = t - t[-1] / 2
+    t = np.arange(n) / fps if times_s is None else np.asarray(times_s, float)
+    t_mid = t - (n - 1) / fps / 2
     glide = flight == "glide"
     cycles = params["phase0_cycles"] + params["flap_hz"] * t
     s = stroke_phase(cycles, params["downstroke_fraction"])
@@ -404,7 +405,7 @@ def simulate_wingbeat(
     flap_hz: float | None = None, pixel_sigma_px: float | None = 1.0, flight: str = "straight",
     speed_mps: float | None = None, stroke_amplitude_deg: float | None = None,
     downstroke_fraction: float | None = None, yaw_rate_deg_s: float | None = None, marker_side: str = "both",
-    outlier_rate: float = 0.0, name: str | None = None,
+    outlier_rate: float = 0.0, name: str | None = None, timing: Timing | None = None,
 ) -> Session:
     """A bat from the joint-angle generator filmed by a random flight-section rig, as a Session with truth.
 
@@ -417,6 +418,8 @@ def simulate_wingbeat(
         body or the head is in the way) or "dorsal" (painted on the dorsal skin: also hidden from cameras on
         the wing's ventral side, see :func:`_skin_patch`).
     outlier_rate: fraction of observations relabelled to another marker (see simulate.render).
+    timing: how the cameras really record (batgraph.simulate.Timing: offsets, rolling-shutter readout, frame
+        rates); None = all at once. It draws nothing: the same seed without it gives the synchronised twin.
     Also drawn: the wingbeat phase at frame 0, stroke-plane tilt, body pitch, bat size, the heading, the
     cameras. The session states no motion physics (batgraph measures its motion noise from the data);
     ``extra_toml`` holds ``[wingbeat]`` (every parameter, enough to rebuild the scene with
@@ -457,11 +460,13 @@ def simulate_wingbeat(
     half_span = 0.16 * p["size_scale"]
     body = scene.points_m[:, 1]  # the rump follows the body
     rig = section_rig(rng_cams, n_cameras, body, half_span)
-    obs, mis = render(scene, rig, p["pixel_sigma_px"], p["outlier_rate"], rng_noise, rng_out)
+    obs, mis, recording = observe(scene, lambda t: wingbeat_scene(p, t), rig, fps, timing, p["pixel_sigma_px"],
+                                  p["outlier_rate"], rng_noise, rng_out)
     p["n_observations"] = len(obs)
-    return Session(
+    session = Session(
         name=name or f"wingbeat_{flight}_{n_cameras}cam", fps=float(fps), rig=rig, observations=obs,
         motion=MotionConfig(), pixel_sigma_px=p["pixel_sigma_px"],
         marker_names=list(scene.marker_names), skeleton=skeleton(), truth=truth_table(scene), mislabels=mis,
         extra_toml={"wingbeat": p}, rigid=rigid_pairs(),
     )
+    return session if recording is rig else state_timing(session, recording, timing.known, "wingbeat")

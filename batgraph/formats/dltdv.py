@@ -2,7 +2,8 @@
 
 DLTdv's files (Hedrick lab; Argus writes the same layout):
 
-* ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1),
+* ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1; DLTdv 8.4 writes
+  ``_U, _V``),
   ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's own GUI
   counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
 * ``*dltCoefs.csv``: 11 rows (L1..L11) x one column per camera, no header;
@@ -15,8 +16,9 @@ number: every DLTdv version (DLTdv8 included), Argus and easyWand store pixels w
 lower left, y up, 1-based, and a DLT world may be mirrored or in millimetres. The rules and the
 arithmetic are in :mod:`batgraph.geometry.dlt`; :func:`resolve_conventions` applies them to a trial.
 
-This module reads and writes files and builds a session; it ignores ``*offsets.csv`` (camera frame
-offsets: apply them before importing) and DLTdv8's "sparse" xypts layout.
+This module reads and writes files and builds a session. Camera offsets (DLTdv's ``*offsets.csv``, Argus's) are
+read by :mod:`batgraph.formats.offsets`: the clicks keep each camera's own video frame and calibration.toml gets
+each camera's ``time_offset_s``. DLTdv8's "sparse" xypts layout is not read.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
-_XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
+_XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XYUV])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
 _XYZPTS = (re.compile(r"^pt(\d+)_([XYZ])$", re.IGNORECASE), "pt{p}_X / pt{p}_Y / pt{p}_Z")
 _XYZRES = (re.compile(r"^pt(\d+)_(dltres)$", re.IGNORECASE), "pt{p}_dltres")
 
@@ -128,6 +130,7 @@ def read_xypts(path: str | Path, n_cams: int | None = None) -> pd.DataFrame:
     """
     path = Path(path)
     values, keys = _read_wide(path, _XYPTS, "DLTdv xypts: pt{p}_cam{c}_X, pt{p}_cam{c}_Y columns")
+    keys = [(p, c, {"U": "X", "V": "Y"}.get(a.upper(), a)) for p, c, a in keys]  # DLTdv 8.4 writes _U, _V
     pts = np.array([int(k[0]) for k in keys])
     cams = np.array([int(k[1]) for k in keys])
     axis = np.array([0 if k[2].upper() == "X" else 1 for k in keys])
@@ -370,7 +373,8 @@ def resolve_conventions(P_file: np.ndarray, uv_file_px: np.ndarray, pixel_origin
 def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Path, *,
                  pixel_origin: str | None = None, units: str = "m", image_size: tuple[int, int] | None = None,
                  xyzpts: str | Path | None = None, camera_names: list[str] | None = None,
-                 marker_names: list[str] | None = None, pixel_sigma_px: float | None = None) -> Session:
+                 marker_names: list[str] | None = None, pixel_sigma_px: float | None = None,
+                 offsets: list[str | Path] = ()) -> Session:
     """Convert a DLTdv / Argus / easyWand trial into a session folder ``out`` and return it as read back.
 
     xypts, coefs: ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention).
@@ -385,6 +389,10 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
     xyzpts: optional ``*xyzpts.csv``, kept as the session's reference (reference_xyz.csv, metres).
     camera_names, marker_names: default cam1.. (coefficient columns) and pt1.. (xypts points).
     pixel_sigma_px: click noise [px]; None (default) lets reconstruct estimate it per camera.
+    offsets: up to two offsets files (batgraph.formats.offsets): DLTdv's or the Argus clicker's per-row offsets
+        (which video frame each row shows: observations.csv gets those frame numbers, and the offsets become
+        calibration.toml's time_offset_s) and/or Argus's sync table (the time offsets to a fraction of a frame,
+        taking precedence). Clicks that fall before a video's first frame are dropped (counted in [import]).
     The imported pinholes reproduce each camera's own DLT projection exactly, with the points in front.
     Raises InputError naming the file (and camera) for bad input.
     """
@@ -436,17 +444,20 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
     sizes = ([image_size] * len(L) if image_size is not None
              else [infer_image_size(P_file[c], uv_file[c][np.isfinite(uv_file[c, :, 0])]) for c in range(len(L))])
     T = dlt.world_scale_mirror(dlt.UNITS_M[units], mirror)  # X_file = T @ X_internal
+    own, time_offsets, timing_note = _apply_offsets(offsets, fi, ci, len(L), clicks.attrs["n_frames"], fps, xypts)
     cameras, uv_cv = [], np.empty((len(clicks), 2))
     for c, name in enumerate(cams):
         A_inv = np.linalg.inv(dlt.pixel_affine(origin, sizes[c][1]))
         P_cv = dlt.transform_dlt(P_file[c], pixel_from=A_inv, world_to=T)
-        cameras.append(Camera.from_dlt(name, dlt.dlt_coefs(P_cv), sizes[c]))
+        cam = Camera.from_dlt(name, dlt.dlt_coefs(P_cv), sizes[c])
+        cam.time_offset_s = float(time_offsets[c])
+        cameras.append(cam)
         uv_cv[ci == c] = dlt.apply_affine(A_inv, clicks.loc[ci == c, ["u", "v"]].to_numpy())
     rig = Rig(cameras, world_mirror=mirror)
     observations = pd.DataFrame({
-        "frame": fi, "camera": np.array(cams)[ci], "marker": np.array(markers)[pi],
+        "frame": own, "camera": np.array(cams)[ci], "marker": np.array(markers)[pi],
         "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
-    })
+    })[own >= 0]
     reference = None
     if ref is not None:  # the user's frame, in metres
         reference = ref.assign(marker=np.array(markers)[ref["point_index"].to_numpy()])
@@ -458,11 +469,37 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
                   "units": units, "image_size": "given" if image_size is not None else "inferred"}
     if xyzpts is not None:
         provenance["xyzpts"] = Path(xyzpts).name
+    provenance.update(timing_note)
     session = Session(name=out.name, fps=float(fps), rig=rig, observations=observations,
                       pixel_sigma_px=pixel_sigma_px, marker_names=markers, reference=reference,
                       extra_toml={"import": provenance})
     write_session(session, out)
     return read_session(out)
+
+
+def _apply_offsets(paths, row: np.ndarray, cam: np.ndarray, n_cams: int, n_rows: int, fps: float, xypts: Path):
+    """(each click's video frame (N,), time_offset_s per camera (C,), provenance) from offsets files (see
+    :func:`import_dltdv`); without any, the rows are the cameras' own frames and the offsets 0."""
+    from .offsets import read_offsets
+
+    files = [read_offsets(p, n_cams) for p in paths]
+    per_row = [f for f in files if f.per_row]
+    sync = [f for f in files if not f.per_row]
+    if len(paths) > 2 or len(per_row) > 1 or len(sync) > 1:
+        raise InputError(f"offsets: give at most one per-row file (DLTdv8 / Argus clicker) and one Argus sync table, "
+                         f"got {', '.join(map(str, paths))}")
+    own, offsets, note = row.copy(), np.zeros(n_cams), {}
+    if per_row:
+        f = per_row[0]
+        if f.n_rows != n_rows:
+            raise InputError(f"{paths[files.index(f)]}: {f.n_rows} row(s) but {xypts} has {n_rows} (one per frame)")
+        own, offsets = f.video_frames(row, cam), f.time_offsets_s(fps)
+        note.update(offsets=Path(paths[files.index(f)]).name, offsets_format=f.kind,
+                    clicks_before_first_video_frame=int((own < 0).sum()))
+    if sync:
+        offsets = sync[0].time_offsets_s(fps)
+        note.update(sync_offsets=Path(paths[files.index(sync[0])]).name)
+    return own, offsets, note
 
 
 def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
