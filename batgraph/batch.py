@@ -100,7 +100,7 @@ def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: O
     arrays, because the result travels back to the client. kernel_threads: the threads of the compiled
     kernels in this process (batgraph.graph.kernels.set_threads; None leaves them as they are).
     """
-    from .graph import kernels
+    from .solver import threads as kernels
 
     t0 = time.perf_counter()
     if kernel_threads is not None:

@@ -58,18 +58,19 @@ def _add_reconstruct(sub):
                         "recording); the session folders are not modified")
     p.add_argument("--methods", help=methods_help())
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
-    p.add_argument("--motion",
-                   choices=["constant_velocity", "random_walk", "constant_acceleration", "auto", "wingbeat"],
+    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
                    help="motion model (default: session.toml [motion] model, else auto: the smoother picks constant "
-                        "velocity or acceleration per marker by marginal likelihood); wingbeat: constant velocity "
-                        "or constant velocity plus an oscillation at the wingbeat frequency per marker (both "
-                        "slower; the filters use constant velocity for auto, wingbeat and constant_acceleration)")
+                        "velocity or acceleration per marker by marginal likelihood; the filters use constant "
+                        "velocity for auto and constant_acceleration)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
-    p.add_argument("--noise-rule", choices=["evidence", "loo"],
-                   help="how the smoother scores a noise level it chooses from the data: evidence (Laplace "
-                        "marginal likelihood) or loo (leave-one-frame-out prediction); default: the session's "
-                        "[motion] noise_rule, else evidence")
+    p.add_argument("--sync", choices=["estimate", "given"],
+                   help="estimate: each camera's time offset and rolling-shutter readout from the markers, with the "
+                        "trajectories (written to OUT/rig.toml); given: the calibration's timing as it is (default: "
+                        "session.toml [sync] estimate, else given)")
+    p.add_argument("--refine-rig", action="store_true",
+                   help="refine every camera's pose with the trajectories (a rig bumped since its calibration; the "
+                        "refined rig goes to OUT/rig.toml)")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
                    help="robust loss on projection factors (default huber)")
     p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
@@ -132,11 +133,11 @@ def summary_lines(summary: dict) -> list[str]:
 
 
 def _compile_note(args) -> None:
-    """One line before a run that will first compile batgraph's inner loops (batgraph.graph.kernels), so that
+    """One line before a run that will first compile batgraph's inner loops (batgraph.solver.kernels), so that
     a minute of silence after an install is explained; not with --quiet."""
     if args.quiet or args.solver != "fast":
         return
-    from .graph import kernels
+    from .solver import kernels
 
     if kernels.needs_compiling():
         print("batgraph: compiling its inner loops for this machine (once after an install or update; 1-2 min on "
@@ -150,8 +151,8 @@ def _cmd_reconstruct(args) -> int:
 
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, noise_rule=args.noise_rule, progress=_progress_bars(args),
-                      solver=args.solver)
+                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", refine_rig=args.refine_rig,
+                      progress=_progress_bars(args), solver=args.solver)
     batch = is_batch(args.sessions) or args.scheduler is not None
     if args.out is not None or (not batch and Path(args.sessions[0]).is_dir()):
         check_output_dir(args.out if args.out is not None else Path(args.sessions[0]) / "out")
@@ -207,12 +208,11 @@ def _add_validate(sub):
     p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
                                      "(default smoother,filter,triangulate)")
     p.add_argument("--compare", action="store_true", help="add every other method")
-    p.add_argument("--motion",
-                   choices=["auto", "wingbeat", "constant_velocity", "constant_acceleration", "random_walk"],
+    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
                    help="motion model (as reconstruct)")
     p.add_argument("--accel-psd", type=positive_float, metavar="Q",
                    help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
-    p.add_argument("--noise-rule", choices=["evidence", "loo"], help="as reconstruct")
+    p.add_argument("--sync", choices=["estimate", "given"], help="as reconstruct")
     p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber", help="robust loss (default huber)")
     p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
     p.add_argument("--solver", choices=["fast", "gtsam"], default="fast", help="smoother/filter solver (default fast)")
@@ -246,7 +246,7 @@ def _cmd_validate(args) -> int:
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, noise_rule=args.noise_rule, progress=not args.quiet,
+                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", progress=not args.quiet,
                       solver=args.solver)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)

@@ -39,12 +39,10 @@ class Method:
 # In display order. The paper draws the EKF dashed and the UKF solid (Fig. 5); batgraph's own methods
 # get their own colours so that the two solid lines (ukf, smoother) stay distinguishable.
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("smoother", "graph.schedule:run_smoother_fast", "#1f77b4", "-", False,
-           "factor-graph smoother: every frame uses every other (GTSAM batch Levenberg-Marquardt problem)",
-           run_gtsam="graph.smoother:run_smoother"),
-    Method("filter", "graph.fast_filter:run_filter_fast", "#ff7f0e", "-.", True,
-           "factor-graph filter: frame k uses frames <= k (GTSAM iSAM2 problem)",
-           run_gtsam="graph.filter:run_filter"),
+    Method("smoother", "solver.schedule:run_smoother", "#1f77b4", "-", False,
+           "factor-graph smoother: every frame uses every other (GTSAM batch Levenberg-Marquardt problem)"),
+    Method("filter", "solver.filter:run", "#ff7f0e", "-.", True,
+           "factor-graph filter: frame k uses frames <= k (GTSAM iSAM2 problem)"),
     Method("ekf", "filters.ekf:run_ekf", "#d62728", "--", True, "the paper's extended Kalman filter"),
     Method("ukf", "filters.ukf:run_ukf", "#2ca02c", "-", True, "the paper's unscented Kalman filter"),
     Method("triangulate", "triangulate:run", "#7f7f7f", ":", False,

@@ -66,7 +66,8 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     processes (batgraph.forked.map_jobs; the first method here or in a child, its estimate pickled back),
     the first listed (the costliest of the defaults, the smoother) showing its progress.
     """
-    dense = dense_observations(session)
+    sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+    dense = dense_observations(session, timing=True if sync else None)  # the timing's estimate needs the rows
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
     warnings = list(session.warnings) + pre.warnings + _take_warnings(session, dense)
     session = dataclasses.replace(pre.session, warnings=warnings)
@@ -125,7 +126,7 @@ def run_by_take(run, session: Session, dense: DenseObservations, ideal: IdealObs
     parts = []
     for sl in dense.take_slices:
         sub = dense if len(dense.take_slices) == 1 else dense.take(sl)
-        sub_ideal = ideal if sub is dense else IdealObservations(ideal.uv_px[:, sl], ideal.cov_px2[:, sl])
+        sub_ideal = ideal if sub is dense else ideal.take(sl)
         extra = {} if on_frame is None else {
             "on_frame": lambda k, xyz, cov, frames=sub.frames: on_frame(int(frames[k]), xyz, cov)}
         parts.append(run(session, sub, sub_ideal, options, **extra))

@@ -29,6 +29,8 @@ import numpy as np
 
 from .camera import Rig
 from .measurement import IdealObservations
+from .solver import chains, kernels, lm
+from .solver.problem import Cameras, Loss, Problem, Rows
 from .triangulate import dlt_points
 
 CHI2_2DOF_999 = 13.815510557964274
@@ -38,28 +40,45 @@ MIN_SAMPLED_OBSERVATIONS = 2000  # each camera keeps this many of its observatio
 MEDIAN_CHI2_2DOF = 2 * math.log(2)  # median of chi-square with 2 DOF
 
 
-def _gauss_newton(P: np.ndarray, uv: np.ndarray, Wu: np.ndarray, w_scale: np.ndarray, xyz: np.ndarray,
-                  use: np.ndarray, iters: int = 3):
-    """Refine xyz (F, M, 3) by weighted Gauss-Newton, a step kept per point only where it lowers its cost.
-
-    P (C, 3, 4) projection matrices to ideal pixels; uv (C, F, M, 2) ideal pixels (0 where unseen); Wu
-    (C, F, M, 2, 2) each observation's unit information S1^-1 (zero where not used); w_scale: (C,) 1 / sigma_c^2
-    multiplying it; use: bool (C, F, M), the observations that take part (points with >= 2 of them are refined,
-    the others are NaN). Returns xyz, residuals r (C, F, M, 2) [ideal px], each observation's leverage h
-    (C, F, M) (zero where not used) and the posterior covariance Sigma (F, M, 3, 3) for the weights w_scale
-    (NaN where not triangulated). The per-point loop is compiled (batgraph.graph.kernels.weighted_triangulation:
-    2.5 -> 0.57 s at 30 x 180 x 160).
-    """
-    from .graph import kernels  # numba: imported when the pixel noise is measured
-
-    W = Wu * w_scale[:, None, None, None, None]
+def _gauss_newton(rig: Rig, ideal_unit: IdealObservations, w_scale: np.ndarray, xyz: np.ndarray, use: np.ndarray):
+    """Weighted least-squares triangulation of every point with >= 2 observations in ``use`` (C, F, M), from xyz
+    (F, M, 3): each point a one-frame problem of the solver (batgraph.solver: its row kernel and Levenberg-Marquardt,
+    plain loss, a negligible prior), each observation's noise its unit covariance / w_scale[c]. Returns xyz (F, M, 3),
+    residuals r (C, F, M, 2) [ideal px, pi(p) - uv], leverages h (C, F, M) (0 where not used) and the posterior
+    covariances Sigma (F, M, 3, 3) (NaN where not triangulated)."""
+    C, F, M = use.shape
     ok = np.isfinite(xyz).all(axis=-1) & (use.sum(axis=0) >= 2)
-    xyz = np.ascontiguousarray(np.where(ok[..., None], xyz, np.nan))
-    r = np.zeros(use.shape + (2,))
-    h = np.zeros(use.shape)
-    Sigma = np.full(xyz.shape + (3,), np.nan)
-    kernels.weighted_triangulation(P, uv, W, use & ok[None], xyz, iters, r, h, Sigma)
-    return xyz, r, h, Sigma
+    f, m = np.nonzero(ok)
+    r, h = np.zeros((C, F, M, 2)), np.zeros((C, F, M))
+    out, Sigma = np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan)
+    if not len(f):
+        return out, r, h, Sigma
+    sel = use[:, f, m]  # (C, P): the points as markers of a one-frame problem
+    uv = np.where(sel[..., None], ideal_unit.uv_px[:, f, m], np.nan)[:, None]
+    cov = ideal_unit.cov_px2[:, f, m] / w_scale[:, None, None, None]
+    prob = weighted_points(rig, IdealObservations(uv, cov[:, None]), xyz[f, m])
+    res = lm.minimise(chains.Chains(prob), xyz[f, m][None].copy(), lm.TIGHT)
+    _, _, D, _, _ = prob.system(res.state, False)
+    with np.errstate(all="ignore"):
+        S = np.linalg.inv(D[0])
+    t = kernels.row_terms(res.state, prob.rows, prob.cams.P, prob.cams.behind, 0, 1.0)
+    rows = prob.rows
+    Linv = rows.Linv
+    L = np.stack([np.stack([1 / Linv[0], np.zeros_like(Linv[0])], -1),
+                  np.stack([-Linv[1] / (Linv[0] * Linv[2]), 1 / Linv[2]], -1)], -2)  # L = (L^-1)^-1
+    c, p = rows.cam, rows.marker
+    r[c, f[p], m[p]] = np.einsum("nij,nj->ni", L, t["r"])
+    h[c, f[p], m[p]] = np.einsum("nij,njk,nik->n", t["J"], S[p], t["J"])
+    out[f, m], Sigma[f, m] = res.state[0], 0.5 * (S + np.swapaxes(S, -1, -2))
+    return out, r, h, Sigma
+
+
+def weighted_points(rig: Rig, ideal: IdealObservations, xyz: np.ndarray) -> Problem:
+    """The weighted triangulation of P points as a one-frame solver problem: ideal (C, 1, P) their observations,
+    xyz (P, 3) the start and the mean of a negligible prior (1e-12 / m^2: only keeps a degenerate point finite)."""
+    P = len(xyz)
+    return Problem(Rows.of(ideal), Cameras.of(rig), 1.0, 1, "random_walk", np.ones(P), Loss("none"), xyz,
+                   prior=(xyz, np.broadcast_to(1e-12 * np.eye(3), (P, 3, 3))))
 
 
 def sample_markers(seen: np.ndarray, max_points: int = MAX_POINTS,
@@ -107,9 +126,7 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     seen = ideal_unit.seen & np.isfinite(xyz0).all(axis=-1)[None]
     for c, cam in enumerate(rig):
         seen[c][seen[c]] = cam.to_cam(xyz0[seen[c]])[:, 2] > 0
-    # what every round shares: the cameras, the pixels and each observation's unit information
-    P = np.stack([cam.P for cam in rig])
-    uv = np.ascontiguousarray(np.nan_to_num(ideal_unit.uv_px))
+    # each observation's unit information
     Wu = np.zeros(seen.shape + (2, 2))
     cov = ideal_unit.cov_px2[seen]  # 2x2 inverses in closed form: 0.03-0.07 s vs np.linalg.inv 0.12 s on 5e5
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
@@ -118,7 +135,7 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     sigma2 = np.ones(C)
     for _ in range(max_rounds):
         # leverage h = tr(W J Sigma J^T) = sum(J^T W J * Sigma) (Sigma symmetric), W = Wu / sigma_c^2
-        xyz, r, h, Sigma = _gauss_newton(P, uv, Wu, 1.0 / sigma2, xyz0, seen)
+        xyz, r, h, Sigma = _gauss_newton(rig, ideal_unit, 1.0 / sigma2, xyz0, seen)
         seen_now = seen & np.isfinite(xyz).all(axis=-1)[None]
         e = np.einsum("...i,...ij,...j->...", r, Wu, r)  # (C, F, M) unit-noise squared residuals
         dof = np.clip(2.0 - h, 1e-6, 2.0)

@@ -11,19 +11,16 @@ import numpy as np
 class Options:
     """Options shared by the estimators (CLI flags and session.toml end up here).
 
-    motion_model: "constant_velocity" or "random_walk"; None = the session's [motion] model.
-    robust: loss on projection factors: "huber", "cauchy" or "none".
-    robust_k: loss threshold in whitened units (sigmas).
-    outlier_rejection: with a robust loss, the smoother first solves with a Cauchy loss from the
-        triangulated track and drops the observations that solution flags before its final solve
-        (batgraph.graph.smoother); ignored when robust is "none".
+    motion_model: "auto", "constant_velocity", "constant_acceleration" or "random_walk"; None = the
+        session's [motion] model.
+    robust: loss on projection rows: "huber", "cauchy" or "none"; robust_k its threshold [sigmas].
+    outlier_rejection: with a robust loss, the smoother's rejection schedule (batgraph.solver.schedule).
     accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
-    noise_rule: how a noise level chosen from the data is scored, "loo" or "evidence"; None = the
-        session's [motion] noise_rule (batgraph.graph.noise).
+    sync: estimate each camera's time offset and rolling-shutter readout with the trajectories (also
+        session.toml's [sync] estimate = true).
+    refine_rig: refine every camera's pose with the trajectories (under its pose covariance, or a default).
     progress: show progress bars.
-    solver: "fast" (default) solves the smoother and filter with batgraph's vectorised per-marker
-        solvers when every camera is fixed (they solve the GTSAM graph's problem and are tested against
-        it); "gtsam" always uses GTSAM (LM / iSAM2) directly. Cameras with pose covariances always use GTSAM.
+    solver: "fast" (batgraph's solver) or "gtsam" (GTSAM's Levenberg-Marquardt and iSAM2 on the same cost).
     """
 
     motion_model: str | None = None
@@ -31,7 +28,8 @@ class Options:
     robust_k: float = 2.0
     outlier_rejection: bool = True
     accel_psd_m2_s3: float | None = None
-    noise_rule: str | None = None
+    sync: bool = False
+    refine_rig: bool = False
     progress: bool = True
     solver: str = "fast"
 
@@ -45,6 +43,7 @@ class Estimate:
     outlier: flagged observations, bool (C, F, M); all False when the method flags none.
     runtime_s: wall time of the estimation.
     info: method-specific figures for summary.json (chosen noise, iterations, ...).
+    rig: the rig as the method used it when it estimated any of it (timing, poses; OUT/rig.toml), else None.
     """
 
     method: str
@@ -53,3 +52,4 @@ class Estimate:
     outlier: np.ndarray
     runtime_s: float = 0.0
     info: dict = field(default_factory=dict)
+    rig: object = None

@@ -32,8 +32,7 @@ from .labels import Labels, factorize, text_column
 
 OBS_COLUMNS = ["frame", "camera", "marker", "u", "v"]
 TRUTH_COLUMNS = ["frame", "marker", "x", "y", "z"]
-MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto", "wingbeat")
-NOISE_RULES = ("evidence", "loo")  # [motion] noise_rule (batgraph.graph.noise)
+MOTION_MODELS = ("random_walk", "constant_velocity", "constant_acceleration", "auto")
 
 
 DEFAULT_TAKE_GAP_S = 1.0
@@ -62,7 +61,7 @@ CAMERA_KEYS = frozenset({
 })
 """Keys a camera table of calibration.toml may hold: batgraph's and those the peer tools write."""
 METADATA_KEYS = frozenset({
-    "units", "world_mirror", "written_by",  # batgraph
+    "units", "world_mirror", "written_by", "gauge",  # batgraph
     "adjusted", "error",  # aniposelib / Anipose / Pose2Sim
     "charuco_square_size", "charuco_board_object", "charco_board_object", "path_to_recorded_videos",  # FreeMoCap
     "date_time_calibrated", "groundplane_calibration", "calibration_method", "camera_specs_file",
@@ -70,7 +69,7 @@ METADATA_KEYS = frozenset({
 })
 SESSION_KEYS = {
     "session": frozenset({"name", "fps", "take_gap_s"}),
-    "motion": frozenset({"model", "noise_rule", *PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"}),
+    "motion": frozenset({"model", *PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"}),
     "noise": frozenset({"pixel_sigma_px"}),
     "markers": frozenset({"names", "skeleton", "rigid", "rigid_sigma_m"}),
     "sync": frozenset({"estimate"}),
@@ -95,12 +94,9 @@ class MotionConfig:
         acceleration [m^2/s^3]; None means "choose it from the data" (see batgraph.motion).
     causal_accel_psd_m2_s3: the filter's q when the physics are not given (filled by reconstruct from
         the triangulated track; not read from session.toml).
-    noise_rule: how the smoother scores a noise level (and, with "auto", a model) it chooses from the
-        data: "evidence" (Laplace marginal likelihood, the default) or "loo" (opt-in: leave-one-frame-out
-        log predictive density); see batgraph.graph.noise and docs/accuracy.md for what each gives.
     """
 
-    model: str = "auto"  # or constant_velocity, random_walk, constant_acceleration, wingbeat (batgraph.graph.noise)
+    model: str = "auto"  # or constant_velocity, random_walk, constant_acceleration (batgraph.solver.model)
     flight_speed_mps: float | None = None
     span_m: float | None = None
     flap_hz: float | None = None
@@ -108,7 +104,6 @@ class MotionConfig:
     sigma_m: float | None = None
     accel_psd_m2_s3: float | None = None
     causal_accel_psd_m2_s3: float | None = None
-    noise_rule: str = "evidence"
 
     @property
     def has_physics(self) -> bool:
@@ -675,12 +670,12 @@ def _session_config(path: Path, warnings: list[str]) -> dict:
     model = motion.get("model", MotionConfig.model)
     if model not in MOTION_MODELS:
         raise InputError(f"{path} [motion] model: {model!r} is not one of {', '.join(MOTION_MODELS)}")
-    rule = motion.get("noise_rule", MotionConfig.noise_rule)
-    if rule not in NOISE_RULES:
-        raise InputError(f"{path} [motion] noise_rule: {rule!r} is not one of {', '.join(NOISE_RULES)}")
     for k in ("flight_speed_mps", "span_m", "flap_hz", "flap_angle_deg", "sigma_m", "accel_psd_m2_s3"):
         if k in motion:
             inputs.number(motion[k], f"{path} [motion] {k}", positive=True, allow_zero=k == "flight_speed_mps")
+    sync = data.get("sync", {})
+    if "estimate" in sync and not isinstance(sync["estimate"], bool):
+        raise InputError(f"{path} [sync] estimate: expected true or false, got {sync['estimate']!r}")
     noise = data.get("noise", {})
     if "pixel_sigma_px" in noise:
         inputs.number(noise["pixel_sigma_px"], f"{path} [noise] pixel_sigma_px", positive=True)
@@ -782,8 +777,6 @@ def session_toml(session: Session) -> str:
     """The text of session.toml: only what the session states (no physics, no noise it does not know)."""
     m = session.motion
     motion = {"model": m.model}
-    if m.noise_rule != MotionConfig.noise_rule:
-        motion["noise_rule"] = m.noise_rule
     for k in (*PAPER_PHYSICS, "sigma_m", "accel_psd_m2_s3"):
         if getattr(m, k) is not None:
             motion[k] = getattr(m, k)

@@ -185,7 +185,7 @@ def _init_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     from . import forked
-    from .graph import kernels
+    from .solver import threads as kernels
 
     threadpool_limits(1)
     kernels.set_threads(1)

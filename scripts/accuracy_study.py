@@ -9,11 +9,9 @@ markers with 4 cameras, a banked turn at 250 fps / 3 px, a glide at 60 fps / 2 p
 at 1000 fps / 8 px. ``--scenes`` picks scenes by key (shell patterns, e.g. ``--scenes 'wingbeat*'``).
 Rows: the smoother with its default "auto" (each marker's model, constant velocity or constant acceleration,
 and its noise by marginal likelihood), with constant velocity on every marker (q per marker by marginal
-likelihood; the default until the twentieth session), with the opt-in "wingbeat" (each marker constant
-velocity or constant velocity plus an oscillation at the wingbeat frequency) and with the paper's random
-walk; the filter with constant velocity (its default) and with the random walk; the paper's EKF and UKF,
-per-frame triangulation, and triangulation linearly interpolated through gaps
-(batgraph.graph.factors.initial_track, no covariance). Prints the tables and writes them to
+likelihood), without the segments, and with the paper's random walk; the filter with constant velocity (its
+default) and with the random walk; the paper's EKF and UKF, per-frame triangulation, and triangulation linearly
+interpolated through gaps (batgraph.solver.schedule.initial_track, no covariance). Prints the tables and writes them to
 docs/accuracy.md with a checklist of the project's accuracy targets (measured value, pass/fail).
 Run by ``make study``. Nothing is asserted: it reports what it measures.
 """
@@ -41,26 +39,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from batgraph import atomic, evaluate  # noqa: E402
-from batgraph.graph.factors import initial_track  # noqa: E402
 from batgraph.motion import CHI2_3DOF_95  # noqa: E402
 from batgraph.pipeline import run_methods  # noqa: E402
 from batgraph.result import Estimate, Options  # noqa: E402
 from batgraph.session import Session  # noqa: E402
 from batgraph.simulate import simulate_ear, simulate_flight  # noqa: E402
+from batgraph.solver.schedule import initial_track  # noqa: E402
 from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
 
 STATUSES = evaluate.STATUSES
 GROUPS = ("all", *STATUSES)
 SPLIT_GROUPS = tuple(f"{st}/{sp}" for st in STATUSES for sp in evaluate.SPANS)
 # (row name, pipeline method, Options.motion_model); None = the method's default (constant velocity for the
-# filter, the paper's random walk for EKF/UKF). The smoother's rows name the model ("auto" is the default since
-# the twentieth session; constant velocity, the default before, and "wingbeat" are opt-in).
+# filter, the paper's random walk for EKF/UKF). The smoother's rows name the model ("auto" is the default).
 METHOD_ROWS = (
     ("smoother", "smoother", "auto"),
     ("smoother_cv", "smoother", "constant_velocity"),
     ("smoother_noseg", "smoother", "auto"),
-    ("smoother_loo", "smoother", "constant_velocity"),
-    ("smoother_wingbeat", "smoother", "wingbeat"),
     ("smoother_rw", "smoother", "random_walk"),
     ("filter", "filter", None),
     ("filter_rw", "filter", "random_walk"),
@@ -69,7 +64,6 @@ METHOD_ROWS = (
     ("triangulate", "triangulate", None),
 )
 NO_SEGMENT_ROWS = ("smoother_noseg",)  # rows run on the session without its [markers] rigid segments
-NOISE_RULE_ROWS = {"smoother_loo": "loo"}  # rows whose noise level is scored by another rule ([motion] noise_rule)
 INTERPOLATION = "interpolation"  # triangulation interpolated through gaps (derived from the triangulate row)
 ROW_NAMES = tuple(r[0] for r in METHOD_ROWS) + (INTERPOLATION,)
 PAPER_STEREO_MM = 1.0  # paper: EKF/UKF within 1 mm of stereo triangulation on the ear
@@ -217,7 +211,7 @@ def run_scene(scene: StudyScene, seed: int, bar: tqdm) -> tuple[list[dict], dict
     for row, method, motion_model in METHOD_ROWS:
         bar.set_postfix_str(f"{scene.key} seed {seed} {row}")
         res = run_methods(dataclasses.replace(session, rigid=[]) if row in NO_SEGMENT_ROWS else session, [method],
-                          Options(motion_model=motion_model, progress=False, noise_rule=NOISE_RULE_ROWS.get(row)))
+                          Options(motion_model=motion_model, progress=False))
         summaries[row], estimates[row] = res.summary["methods"][method], res.estimates[method]
         trajs[row] = res.trajectories
         bar.update()
@@ -543,26 +537,16 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         "give no estimate before a marker's first triangulation).",
         "* rows: `smoother` = the default motion model, \"auto\": per marker (per segment group) constant velocity "
         "or constant acceleration (white-noise jerk), whichever has the larger marginal likelihood, each with its "
-        "noise chosen from the data (a constant-velocity q kept >= the q of the heave g / w^2 at the wingbeat w "
-        "when the tracks flap, a lift swinging by one body weight: batgraph.graph.noise.flapping_q_floor), "
-        "with the session's segment-length factors (both generators write their bones as `[markers] rigid`; "
-        "default stiffness rigid_sigma_m = 2 mm), the noise scored by the Laplace marginal likelihood (the default "
-        "[motion] noise_rule = \"evidence\"), unobserved points outside a span widened by the track ends' check, "
-        "single-view ones there along their ray, at least to the variance the solve gives them without their view "
-        "(batgraph.graph.ends; every smoother row has it); `smoother_cv` = the same with constant velocity for "
-        "every marker (the default until the twentieth session); `smoother_noseg` = `smoother` without the "
-        "segments; `smoother_loo` = "
-        "`smoother_cv` with q scored by the leave-one-frame-out log predictive density (the opt-in "
-        "noise_rule = \"loo\"); `smoother_wingbeat` = the opt-in \"wingbeat\": per marker constant velocity or "
-        "\"oscillating\" (constant velocity plus two damped harmonics of the wingbeat frequency, measured "
-        "from the triangulated tracks; batgraph.graph.cost.oscillating_motion), whichever has the larger "
-        "marginal likelihood, with the trend's q and the oscillation's std chosen from the data; `filter` = "
+        "noise chosen from the data by the same marginal likelihood, with the session's segment-length factors "
+        "(both generators write their bones as `[markers] rigid`; default stiffness rigid_sigma_m = 2 mm) "
+        "(batgraph.solver); `smoother_cv` = the same with constant velocity for every marker; `smoother_noseg` = "
+        "`smoother` without the segments; `filter` = "
         "constant velocity with q from the motion config (its default; \"auto\" filters with constant "
         "velocity); `smoother_rw` / `filter_rw` = the paper's random walk "
         "(Options.motion_model='random_walk'); `ekf` / `ukf` = the paper's filters (random walk); "
         "`triangulate` = per-frame DLT, with the DLT's own first-order covariance (batgraph.triangulate); "
         "`interpolation` = triangulation linearly interpolated through gaps, "
-        "constant before the first and after the last triangulated frame (factors.initial_track).",
+        "constant before the first and after the last triangulated frame (solver.schedule.initial_track).",
         "* robust loss: the defaults of Options (Huber) for smoother and filter; EKF, UKF and triangulation have none.",
         "",
         "## Scenes",
@@ -602,9 +586,7 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
         for s in held:
             out += [f"### {s.title} (`{s.key}`)", "", markdown_table(target_head, holdout_target_rows(by[s.key])), "",
                     "The same targets for constant velocity on every marker (`smoother_cv`):", "",
-                    markdown_table(target_head, holdout_target_rows(by[s.key], "smoother_cv")), "",
-                    "The same targets for the opt-in `[motion] model = \"wingbeat\"` (`smoother_wingbeat`):", "",
-                    markdown_table(target_head, holdout_target_rows(by[s.key], "smoother_wingbeat")), ""]
+                    markdown_table(target_head, holdout_target_rows(by[s.key], "smoother_cv")), ""]
     else:
         out.append("")
     for s in scene_list:

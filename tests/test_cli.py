@@ -124,19 +124,14 @@ def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
     """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 min on 2
     cores), none when they are cached or with --quiet. kernels.needs_compiling() is True against an empty numba
     cache (a fresh process with NUMBA_CACHE_DIR there: nothing is compiled by asking) and False once the
-    projection sums have run in this process (compiled and cached, or loaded)."""
-    import numpy as np
-
+    kernels have run in this process (compiled and cached, or loaded)."""
     from batgraph import cli
-    from batgraph.graph import kernels
-    ask = "from batgraph.graph import kernels; print(kernels.needs_compiling())"
+    from batgraph.solver import kernels
+    ask = "from batgraph.solver import kernels; print(kernels.needs_compiling())"
     fresh = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=120,
                            env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")})
     assert fresh.stdout.strip() == "True", fresh.stderr
-    kernels.projection_sums(np.zeros((3, 1)), np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
-                            np.tile(np.array([[1.0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 3]]).T, (1, 1)), np.zeros((2, 1)),
-                            np.ones((3, 1)), np.ones(1), 1, 2.0, False, np.zeros(1), np.zeros(1), np.zeros((1, 6)),
-                            np.zeros((1, 6)), np.zeros((1, 3)), np.zeros(1))
+    kernels.compile_all()
     assert kernels.needs_compiling() is False
     for compiling, quiet in ((True, False), (True, True), (False, False)):
         monkeypatch.setattr(kernels, "needs_compiling", lambda c=compiling: c)

@@ -1,4 +1,4 @@
-"""Outlier rejection under mislabelled detections: batgraph.graph.smoother's schedule (the filter has none).
+"""Outlier rejection under mislabelled detections: batgraph.solver.schedule (the filter has none).
 
 Scene: the simulated flight, 4 cameras, 14 markers, 60 frames, seed 1, with and without 5 % mislabels
 (u, v replaced by another marker's projection in the same camera and frame, batgraph.simulate). On
@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 
 from batgraph.evaluate import CHI2_3DOF_95, status_of
-from batgraph.graph import factors
-from batgraph.graph.smoother import run_smoother
 from batgraph.measurement import ideal_observations
 from batgraph.result import Options
 from batgraph.session import dense_observations
 from batgraph.simulate import simulate_flight
+from batgraph.solver import fit as fit_mod
+from batgraph.solver import schedule
+from batgraph.solver.schedule import REJECT_SQ_RESIDUAL, run_smoother
 
 ACCEL_PSD = 27.0  # the q the smoother picks on the clean scene (measured 27.1); given, to skip the search
 
@@ -77,8 +78,17 @@ def test_smoother_rejection_keeps_rmse_and_flags_mislabels(scenes):
     assert recall >= 0.97 and false <= 0.005
     assert new.info["rejection_converged"] and new.info["rejected"] >= 0.97 * planted.sum()
     # every observation left out of the final solve is flagged in reprojection.csv
-    r2 = factors.whitened_sq_residuals(s.rig, ideal, new.xyz_m)
-    assert new.outlier[np.nan_to_num(r2) > factors.REJECT_SQ_RESIDUAL].all()
+    r2 = sq_residuals(s.rig, ideal, new.xyz_m)
+    assert new.outlier[np.nan_to_num(r2) > REJECT_SQ_RESIDUAL].all()
+
+
+def sq_residuals(rig, ideal, xyz) -> np.ndarray:
+    """d^T cov^-1 d of every observation at positions xyz (F, M, 3), d = pi(xyz) - uv, by np.linalg.solve."""
+    d = rig.project(xyz, distort=False) - ideal.uv_px
+    seen = np.isfinite(d).all(axis=-1)
+    out = np.full(seen.shape, np.nan)
+    out[seen] = np.einsum("ni,ni->n", d[seen], np.linalg.solve(ideal.cov_px2[seen], d[seen][..., None])[..., 0])
+    return out
 
 
 def test_rejection_does_not_touch_clean_data(scenes):
@@ -113,23 +123,27 @@ def test_q_choice_ignores_mislabels():
 
 
 def test_whitened_residuals_equal_a_solve_per_observation():
-    """factors.whitened_sq_residuals (the 2x2 inverse in closed form over the dense arrays) equals
-    d^T cov^-1 d by np.linalg.solve per seen observation, on covariances made anisotropic and correlated
-    (so a wrong off-diagonal term shows: it moves |r|^2 by ~30 %); NaN exactly where unseen."""
+    """The solver's |r|^2 of every observation (fit.sq_residuals: its row kernel's whitening by L^-1) equals
+    d^T cov^-1 d by np.linalg.solve per seen observation, on covariances made anisotropic and correlated (so a
+    wrong off-diagonal term shows: it moves |r|^2 by ~30 %); NaN exactly where unseen."""
     s, dense, ideal, truth, _ = flight(0.0)
     rng = np.random.default_rng(0)
     X = rng.normal(size=ideal.cov_px2.shape)
     cov = ideal.cov_px2 + 0.5 * X @ np.swapaxes(X, -1, -2)  # SPD, off-diagonal terms of either sign
     ideal = dataclasses.replace(ideal, cov_px2=cov)
     xyz = truth + rng.normal(scale=2e-3, size=truth.shape)
-    got = factors.whitened_sq_residuals(s.rig, ideal, xyz)
-    d = s.rig.project(xyz, distort=False) - ideal.uv_px
-    seen = np.isfinite(d).all(axis=-1)
-    want = np.einsum("ni,ni->n", d[seen], np.linalg.solve(cov[seen], d[seen][..., None])[..., 0])
+    F, M = xyz.shape[:2]
+    setup = fit_mod.Setup(ideal, s.rig, s.fps, schedule.Loss("none"), xyz)
+    fit = fit_mod.Fit.empty(F, M, False)
+    fit.state[..., :3], fit.models[:] = xyz, "random_walk"
+    got = fit_mod.sq_residuals(setup, fit)
+    want = sq_residuals(s.rig, ideal, xyz)
+    seen = ideal.seen
     np.testing.assert_array_equal(np.isnan(got), ~seen)
-    np.testing.assert_allclose(got[seen], want, rtol=1e-10)
+    np.testing.assert_allclose(got[seen], want[seen], rtol=1e-10)
+    d = s.rig.project(xyz, distort=False) - ideal.uv_px
     diag_only = np.einsum("ni,ni->n", d[seen] ** 2, 1 / np.diagonal(cov[seen], axis1=-2, axis2=-1))
-    assert np.median(np.abs(diag_only / want - 1)) > 0.05  # the off-diagonal terms matter here
+    assert np.median(np.abs(diag_only / want[seen] - 1)) > 0.05  # the off-diagonal terms matter here
 
 
 def test_a_later_rejection_round_solves_only_the_markers_it_changed(monkeypatch):
@@ -138,27 +152,26 @@ def test_a_later_rejection_round_solves_only_the_markers_it_changed(monkeypatch)
     Scene: the simulated 5-camera flight, 24 markers (14 joined by 13 segments), 80 frames, 2 % mislabels, seed 2:
     its second round changes a grouped marker, so the 14-marker group is solved again and the 10 free markers are
     not (measured: positions within 9e-13 m of solving all again, covariances 7e-15)."""
-    from batgraph.graph import rigid, schedule
     from batgraph.pipeline import run_methods
+    from batgraph.solver import backends
 
     s = simulate_flight(np.random.default_rng(2), n_cameras=5, n_markers=24, n_frames=80, outlier_rate=0.02)
-    solve = rigid.solve_rigid
+    solve = fit_mod.solve
     calls = []
 
-    def counted(*args, **kwargs):
-        out = solve(*args, **kwargs)
-        calls.append(int(out[2]["estimated"].sum()))
-        return out
+    def counted(setup, models, *args, **kwargs):
+        calls.append(int(sum(m is not None for m in models)))
+        return solve(setup, models, *args, **kwargs)
 
-    monkeypatch.setattr(rigid, "solve_rigid", counted)
+    monkeypatch.setattr(backends.fit_mod, "solve", counted)
     runs = {}
     for every in (False, True):
-        if every:  # every estimated marker again in each round: the schedule before
-            monkeypatch.setattr(schedule.rigid, "with_groups", lambda markers, pairs, estimated: estimated.copy())
+        if every:  # every estimated marker again in each round
+            monkeypatch.setattr(schedule.segments, "with_groups", lambda markers, pairs, estimated: estimated.copy())
         calls.clear()
         runs[every] = run_methods(s, ["smoother"], Options(progress=False)).estimates["smoother"]
         assert len(runs[every].info["iterations_per_round"]) >= 2  # a second round ran
-        assert calls[:2] == ([24, 24] if every else [24, 14])  # the first two are the rounds (then the ends' check)
+        assert calls[1:3] == ([24, 24] if every else [24, 14])  # after the cleaning solve: the rounds
     np.testing.assert_allclose(runs[False].xyz_m, runs[True].xyz_m, rtol=0, atol=1e-6)
     np.testing.assert_allclose(runs[False].cov_m2, runs[True].cov_m2, rtol=1e-4, atol=1e-12)
     assert runs[False].info["segments"].keys() == runs[True].info["segments"].keys()

@@ -71,7 +71,13 @@ def join_frames(rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:
 def run(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,
         on_frame: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> Estimate:
     """The ``filter`` method: xyz (F, M, 3), cov (F, M, 3, 3) right after each frame's update (NaN before a marker
-    joins); outlier flags (C, F, M) from those estimates. on_frame(k, xyz (M, 3), cov (M, 3, 3)) after frame k."""
+    joins); outlier flags (C, F, M) from those estimates. on_frame(k, xyz (M, 3), cov (M, 3, 3)) after frame k.
+    ``options.solver`` "gtsam", or a camera with a pose covariance (a variable shared by every marker, which this
+    filter's independent markers cannot carry): GTSAM's iSAM2 (batgraph.solver.reference.run_filter)."""
+    if options.solver == "gtsam" or any(c.pose_cov is not None for c in session.rig):
+        from .reference import run_filter
+
+        return run_filter(session, dense, ideal, options, on_frame)
     with one_blas_thread():
         return _run(session, ideal, options, on_frame)
 

@@ -38,6 +38,11 @@ def length_key(s: int) -> int:
     return gtsam.symbol("l", s)
 
 
+def pose_key(c: int) -> int:
+    """Key of camera c's pose (Pose3, world_from_cam) when it is a variable."""
+    return gtsam.symbol("c", c)
+
+
 def _noise(cov_or_Linv: np.ndarray, loss) -> gtsam.noiseModel.Base:
     """The row's Gaussian noise (from its whitening L^-1 = [[a, 0], [b, c]]), robust as ``loss``."""
     a, b, c = cov_or_Linv
@@ -49,11 +54,14 @@ def _noise(cov_or_Linv: np.ndarray, loss) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Robust.Create(est.Create(loss.k), base)
 
 
+def _calibration(cam: Camera) -> gtsam.Cal3_S2:
+    K = cam.K
+    return gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+
+
 def _camera(cam: Camera) -> gtsam.PinholeCameraCal3_S2:
     R_wc, t_wc = cam.world_from_cam()
-    K = cam.K
-    return gtsam.PinholeCameraCal3_S2(gtsam.Pose3(gtsam.Rot3(R_wc), t_wc),
-                                      gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]))
+    return gtsam.PinholeCameraCal3_S2(gtsam.Pose3(gtsam.Rot3(R_wc), t_wc), _calibration(cam))
 
 
 def _interpolated_error(P: np.ndarray, behind: float, uv: np.ndarray, weights: np.ndarray):
@@ -264,7 +272,8 @@ SETTLED_M = 1e-7
 def run_filter(session, dense, ideal, options, on_frame=None):
     """The ``filter`` method by GTSAM's iSAM2 fed one frame at a time (the reference of batgraph.solver.filter):
     a marker joins at its first frame with a triangulation, with the gauge priors there; from then on it gets its
-    state on every frame, the motion factor even when unobserved."""
+    state on every frame, the motion factor even when unobserved. A camera with a pose covariance is a Pose3
+    variable under that prior (the paper's eq. 10 as shared variables: its uncertainty reaches every marker)."""
     import time
 
     from ..result import Estimate
@@ -282,6 +291,15 @@ def run_filter(session, dense, ideal, options, on_frame=None):
     isam = _isam()
     nb = prob.d // 3
     cams = [_camera(c) for c in session.rig]
+    cals = [_calibration(c) for c in session.rig]  # owned here: the factors keep shared pointers to them
+    variable = np.array([c.pose_cov is not None for c in session.rig])
+    graph0, values0 = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for c in np.flatnonzero(variable):
+        graph0.push_back(gtsam.PriorFactorPose3(pose_key(int(c)), cams[c].pose(),
+                                                gtsam.noiseModel.Gaussian.Covariance(session.rig[int(c)].pose_cov)))
+        values0.insert(pose_key(int(c)), cams[c].pose())
+    if variable.any():
+        isam.update(graph0, values0)
     last = np.zeros((M, prob.d))
     xyz, cov = np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan)
     _, Qi, _ = prob.motion_blocks()
@@ -302,9 +320,11 @@ def run_filter(session, dense, ideal, options, on_frame=None):
                 values.insert(state_key(j, int(m), k), last[m, 3 * j:3 * j + 3])
         on = np.flatnonzero((rows.frame == k) & (join[rows.marker] >= 0) & (join[rows.marker] <= k))
         for i in on:
-            noise = _noise(rows.Linv[:, i], loss)
-            graph.push_back(gtsam.TriangulationFactorCal3_S2(cams[rows.cam[i]], rows.uv[:, i], noise,
-                                                             state_key(0, int(rows.marker[i]), k)))
+            noise, c, key = _noise(rows.Linv[:, i], loss), int(rows.cam[i]), state_key(0, int(rows.marker[i]), k)
+            if variable[c]:
+                graph.push_back(gtsam.GenericProjectionFactorCal3_S2(rows.uv[:, i], noise, pose_key(c), key, cals[c]))
+            else:
+                graph.push_back(gtsam.TriangulationFactorCal3_S2(cams[c], rows.uv[:, i], noise, key))
         isam.update(graph, values)
         ms = np.flatnonzero((join >= 0) & (join <= k))
         for _ in range(EXTRA_UPDATES):
@@ -320,7 +340,8 @@ def run_filter(session, dense, ideal, options, on_frame=None):
             cov[k, m] = isam.marginalCovariance(state_key(0, int(m), k))
         if on_frame is not None:
             on_frame(k, xyz[k], cov[k])
-    info.update({"solver": "gtsam", "motion_model": name, "robust": options.robust, "robust_k": options.robust_k})
+    info.update({"solver": "gtsam", "motion_model": name, "robust": options.robust, "robust_k": options.robust_k,
+                 "camera_variables": int(variable.sum())})
     return Estimate("filter", xyz, cov, np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
 
 

@@ -13,6 +13,12 @@ stable -> the steps after the solve.
    again at each solution over all observations, until the excluded set is stable (at most REJECTION_ROUNDS;
    a later round solves only the markers whose exclusions changed, with their segment groups).
 5. The marginal covariances of the last solve; outlier flags |r|^2 > 13.8155 (chi-square 2 DOF, 99.9 %).
+
+With variables shared by every marker (each camera's time offset and readout, ``--sync estimate``; poses of cameras
+with a pose covariance, or all with ``--refine-rig``; batgraph.solver.shared) they are first estimated with the
+cleaning solve's model and loss (so that an unsynchronised rig's residuals are not taken for outliers nor for motion
+noise), the observations excluded at that solution, steps 3-4 run with them, and the final solve estimates them
+jointly with the trajectories, their uncertainty in the points' covariances.
 """
 
 from __future__ import annotations
@@ -29,8 +35,9 @@ from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
 from . import fit as fit_mod
-from . import lm, search, segments
+from . import lm, search, segments, shared
 from . import model as mm
+from .backends import FAST
 from .problem import Loss, gradient
 from .threads import one_blas_thread
 
@@ -75,6 +82,16 @@ def motion_choice(session: Session, options: Options) -> tuple[str, float, float
     return name, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
 
 
+def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options) -> Estimate:
+    """The ``smoother`` method: :func:`run` on batgraph's solver, or on GTSAM's graph with ``options.solver``
+    "gtsam" (batgraph.solver.reference, imported then: GTSAM is a slow import)."""
+    if options.solver == "gtsam":
+        from .reference import REFERENCE
+
+        return run(session, dense, ideal, options, REFERENCE)
+    return run(session, dense, ideal, options, FAST)
+
+
 def run(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options, backend) -> Estimate:
     """The ``smoother`` method on ``backend`` (module docstring). Estimate: xyz (F, M, 3), cov (F, M, 3, 3) (NaN
     for markers never triangulated), outlier flags (C, F, M), info (figures for summary.json)."""
@@ -94,34 +111,130 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     if not estimated.any():
         return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
                         np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
-    setup = fit_mod.Setup(ideal, rig, fps, Loss(options.robust, options.robust_k), p_init,
-                          segments.pairs_of(session.rigid, dense.markers), session.rigid_sigma_m)
+    base = fit_mod.Setup(ideal, rig, fps, Loss(options.robust, options.robust_k), p_init,
+                         segments.pairs_of(session.rigid, dense.markers), session.rigid_sigma_m)
+    spec = shared_variables(session, options)
     excluded, start = np.zeros((C, F, M), bool), (p_init, v_init, None)
-    if reject:
-        excluded, start, info["cleaning"] = _clean(setup, backend, name, sigma_m, q, session)
+    theta, setup = np.zeros(spec.n), base
+    if reject or spec.n:
+        excluded, start, theta, info["cleaning"] = _clean(base, backend, name, sigma_m, q, session, spec, reject)
+        setup = shared.applied(base, spec, theta)
     models, levels, start = _choose(setup.without(excluded), backend, name, sigma_m, q, start, estimated, options,
                                     info, dense.markers)
-    fit, excluded, rounds = _final(setup, backend, models, levels, start, excluded, reject)
+    fit, excluded, rounds, stable = _final(setup, backend, models, levels, start, excluded, reject)
+    if spec.n:
+        fit, theta, cov_theta, setup, info["shared_steps"] = shared.solve(
+            base.without(excluded), backend, models, levels, (fit.xyz, fit.velocity, fit.acceleration), spec, theta)
+        setup = shared.applied(base, spec, theta)
+        info["rig_refined"] = _rig_figures(spec, theta, cov_theta, rig)
     flags = np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > OUTLIER_SQ_RESIDUAL
     info.update(_figures(fit, models, dense.markers, setup, rounds, excluded, reject))
-    return Estimate("smoother", fit.xyz, fit.cov, flags, time.perf_counter() - t0, info)
+    if reject:
+        info["rejection_converged"] = stable
+    est = Estimate("smoother", fit.xyz, fit.cov, flags, time.perf_counter() - t0, info)
+    if spec.n:
+        est.rig = rig_used(rig, spec, theta, cov_theta)
+    return est
 
 
-def _clean(setup, backend, name, sigma_m, q, session) -> tuple:
-    """Steps 1-2: (excluded (C, F, M), the final solves' start, figures)."""
+def shared_variables(session: Session, options: Options) -> shared.Shared:
+    """The variables shared by every marker (batgraph.solver.shared): each camera's time offset (but the reference
+    camera's, the one with the most observations) and readout with ``sync``; the poses of cameras with a pose
+    covariance, or of every camera with ``refine_rig`` (prior REFINE_SD where none is given)."""
+    rig = session.rig
+    C = len(rig)
+    sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+    counts = session.observations["camera"].value_counts()
+    ref = int(np.argmax([counts.get(n, 0) for n in rig.names]))
+    pose = np.array([options.refine_rig or c.pose_cov is not None for c in rig])
+    default = np.diag(np.repeat(np.square(REFINE_SD), 3))
+    cov = np.stack([c.pose_cov if c.pose_cov is not None else default for c in rig])
+    return shared.Shared(np.full(C, sync) & (np.arange(C) != ref), np.full(C, sync), pose, cov)
+
+
+# The pose prior of --refine-rig where a camera has no pose covariance: (rotation [rad], translation [m]) std; a
+# rig bumped between its calibration and the flight.
+REFINE_SD = (np.radians(1.0), 0.02)
+
+
+def rig_used(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray):
+    """The rig with the estimated timing and poses (and their standard deviations, covariances) written in."""
+    import dataclasses
+
+    d_off, d_ro, _ = spec.split(theta)
+    sd = np.sqrt(np.diag(cov))
+    cols = spec.columns
+    moved = shared.applied_rig(rig, spec, theta)
+    cams = []
+    for c, cam in enumerate(moved):
+        change = {}
+        if spec.offset[c] or spec.readout[c]:
+            change.update(time_offset_s=cam.time_offset_s + d_off[c], readout_s=max(cam.readout_s + d_ro[c], 0.0),
+                          time_offset_sd_s=float(sd[cols["offset"][c]]) if spec.offset[c] else 0.0,
+                          readout_sd_s=float(sd[cols["readout"][c]]))
+        if spec.pose[c]:
+            k = cols["pose"][c]
+            change["pose_cov"] = cov[k:k + 6, k:k + 6]
+        cams.append(dataclasses.replace(cam, **change))
+    return type(rig)(cams, world_mirror=rig.world_mirror)
+
+
+def _rig_figures(spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, rig) -> dict:
+    """Per camera: the timing corrections and pose moves with their standard deviations (summary.json)."""
+    d_off, d_ro, d_pose = spec.split(theta)
+    sd = np.sqrt(np.diag(cov))
+    cols = spec.columns
+    out = {}
+    for c, cam in enumerate(rig):
+        row = {}
+        if spec.offset[c] or spec.readout[c]:
+            row.update(time_offset_s=float(cam.time_offset_s + d_off[c]), readout_s=float(cam.readout_s + d_ro[c]),
+                       time_offset_sd_s=float(sd[cols["offset"][c]]) if spec.offset[c] else 0.0,
+                       readout_sd_s=float(sd[cols["readout"][c]]) if spec.readout[c] else 0.0)
+        if spec.pose[c]:
+            k = cols["pose"][c]
+            row.update(rotation_deg=float(np.degrees(np.linalg.norm(d_pose[c, :3]))),
+                       translation_m=float(np.linalg.norm(d_pose[c, 3:])),
+                       rotation_sd_deg=float(np.degrees(np.sqrt(np.trace(cov[k:k + 3, k:k + 3]) / 3))),
+                       translation_sd_m=float(np.sqrt(np.trace(cov[k + 3:k + 6, k + 3:k + 6]) / 3)))
+        out[cam.name] = row
+    return out
+
+
+def _clean(setup, backend, name, sigma_m, q, session, spec, reject) -> tuple:
+    """Steps 1-2 (and the shared variables' first estimate): (excluded (C, F, M), the next solves' start, theta,
+    figures)."""
     est = setup.estimated
     clean_name, level = ("random_walk", sigma_m) if name == "random_walk" else (
         "constant_velocity", q if q is not None else causal_accel_psd(session.motion, session.fps))
-    models = np.where(est, clean_name, None)
-    fit = backend.fit(replace(setup, loss=Loss(CLEANING_LOSS.name, setup.loss.k)), models,
-                      np.full(len(est), level), (setup.p_init, None, None), lm.LOOSE, covariances=False,
+    models, levels = np.where(est, clean_name, None), np.full(len(est), level)
+    loss = Loss(CLEANING_LOSS.name, setup.loss.k) if reject else setup.loss
+    cleaning = replace(setup, loss=loss)
+    fit = backend.fit(cleaning, models, levels, (setup.p_init, None, None), lm.LOOSE, covariances=False,
                       with_segments=False)
-    excluded = to_exclude(np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > REJECT_SQ_RESIDUAL,
-                          setup.ideal.seen)
+    theta = np.zeros(spec.n)
+    if spec.n:
+        fit, theta, _, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
+                                           (fit.xyz, fit.velocity, None), spec)
+    at = shared.applied(setup, spec, theta)
+    excluded = np.zeros(setup.ideal.seen.shape, bool)
+    if reject:
+        excluded = to_exclude(np.nan_to_num(fit_mod.sq_residuals(at, fit), nan=0.0) > REJECT_SQ_RESIDUAL,
+                              setup.ideal.seen)
     v = fit.velocity if clean_name != "random_walk" else gradient(setup.p_init, setup.fps)
-    figures = {"loss": CLEANING_LOSS.name, "robust_k": setup.loss.k, "iterations": int(fit.iterations.max()),
+    figures = {"loss": loss.name, "robust_k": setup.loss.k, "iterations": int(fit.iterations.max()),
                "n_flagged": int(excluded.sum()), mm.LEVEL_NAME[clean_name]: level}
-    return excluded, (fit.xyz, v, None), figures
+    return excluded, (fit.xyz, v, None), theta, figures
+
+
+class _NoCovariances:
+    """A backend whose fits skip the covariances and the segments (the shared variables' first estimate)."""
+
+    def __init__(self, backend):
+        self.backend, self.name = backend, backend.name
+
+    def fit(self, setup, models, levels, start, settings=lm.LOOSE, covariances=False, with_segments=False):
+        return self.backend.fit(setup, models, levels, start, lm.LOOSE, False, False)
 
 
 def _choose(setup, backend, name, sigma_m, q, start, estimated, options, info, names) -> tuple:
@@ -151,8 +264,8 @@ def _choose(setup, backend, name, sigma_m, q, start, estimated, options, info, n
 
 
 def _final(setup, backend, models, levels, start, excluded, reject) -> tuple:
-    """Step 4: (the last fit, the excluded set, iterations per round)."""
-    rounds, fit = [], None
+    """Step 4: (the last fit, the excluded set, iterations per round, whether the excluded set was stable)."""
+    rounds, fit, stable = [], None, True
     redo = models != None  # noqa: E711  (an object array)
     for r in range(REJECTION_ROUNDS if reject else 1):
         solved = backend.fit(setup.without(excluded), np.where(redo, models, None), levels, start)
@@ -162,11 +275,12 @@ def _final(setup, backend, models, levels, start, excluded, reject) -> tuple:
             break
         again = to_exclude(np.nan_to_num(fit_mod.sq_residuals(setup, fit), nan=0.0) > REJECT_SQ_RESIDUAL,
                            setup.ideal.seen)
-        if r == REJECTION_ROUNDS - 1 or (again == excluded).all():
+        stable = bool((again == excluded).all())
+        if r == REJECTION_ROUNDS - 1 or stable:
             break
         redo = segments.with_groups((again != excluded).any(axis=(0, 1)), setup.pairs, models != None)  # noqa: E711
         excluded, start = again, (fit.xyz, fit.velocity, fit.acceleration)
-    return fit, excluded, rounds
+    return fit, excluded, rounds, stable
 
 
 def _choice_figures(choice, models, names, candidates) -> dict:

@@ -32,7 +32,7 @@ from .kernels import tridiagonal
 from .problem import derivatives
 
 PRIOR_SD_S = 0.01  # [s]: the corrections' prior (weak: offsets of a synchronised-to-a-frame rig are < 5 ms)
-MAX_STEPS = 20
+MAX_STEPS = 50
 TRACE = False
 STEP_TOL_S = 1e-7  # [s]: converged when every correction moves by less
 
@@ -94,6 +94,41 @@ class Shared:
         return P
 
 
+def gauge_basis(rig: Rig, shared: Shared) -> np.ndarray:
+    """The directions of theta (n, g) that move the variable cameras as one similarity of the world would (a
+    rotation and translation of the world, or its scale, about what the fixed cameras pin): the images cannot see
+    them, so the solve keeps the input rig's frame and scale along them. Orthonormal columns; g = 7 when every camera
+    is a variable, 1 (the scale about it) with one fixed camera, 0 with two."""
+    n, cols = shared.n, shared.columns
+    C = len(rig)
+    if not shared.pose.any():
+        return np.zeros((n, 0))
+    full = np.zeros((C, 6, 7))  # each camera's left perturbation per world generator (rotation, translation, scale)
+    for c, cam in enumerate(rig):
+        R, t = cam.R, cam.tvec
+        for i in range(3):
+            e = np.eye(3)[i]
+            full[c, :3, i], full[c, 3:, i] = -R @ e, np.cross(R @ e, t)
+            full[c, 3:, 3 + i] = -R @ e
+        full[c, 3:, 6] = t
+    fixed = ~shared.pose
+    if fixed.any():  # combinations of the generators that leave every fixed camera where it is
+        A = full[fixed].reshape(-1, 7)
+        _, sv, Vt = np.linalg.svd(A)
+        rank = int((sv > 1e-9 * max(sv.max(initial=0.0), 1.0)).sum())
+        free = Vt[rank:].T  # (7, g)
+    else:
+        free = np.eye(7)
+    G = np.zeros((n, free.shape[1]))
+    for c in np.flatnonzero(shared.pose):
+        k = cols["pose"][c]
+        G[k:k + 6] = full[c] @ free
+    if not G.size:
+        return G
+    q, r = np.linalg.qr(G)
+    return q[:, np.abs(np.diag(r)) > 1e-12 * max(np.abs(r).max(initial=0.0), 1.0)]
+
+
 def applied(setup: fit_mod.Setup, shared: Shared, theta: np.ndarray) -> fit_mod.Setup:
     """``setup`` with theta's corrections: capture times moved, poses perturbed."""
     d_off, d_ro, d_pose = shared.split(theta)
@@ -104,11 +139,16 @@ def applied(setup: fit_mod.Setup, shared: Shared, theta: np.ndarray) -> fit_mod.
         base = np.zeros((C, F, M)) if ideal.time_frac is None else ideal.time_frac
         frac = base + setup.fps * (d_off[:, None, None] + d_ro[:, None, None] * row)
         ideal = replace(ideal, time_frac=frac, row_frac=row, linear_xyz=None)
-    rig = setup.rig
-    if shared.pose.any():
-        rig = Rig([_moved(cam, d_pose[c]) if shared.pose[c] else cam for c, cam in enumerate(rig)],
-                  world_mirror=rig.world_mirror)
-    return replace(setup, ideal=ideal, rig=rig)
+    return replace(setup, ideal=ideal, rig=applied_rig(setup.rig, shared, theta))
+
+
+def applied_rig(rig: Rig, shared: Shared, theta: np.ndarray) -> Rig:
+    """``rig`` with theta's pose corrections (the timing's are in the observations' capture times)."""
+    if not shared.pose.any():
+        return rig
+    d_pose = shared.split(theta)[2]
+    return Rig([_moved(cam, d_pose[c]) if shared.pose[c] else cam for c, cam in enumerate(rig)],
+               world_mirror=rig.world_mirror)
 
 
 def _moved(cam: Camera, xi: np.ndarray) -> Camera:
@@ -239,6 +279,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     n = shared.n
     theta = np.zeros(n) if theta0 is None else np.asarray(theta0, float).copy()
     prior = shared.prior_info()
+    Z = _complement(gauge_basis(setup.rig, shared), n)  # the directions the images determine (n, n - g)
     cur = applied(setup, shared, theta)
     fit = backend.fit(cur, models, levels, start)
     total = _total(fit, theta, prior)
@@ -247,8 +288,8 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     g = lin.g + prior @ theta
     while steps < MAX_STEPS and lam < 1e8:
         steps += 1
-        S = lin.S + prior
-        step = -np.linalg.solve(S + A + lam * np.diag(np.diag(S)), g)
+        S = Z.T @ (lin.S + prior) @ Z
+        step = -Z @ np.linalg.solve(S + Z.T @ A @ Z + lam * np.diag(np.diag(S)), Z.T @ g)
         new_theta = theta + step
         new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
@@ -266,11 +307,19 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         lam = max(lam / 10, 1e-9)
         if np.abs(step).max() < STEP_TOL_S:
             break
-    cov_t = np.linalg.inv(lin.S + prior)
+    cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
     if fit.cov is not None:
         Yp = lin.Y[..., :3, :]
         fit.cov = fit.cov + np.einsum("fmin,no,fmjo->fmij", Yp, cov_t, Yp)
     return fit, theta, cov_t, cur, steps
+
+
+def _complement(G: np.ndarray, n: int) -> np.ndarray:
+    """An orthonormal basis (n, n - g) of the complement of G's columns (n, g)."""
+    if not G.shape[1]:
+        return np.eye(n)
+    q = np.linalg.qr(np.hstack([G, np.eye(n)]))[0]
+    return q[:, G.shape[1]:n]
 
 
 def _secant(A: np.ndarray, s: np.ndarray, y: np.ndarray, S_new: np.ndarray) -> np.ndarray:
