@@ -138,9 +138,9 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
 
 
 def shared_variables(session: Session, options: Options) -> shared.Shared:
-    """The variables shared by every marker (batgraph.solver.shared): each camera's time offset (but the reference
-    camera's, the one with the most observations) and readout with ``sync``; the poses of cameras with a pose
-    covariance, or of every camera with ``refine_rig`` (prior REFINE_SD where none is given)."""
+    """The variables shared by every marker (batgraph.solver.shared): with ``sync`` each camera's time offset (but the
+    reference camera's, the one with the most observations) and one readout per sensor mode; the poses of cameras
+    with a pose covariance, or of every camera with ``refine_rig`` (prior REFINE_SD where none is given)."""
     rig = session.rig
     C = len(rig)
     sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
@@ -149,7 +149,9 @@ def shared_variables(session: Session, options: Options) -> shared.Shared:
     pose = np.array([options.refine_rig or c.pose_cov is not None for c in rig])
     default = np.diag(np.repeat(np.square(REFINE_SD), 3))
     cov = np.stack([c.pose_cov if c.pose_cov is not None else default for c in rig])
-    return shared.Shared(np.full(C, sync) & (np.arange(C) != ref), np.full(C, sync), pose, cov)
+    modes = [(c.size_wh, c.frame_rate(session.fps)) for c in rig]
+    mode = np.array([modes.index(m) for m in modes])  # cameras of one image size and rate read out alike
+    return shared.Shared(np.full(C, sync) & (np.arange(C) != ref), np.full(C, sync), pose, cov, mode)
 
 
 # The pose prior of --refine-rig where a camera has no pose covariance: (rotation [rad], translation [m]) std; a
