@@ -32,6 +32,7 @@ from . import forked
 from . import methods as methods_registry
 from .errors import InputError
 from .formats.csv_text import write_csv
+from .graph import kernels
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
 
@@ -100,8 +101,6 @@ def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: O
     arrays, because the result travels back to the client. kernel_threads: the threads of the compiled
     kernels in this process (batgraph.graph.kernels.set_threads; None leaves them as they are).
     """
-    from .graph import kernels
-
     t0 = time.perf_counter()
     if kernel_threads is not None:
         kernels.set_threads(kernel_threads)

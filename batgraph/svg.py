@@ -195,6 +195,15 @@ class Axes:
             self.parts.append(f'<path d="{d}" stroke="{colour}" stroke-width="{_num(size)}" stroke-linecap="round"'
                               f'{_opacity(opacity, "stroke")}/>')
 
+    def marks(self, x, y, colours: list[str], size: float, titles: list[str]) -> None:
+        """A dot (diameter ``size`` px) at each (x, y) in its own colour, its title shown on hover (a browser's
+        tooltip: the names of many points without a label on each)."""
+        X, Y = self.px(x), self.py(y)
+        for xi, yi, c, t in zip(X, Y, colours, titles, strict=True):
+            if math.isfinite(xi) and math.isfinite(yi):
+                self.parts.append(f'<circle cx="{_num(xi)}" cy="{_num(yi)}" r="{_num(size / 2)}" fill="{c}" '
+                                  f'stroke="#222" stroke-width="0.6"><title>{html.escape(t)}</title></circle>')
+
     def rects(self, x0, x1, y0, y1, colour: str, opacity: float = 1.0) -> None:
         """Filled rectangles [x0, x1] x [y0, y1] (arrays of one length), one element for all."""
         X0, X1, Y0, Y1 = self.px(x0), self.px(x1), self.py(y0), self.py(y1)
