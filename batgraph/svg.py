@@ -1,12 +1,10 @@
 """Small charts as inline SVG text: the report's figures (batgraph.report), drawn by the browser.
 
-Why not matplotlib (what the report used before): it builds a Python object per tick, label and line and
-rasterises them, ~1.4 s of CPU for the bundled sample's six figures and ~2.7 s at 30 cameras x 180 markers,
-which was most of what a user waited for after the estimators (issue "Speed a user feels"). Here a
-figure is a few strings per panel, each line or point cloud one SVG element whose coordinates numpy
-formats in one call: ~0.05 s for the same figures, and the figures stay sharp at any zoom. Why not a
-JavaScript plotting library: the report is one self-contained file without scripts (its tests check
-that), and the figures need only lines, bands, points, ellipses, rectangles and text.
+Why not matplotlib: it builds a Python object per tick, label and line and rasterises them, seconds of
+CPU for a report's figures; here a figure is a few strings per panel, each line or point cloud one SVG
+element whose coordinates numpy formats in one call, and the figures stay sharp at any zoom. Why not a
+JavaScript plotting library: the report is one self-contained file without scripts, and the figures need
+only lines, bands, points, ellipses, rectangles and text.
 
 Units: pixels of the figure's own canvas (``width`` x ``height``; SVG's y axis points down). A
 :class:`Figure` holds :class:`Axes` panels, each mapping data coordinates into its box (linear or log10

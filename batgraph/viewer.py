@@ -1,49 +1,16 @@
-"""Rerun logging of a session and its reconstructions (saved .rrd, live viewer, opening a file); estimates nothing.
+"""Rerun recordings of a session and its results (saved .rrd, live viewer, opening a file); estimates nothing.
 
-Rerun is imported lazily inside each function, so ``import batgraph`` never loads it.
-
-Timelines
-    ``frame`` (sequence: the frame index) and ``time`` (duration: ``frame / fps`` seconds).
-
-Entity paths (each ``{cam}`` / ``{method}`` part is escaped with ``rr.escape_entity_path_part``)
-
-=================================================  ========================================================
-``world``                                          AnnotationContext (static): class id ``i`` is marker
-                                                   ``i`` of ``session.markers`` (its label on hover)
-``world/cameras/{cam}``                            Transform3D world_from_cam (static) [m]
-``world/cameras/{cam}/image``                      Pinhole: K and image size [px] (static); 2D children
-                                                   live in this image's pixel space
-``world/cameras/{cam}/image/border``               LineStrips2D: the image's edge (static), so that a
-                                                   camera's tab shows its frame even with no detection
-``world/cameras/{cam}/image/detections``           Points2D: the observed **raw (distorted)** pixels, per
-                                                   frame, class id = marker (its name on hover)
-``world/cameras/{cam}/image/reproj/{method}``      Points2D: predicted raw pixels (u_hat, v_hat) per
-                                                   frame, in the method's colour, outliers in red
-``world/cameras/{cam}/image/reproj/{method}/residuals``  LineStrips2D: observed -> predicted, per frame
-``world/{method}/markers``                         Points3D per frame [m, world], class id = marker (its
-                                                   name on hover); only inside each marker's span
-``world/{method}/names``                           Points3D: a few markers far apart, their names shown
-``world/{method}/ellipsoids``                      Ellipsoids3D: 95 % ellipsoid of each marker's covariance
-``world/{method}/skeleton``                        LineStrips3D: the ``[markers] skeleton`` edges of
-                                                   session.toml, per frame (an edge is drawn when both
-                                                   ends are estimated)
-``world/{method}/trails``                          LineStrips3D: each marker's last ``trail_frames``
-                                                   positions, per frame
-``world/{method}/track_ends/...``                  markers and ellipsoids outside each marker's span (before
-                                                   its first, after its last frame seen by >= 2 cameras:
-                                                   extrapolated), hidden in the blueprint
-=================================================  ========================================================
-
-A recording opens (:func:`default_blueprint`) with the 3D view aimed at the animal on its opening frame
-(batgraph.evaluate.opening_frame), the track ends hidden, one tab per camera; ``batgraph view`` also moves
-the time cursor to that frame (a saved recording cannot say where the cursor starts).
-
-Every per-frame entity gets a row on every frame of the recording, possibly empty, because Rerun
-shows the latest row at or before the time cursor: a missing row would keep showing an old frame.
-
-Distortion: Rerun's Pinhole is an ideal pinhole (K only). The 2D entities are logged in raw pixels so
-that they sit where the marker is in the real image; in the 3D view, their rays through a strongly
-distorted lens are therefore slightly off the 3D markers (by the lens's distortion, not an error).
+Rerun is imported inside functions, so ``import batgraph`` never loads it. Timelines: ``frame`` (the frame
+number) and ``time`` (frame / fps s). Entities ({cam}, {method} escaped): ``world`` (annotation context:
+class id i = marker i, its name on hover); ``world/cameras/{cam}`` (pose, static) and its ``image`` (Pinhole
+K and size) holding ``border``, ``detections`` (raw pixels per frame) and ``reproj/{method}`` (predicted
+raw pixels, outliers red; ``residuals`` lines); ``world/{method}/`` ``markers`` and ``ellipsoids`` (95 %)
+inside each marker's span, ``names`` (a few markers named), ``skeleton`` (session.toml's edges),
+``trails`` (last positions) and ``track_ends/`` (the markers and ellipsoids outside the spans: hidden).
+Every per-frame entity has a row on every frame (Rerun shows the latest row at the cursor). A recording
+opens (:func:`default_blueprint`) aimed at the animal on its opening frame; ``batgraph view`` also moves
+the time cursor there. The 2D entities are raw (distorted) pixels where the marker is in the image;
+Rerun's Pinhole is ideal, so in 3D their rays are off by the lens's distortion, not by an error.
 """
 
 from __future__ import annotations

@@ -208,8 +208,8 @@ def test_truth_metrics_on_a_known_offset():
 
 
 def test_full_report_has_every_section_and_is_self_contained(tmp_path):
-    """Truth and a reference present: 7 figures, the verdict first, per-camera rows, no external links; every
-    number in a table is summary.json's."""
+    """Truth and a reference present: 8 figures (the animal, the data map and 6 more), the verdict first,
+    per-camera rows, no external links; every number in a table is summary.json's."""
     session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
     session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)  # a DLTdv-like reference
     summary = summarize(session, traj, rep)
@@ -219,9 +219,9 @@ def test_full_report_has_every_section_and_is_self_contained(tmp_path):
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table",
                           "truth", "reference"]
-    assert len(p.figures) == 7 and not p.imgs
+    assert len(p.figures) == 8 and not p.imgs
     svgs = figure_svgs(text)
-    assert len(svgs) == 7
+    assert len(svgs) == 8
     for fig in svgs:  # every figure draws something: paths (lines, points, bands) and texts (ticks, labels)
         assert len(fig.findall(".//path")) >= 5 and len(fig.findall(".//text")) >= 5
     clip_ids = re.findall(r'<clipPath id="([^"]+)"', text)
@@ -278,7 +278,7 @@ def test_figures_keep_their_texts_inside_their_canvas():
         session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"), **kw)
         session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
         svgs = figure_svgs(render_report(session, traj, rep, typed(session, traj, rep)))
-        assert len(svgs) == 7
+        assert len(svgs) == 8
         for fig in svgs:
             w, h = float(fig.get("width")), float(fig.get("height"))
             for t in fig.iter("text"):
@@ -325,7 +325,7 @@ def test_report_without_truth_or_reference_omits_those_sections(tmp_path):
         encoding="utf-8")
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.figures) == 5
+    assert len(p.figures) == 6
     assert "Errors against truth" not in text and "reference reconstruction" not in text.split("</nav>")[0]
     cams = table(p, "cameras")[1:]
     assert [r[0] for r in cams] == ["cam1", "cam2"]
@@ -380,7 +380,7 @@ def test_degenerate_inputs_still_render(tmp_path):
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
     assert len(p.figures) == 1  # the marker x frame map: where the data are, even without an estimate
-    assert text.count("No data to draw") == 4
+    assert text.count("No data to draw") == 5  # the animal too
     assert "No reprojection errors." in text
 
 
@@ -410,3 +410,34 @@ def test_section_titles_are_unique_and_the_paper_is_cited_in_full():
     assert "M. J. Bender, H. G. McClelland, G. Bledt, A. Kurdila, T. Furukawa and R. Müller" in plain
     assert "Trajectory Estimation of Bat Flight Using a Multi-View Camera System" in plain and "AIAA" in plain
     assert not re.search(r"PAPER\.md|CONTRACT\.md", text)
+
+
+def test_3d_panels_are_readable_with_26_markers():
+    """26 markers: the 3D figure's panels are at least 500 px wide, its legend names every marker, and no two
+    markers are drawn alike (colour and dash)."""
+    from batgraph.report import _marker_styles
+
+    names = [f"marker_{i:02d}" for i in range(26)]
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf"), markers=names)
+    (fig,) = [f for f in figure_svgs(render_report(session, traj, rep, typed(session, traj, rep)))
+              if f.get("aria-label") == "3D trajectories per method"]
+    texts = {t.text for t in fig.iter("text")}
+    assert set(names) <= texts
+    widths = [float(r.get("width")) for clip in fig.iter("clipPath") for r in clip.iter("rect")]  # the panels
+    assert len(widths) == 3 and min(widths) >= 500, widths
+    styles = _marker_styles(names)
+    assert len({(s["colour"], s["dash"]) for s in styles}) == 26
+
+
+def test_the_first_screen_shows_the_animal_with_names_on_hover():
+    """The verdict's section draws the verdict method's markers on the opening frame, each dot titled with its
+    marker's name (a browser shows it on hover), beside the headlines."""
+    session, traj, rep, summary = make_scene(methods=("smoother", "ekf"))
+    s = typed(session, traj, rep, summary)
+    assert s.opening_frame is not None
+    text = render_report(session, traj, rep, s)
+    verdict = text.split('<section id="overview">')[0]
+    (fig,) = [f for f in figure_svgs(verdict) if f.get("aria-label") == "the animal on its first well-seen frame"]
+    titles = [t.text for t in fig.iter("title")]
+    assert set(titles) <= set(MARKERS) and len(titles) >= 4
+    assert f"on frame {s.opening_frame} " in "".join(t.text or "" for t in fig.iter("text"))
