@@ -5,9 +5,8 @@ What it does: expands session folders and globs, runs :func:`batgraph.pipeline.r
 worker processes forked from this one (batgraph.forked.stream_jobs, on Linux), or on a local Dask
 ``distributed`` cluster where forking is not possible (macOS, Windows, ``BATGRAPH_FORK=0``), or on an existing
 Dask cluster at ``scheduler``; gathers one :class:`BatchItem` per session and writes ``batch_summary.csv``.
-Forked workers start with batgraph already imported: 16 small sessions on 2 cores took 21.1 s with 2
-forked workers against 29.2 s on a local Dask cluster of 2 (whose spawned workers each import Python, Dask
-and batgraph afresh; BENCHMARKS.md). What it deliberately does not do: split one session across
+Forked workers start with batgraph already imported (a Dask cluster's spawned workers each import Python,
+Dask and batgraph afresh). What it deliberately does not do: split one session across
 workers, retry a session, or copy files between machines (with a remote scheduler, the session and output
 folders must be on a file system that every worker sees, and the workers need batgraph installed).
 """
@@ -32,6 +31,7 @@ from . import forked
 from . import methods as methods_registry
 from .errors import InputError
 from .formats.csv_text import write_csv
+from .solver import threads as kernels
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
 
@@ -52,7 +52,7 @@ class BatchItem:
     summary: the session's summary.json content when ok, else None.
     files: the files written when ok.  warnings: the session's input warnings when ok.
     pid: id of the process that ran it (the caller's own for a single session without workers).
-    kernel_threads: the threads the compiled kernels had there when ok (batgraph.graph.kernels).
+    kernel_threads: the threads the compiled kernels had there when ok (batgraph.solver.threads).
     """
 
     session_dir: Path
@@ -98,10 +98,8 @@ def run_session(session_dir: Path, out_dir: Path, methods: list[str], options: O
 
     Module-level so that workers import it by name; returns only the small summary, never the
     arrays, because the result travels back to the client. kernel_threads: the threads of the compiled
-    kernels in this process (batgraph.graph.kernels.set_threads; None leaves them as they are).
+    kernels in this process (batgraph.solver.threads.set_threads; None leaves them as they are).
     """
-    from .solver import threads as kernels
-
     t0 = time.perf_counter()
     if kernel_threads is not None:
         kernels.set_threads(kernel_threads)
@@ -233,27 +231,18 @@ def reconstruct_many(session_dirs: list[str | Path], out_root: str | Path | None
                      calibration: str | Path | None = None, validate: bool = False) -> list[BatchItem]:
     """``reconstruct`` on many sessions in parallel (worker processes); one BatchItem per session, in input order.
 
-    session_dirs: folders and/or glob patterns (see :func:`expand_sessions`).
-    out_root: None -> each SESSION/out; else out_root/<session folder name>, plus out_root/batch_summary.csv.
-    scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None -> ``n_workers`` worker
-      processes (default min(n sessions, cores); one session at a time each, compiled kernels on cores // n
-      threads) forked from this one, or where forking is not possible (module docstring) or for more than
-      forked.MAX_JOBS sessions a local Dask cluster of as many, bound to 127.0.0.1, without dashboards. A
-      single session without ``scheduler`` runs in this process (no workers).
-    progress: a bar over finished sessions; the per-method bars inside workers are always off.
-    viewer: "save" (recording.rrd in each output folder) or "none"; "spawn" (a live window) only for a
-      single session without a scheduler.
-    calibration: one calibration.toml for every session instead of each folder's own (e.g. the day's
-      wand calibration); a worker must be able to read it.
-    validate: also run each session's leave-one-camera-out validation (see batgraph.validate; its folds
-      run serially inside a worker, in parallel processes for a single session run here).
-
-    Raises InputError for bad arguments (unknown method, glob matching nothing, duplicate session names
-    under out_root, n_workers < 1 or given with scheduler, viewer "spawn" with a cluster, unreachable
-    scheduler); a bad or crashing session is never raised, it is reported in its item.
-
-    The local cluster starts its workers with multiprocessing's "spawn", which re-imports the main script:
-    a script that calls this must do so under ``if __name__ == "__main__":``.
+    session_dirs: folders and/or glob patterns (:func:`expand_sessions`). out_root: None -> each SESSION/out;
+    else out_root/<session folder name>, plus out_root/batch_summary.csv. scheduler: an existing Dask
+    scheduler (``tcp://host:8786``); None -> ``n_workers`` processes (default min(sessions, cores), kernels on
+    cores // n threads) forked from this one, or a local Dask cluster (127.0.0.1, no dashboards) where forking
+    is not possible or for more than forked.MAX_JOBS sessions; one session without a scheduler runs here.
+    progress: a bar over finished sessions. viewer: "save" or "none" ("spawn": one session here only).
+    calibration: one calibration.toml for every session (a worker must read it). validate: each session's
+    leave-one-camera-out validation too (its folds serial inside a worker).
+    Raises InputError for bad arguments (unknown method, a glob matching nothing, duplicate names under
+    out_root, n_workers < 1 or with a scheduler, "spawn" with a cluster, an unreachable scheduler); a bad or
+    crashing session is reported in its item. The local cluster's workers re-import the main script: call
+    this under ``if __name__ == "__main__":``.
     """
     options = options or Options()
     calibration = Path(calibration) if calibration is not None else None

@@ -91,45 +91,11 @@ def _add_reconstruct(sub):
     p.set_defaults(func=_cmd_reconstruct)
 
 
-def _fmt(x, scale=1.0, digits=2):
-    return "-" if x is None else f"{x * scale:.{digits}f}"
-
-
 def summary_lines(summary: dict) -> list[str]:
-    """The end-of-run text: the verdict, then the methods compared like for like per group (the points every
-    listed method estimates, n shown), then runtimes. Reads summary.json's figures; computes none."""
-    from .summary import HEADLINE_GROUPS, Summary
+    """The end-of-run text (batgraph.summary.terminal_lines): reads summary.json's figures; computes none."""
+    from .summary import terminal_lines
 
-    s = Summary.from_json(summary)
-    lines = []
-    if s.verdict:
-        lines += [f"use: {s.verdict.use} ({s.verdict.why})", f"  {s.verdict.headline}"]
-    methods = list(s.methods)
-    c = s.comparison
-    if c is not None and c.groups:
-        unit = {"truth": "RMSE mm vs truth (95 % coverage)", "reference": "RMS mm vs the reference",
-                "reprojection": "median reprojection px"}[c.against]
-        lines.append(f"compared on the same points: {unit}; n = points every listed method estimates")
-        lines.append(f"{'':<27}{'n':>6}" + "".join(f"{m:>16}" for m in methods))
-        for g, label in HEADLINE_GROUPS.items():
-            gc = c.groups.get(g)
-            if gc is None:
-                continue
-            cells = []
-            for m in methods:
-                v = gc.values.get(m)
-                if v is None:
-                    cells.append("not estimated" if m in c.methods else "")
-                elif c.against == "truth":
-                    cov = v.get("coverage95")
-                    cells.append(f"{_fmt(v.get('rmse_m'), 1000)}" + (f" ({100 * cov:.0f}%)" if cov is not None else ""))
-                elif c.against == "reference":
-                    cells.append(_fmt(v.get("rms_m"), 1000))
-                else:
-                    cells.append(_fmt(v.get("median_px")))
-            lines.append(f"{label:<27}{gc.n:>6}" + "".join(f"{x:>16}" for x in cells))
-    lines.append(f"{'runtime s':<33}" + "".join(f"{_fmt(s.methods[m].get('runtime_s')):>16}" for m in methods))
-    return lines
+    return terminal_lines(summary)
 
 
 def _compile_note(args) -> None:
@@ -190,7 +156,7 @@ def _cmd_reconstruct(args) -> int:
             print("\n".join(validation_lines(result.summary["validation"])))
         print(f"report: {result.out_dir / 'report.html'}")
         if viewer != "none":
-            print(f"3D viewer: rerun {result.out_dir / 'recording.rrd'}   (or: batgraph view {result.out_dir})")
+            print(f"3D viewer: batgraph view {result.out_dir}   (or: rerun {result.out_dir / 'recording.rrd'})")
     return 0
 
 
@@ -227,7 +193,7 @@ def validation_lines(validation: dict) -> list[str]:
     """The terminal's validation table (from summary.json's "validation" section) and its verdict."""
     import pandas as pd
 
-    from .validate import COLUMNS, format_table
+    from .validation_table import COLUMNS, format_table
 
     table = pd.DataFrame(validation.get("table") or [], columns=COLUMNS)
     lines = ["leave-one-camera-out: error [px] of each method's 3D projected into the held-out camera "
@@ -246,7 +212,7 @@ def _cmd_validate(args) -> int:
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", progress=not args.quiet,
+                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", progress=_progress_bars(args),
                       solver=args.solver)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)

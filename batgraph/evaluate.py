@@ -3,7 +3,7 @@
 Errors against truth, per-camera reprojection statistics, 95 % ellipsoid coverage and differences to
 a reference reconstruction. Knows nothing about how an estimate was made, nor about files.
 
-Definitions used throughout (also in the README):
+Definitions used throughout:
 * RMSE = sqrt(mean ||xyz - truth||^2) over (frame, marker) pairs, 3D Euclidean, in metres.
 * coverage95 = fraction of truth points with (x - t)^T Sigma^-1 (x - t) <= 7.8147 (chi-square, 3 DOF, 95 %).
 * status: ``observed`` (>= 2 views), ``single_view`` (1), ``unobserved`` (0), from the input observations.
@@ -12,6 +12,8 @@ Definitions used throughout (also in the README):
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pandas as pd
@@ -56,6 +58,22 @@ def take_of(frames: np.ndarray) -> np.ndarray:
     present = np.unique(frames)
     starts = present[np.r_[True, np.diff(present) > 1]]
     return np.searchsorted(starts, frames, side="right") - 1
+
+
+OPENING_SHARE = 0.9
+"""The viewer and the report open on the first frame where at least this share of the most markers seen by >= 2
+cameras on any one frame are so seen: nearly the whole animal, as early as it shows."""
+
+
+def opening_frame(seen_twice: np.ndarray, frames: np.ndarray) -> int | None:
+    """The frame to show first (see OPENING_SHARE); None without frames. seen_twice: per frame (F,) the markers
+    seen by >= 2 cameras; frames: the frame numbers (F,). A track's first frames are often seen by one camera,
+    where every point is an extrapolation: a viewer opening there shows no animal."""
+    seen_twice = np.asarray(seen_twice)
+    if not len(seen_twice):
+        return None
+    target = math.ceil(OPENING_SHARE * int(seen_twice.max()))
+    return int(np.asarray(frames)[np.argmax(seen_twice >= target)])
 
 
 def add_span(traj: pd.DataFrame) -> pd.DataFrame:

@@ -4,7 +4,7 @@ Distortion is removed once, here (the paper does the same), and the pixel noise 
 the undistortion's Jacobian: a raw-pixel covariance ``S = (sigma^2 / weight) I`` becomes
 ``J S J^T`` on ideal pixels, J = d(ideal)/d(raw) at the observation. The estimators then use a plain
 pinhole ``uv_ideal = K [x/z, y/z]``. Why not GTSAM's Cal3DS2: it has no k3, which GoPro lenses
-need; this route handles all five coefficients, and batgraph.graph tests it against Cal3DS2 on
+need; this route handles all five coefficients, and batgraph.solver tests it against Cal3DS2 on
 a k3 = 0 rig.
 """
 
@@ -26,7 +26,7 @@ class IdealObservations:
     linear_xyz: (rig, positions (F, M, 3) [m]) once batgraph.triangulate.dlt_points has triangulated these pixels
     with that rig (they depend on nothing else, so :meth:`with_sigma` keeps them): the self-checks' linear
     triangulation is then the smoother's and the triangulation method's start, not computed again (0.2-0.3 s
-    each at 30 x 180 x 160). The pixels are never changed in place (batgraph.graph.cost.without_observations
+    each at 30 x 180 x 160). The pixels are never changed in place (batgraph.measurement.without
     makes new ones).
     time_frac, row_frac: (C, F, M) or None, as batgraph.session.DenseObservations has them: each observation's
     capture time minus its frame's, in frames, from the rig's known timing; its raw row / image height.

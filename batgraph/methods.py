@@ -1,15 +1,14 @@
-"""The one registry of estimation methods: name, run function, order, colour, line style, past-only.
+"""The one registry of estimation methods as a user sees them: name, order, colour, line style, past-only.
 
-The pipeline runs methods from here, the CLI builds its help from here, and the report and the viewer
-draw each method in the colour and line style given here, so a method looks the same everywhere.
-Run functions are imported lazily (a slow import such as GTSAM is paid only when the method runs).
-Imports nothing of batgraph but ``errors``.
+The CLI builds its help and checks ``--methods`` here, and the report and the viewer draw each method in the
+colour and line style given here, so a method looks the same everywhere. The functions that run the methods
+are registered beside the code that runs them (batgraph.runner), so that reading this registry (the CLI's
+help) loads no estimator. Imports nothing of batgraph but ``errors``.
 """
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable
+import difflib
 from dataclasses import dataclass
 
 from .errors import InputError
@@ -20,33 +19,27 @@ class Method:
     """One estimation method.
 
     name: as in ``--methods`` and the ``method`` column of every table.
-    run: "module:function" (relative to batgraph) of the run function for the default fast solver;
-        run_gtsam the same for ``--solver gtsam`` (None: the method has one implementation).
     colour: hex RGB used by the report and the viewer; line: matplotlib line style.
     past_only: the estimate of frame k uses frames <= k only (a filter), so it can run live.
     summary: one line for the CLI help and the report.
     """
 
     name: str
-    run: str
     colour: str
     line: str
     past_only: bool
     summary: str
-    run_gtsam: str | None = None
 
 
 # In display order. The paper draws the EKF dashed and the UKF solid (Fig. 5); batgraph's own methods
 # get their own colours so that the two solid lines (ukf, smoother) stay distinguishable.
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("smoother", "solver.schedule:run_smoother", "#1f77b4", "-", False,
+    Method("smoother", "#1f77b4", "-", False,
            "factor-graph smoother: every frame uses every other (GTSAM batch Levenberg-Marquardt problem)"),
-    Method("filter", "solver.filter:run", "#ff7f0e", "-.", True,
-           "factor-graph filter: frame k uses frames <= k (GTSAM iSAM2 problem)"),
-    Method("ekf", "filters.ekf:run_ekf", "#d62728", "--", True, "the paper's extended Kalman filter"),
-    Method("ukf", "filters.ukf:run_ukf", "#2ca02c", "-", True, "the paper's unscented Kalman filter"),
-    Method("triangulate", "triangulate:run", "#7f7f7f", ":", False,
-           "per-frame linear multi-view triangulation (DLT), no motion model"),
+    Method("filter", "#ff7f0e", "-.", True, "factor-graph filter: frame k uses frames <= k (GTSAM iSAM2 problem)"),
+    Method("ekf", "#d62728", "--", True, "the paper's extended Kalman filter"),
+    Method("ukf", "#2ca02c", "-", True, "the paper's unscented Kalman filter"),
+    Method("triangulate", "#7f7f7f", ":", False, "per-frame linear multi-view triangulation (DLT), no motion model"),
 )}
 ALL_METHODS = tuple(METHODS)
 DEFAULT_METHODS = ("smoother", "filter")
@@ -54,18 +47,12 @@ _FALLBACK = ("#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 
 
 def get(name: str) -> Method:
-    """The registered method ``name``; InputError naming the choices otherwise."""
+    """The registered method ``name``; InputError naming the closest name and the choices otherwise."""
     if name not in METHODS:
-        raise InputError(f"--methods: unknown method {name!r} (choose from {', '.join(ALL_METHODS)})")
+        close = difflib.get_close_matches(name.lower(), ALL_METHODS, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise InputError(f"--methods: unknown method {name!r}{hint} (choose from {', '.join(ALL_METHODS)})")
     return METHODS[name]
-
-
-def run_function(name: str, solver: str = "fast") -> Callable:
-    """The run function of a method (imported now). solver: "fast" or "gtsam" (see Options.solver)."""
-    m = get(name)
-    target = m.run_gtsam if (solver == "gtsam" and m.run_gtsam) else m.run
-    module, func = target.split(":")
-    return getattr(importlib.import_module(f"batgraph.{module}"), func)
 
 
 def parse(text: str | None, compare: bool = False) -> list[str]:

@@ -98,7 +98,7 @@ def noise_from_track(xyz_m: np.ndarray, cov_m2: np.ndarray, fps: float) -> tuple
     For sessions whose session.toml states no physics (imported humans, mice, insects): the paper's
     eq. 4-5 take d_m as the largest motion per frame and sigma_m = d_m / sqrt(7.8147); here d_m is the
     95th percentile of the observed per-frame 3D displacements. q follows the physics rule of
-    batgraph.graph.noise.causal_accel_psd, q = a_rms^2 dt / 3 (a sinusoid's mean square is half its
+    causal_accel_psd, q = a_rms^2 dt / 3 (a sinusoid's mean square is half its
     peak squared), with a_rms^2 each marker's mean square 3D acceleration from second differences
     ``x[k+L] - 2 x[k] + x[k-L] ~ a (L dt)^2`` at the shortest lag L in TRACK_LAGS whose mean square is
     TRACK_SNR times the triangulation noise ``tr(S[k+L]) + 4 tr(S[k]) + tr(S[k-L])`` (subtracted), and

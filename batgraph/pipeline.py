@@ -1,16 +1,14 @@
-"""``reconstruct``: load a session, run the chosen methods, write the contract's outputs.
+"""``reconstruct``: load a session, run the chosen methods (batgraph.runner), write a result folder.
 
-The only place that knows which estimators exist and which files a result folder holds; the CLI
-only parses arguments and calls :func:`reconstruct` / :func:`reconstruct_many`.
+The one place that knows which files a result folder holds; the CLI only parses arguments and calls
+:func:`reconstruct` (batgraph.batch: many sessions).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,14 +16,20 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from . import atomic, checks, evaluate, forked, inputs
+from . import atomic, forked, inputs
 from . import methods as methods_registry
+from . import report as report_mod
 from . import summary as summary_mod
+from . import validation_table as validation_mod
 from .errors import InputError
+from .evaluate import REPROJ_COLUMNS, TRAJ_COLUMNS, add_span
+from .formats.c3d_trc import write_c3d, write_trc
 from .formats.csv_text import write_csv
-from .measurement import IdealObservations
-from .result import Estimate, Options
-from .session import DenseObservations, Session, dense_observations, read_session
+from .result import Options
+from .runner import Run, run_methods
+from .session import dense_observations, read_session
+from .validate import validate_session
+from .viewer import RECORDING_NAME, LiveViewer, write_recording
 
 DEFAULT_METHODS = methods_registry.DEFAULT_METHODS
 ALL_METHODS = methods_registry.ALL_METHODS
@@ -33,17 +37,11 @@ parse_methods = methods_registry.parse
 
 
 @dataclass
-class Result:
-    """What one reconstruct run produced (tables are also written to ``out_dir``)."""
+class Result(Run):
+    """What one reconstruct run produced: a :class:`batgraph.runner.Run` and where it was written."""
 
-    session: Session
-    out_dir: Path
-    trajectories: pd.DataFrame
-    reprojection: pd.DataFrame
-    summary: dict
-    estimates: dict[str, Estimate] = field(default_factory=dict)
+    out_dir: Path = Path()
     files: list[Path] = field(default_factory=list)
-    dense: object = None
 
 
 def _json_default(o):
@@ -58,105 +56,20 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def run_methods(session: Session, methods: list[str], options: Options, live=None) -> Result:
-    """Run ``methods`` on a loaded session; returns tables and summary (nothing written).
-
-    live: an optional ``viewer.LiveViewer``; the filter streams each frame to it as it goes.
-    The methods are independent: with the fast solver and no live viewer they run side by side in forked
-    processes (batgraph.forked.map_jobs; the first method here or in a child, its estimate pickled back),
-    the first listed (the costliest of the defaults, the smoother) showing its progress.
-    """
-    sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
-    dense = dense_observations(session, timing=True if sync else None)  # the timing's estimate needs the rows
-    pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
-    warnings = list(session.warnings) + pre.warnings + _take_warnings(session, dense)
-    session = dataclasses.replace(pre.session, warnings=warnings)
-    ideal = pre.ideal
-
-    def estimate(i: int, on_frame=None, progress: bool = False) -> Estimate:
-        run = methods_registry.run_function(methods[i], options.solver)
-        t0 = time.perf_counter()
-        est = run_by_take(run, session, dense, ideal, dataclasses.replace(options, progress=progress), on_frame)
-        est.runtime_s = est.runtime_s or time.perf_counter() - t0
-        return est
-
-    # GTSAM's own threads (TBB) are not known to survive a fork: its solvers run one after the other
-    if live is None and options.solver == "fast" and len(methods) > 1:
-        ests = forked.map_jobs(lambda i: estimate(i, progress=options.progress and i == 0), len(methods))
-    else:
-        ests = [estimate(i, live.update if (live is not None and name == "filter") else None, options.progress)
-                for i, name in enumerate(tqdm(methods, desc=f"{session.name}: methods", disable=not options.progress,
-                                              leave=False))]
-    estimates = dict(zip(methods, ests, strict=True))
-    traj_all = pd.concat([evaluate.trajectories_table(session, dense, est) for est in ests], ignore_index=True)
-    reproj_all = evaluate.reprojection_tables(session, dense, ests)  # the observations' columns gathered once
-    summary = summary_mod.summarize(
-        session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},
-        infos={m: e.info for m, e in estimates.items()},
-        pixel_sigma_px=dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
-        pixel_noise=pre.noise, checks=pre.figures)
-    session.warnings[:] = summary["warnings"]  # the noise-model warnings join the self-checks'
-    return Result(session, Path(), traj_all, reproj_all, summary, estimates, dense=dense)
-
-
-def _take_warnings(session: Session, dense: DenseObservations) -> list[str]:
-    """One line when the session splits into takes (batgraph.session.frame_axis): which, and why."""
-    takes = dense.take_slices
-    if len(takes) == 1:
-        return []
-    spans = [f"{dense.frames[sl][0]}-{dense.frames[sl][-1]}" for sl in takes]
-    listed = ", ".join(spans[:4]) + (f" and {len(spans) - 4} more" if len(spans) > 4 else "")
-    longest = max(takes, key=lambda sl: sl.stop - sl.start)
-    return [f"{len(takes)} takes (frames {listed}): nothing is observed for more than {session.take_gap_frames} "
-            f"frames ([session] take_gap_s = {session.take_gap_s:g} s) between them, so each is solved on its own; "
-            f"trajectories.c3d/.trc hold the longest (frames {dense.frames[longest][0]}-{dense.frames[longest][-1]}; "
-            f"'batgraph export c3d OUT --take N' writes another)"]
-
-
-def run_by_take(run, session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options,
-                on_frame=None) -> Estimate:
-    """One method's Estimate over every take of ``dense``, each take solved on its own, joined along F.
-
-    run: the method's run function (batgraph.methods). on_frame(frame number, xyz (M, 3), cov (M, 3, 3)):
-    the filter's per-frame callback (the live viewer), given the original frame number. Takes are runs
-    of frames separated by long runs without observations (batgraph.session.frame_axis): no motion model
-    bridges such a gap, and a stray frame costs only its own take. With several takes, ``info`` is the
-    longest take's, plus ``takes``: each take's first and last frame and iterations where reported.
-    """
-    parts = []
-    for sl in dense.take_slices:
-        sub = dense if len(dense.take_slices) == 1 else dense.take(sl)
-        sub_ideal = ideal if sub is dense else ideal.take(sl)
-        extra = {} if on_frame is None else {
-            "on_frame": lambda k, xyz, cov, frames=sub.frames: on_frame(int(frames[k]), xyz, cov)}
-        parts.append(run(session, sub, sub_ideal, options, **extra))
-    if len(parts) == 1:
-        return parts[0]
-    longest = int(np.argmax([len(dense.frames[sl]) for sl in dense.take_slices]))
-    info = dict(parts[longest].info)
-    info["takes"] = [{"first_frame": int(dense.frames[sl][0]), "last_frame": int(dense.frames[sl][-1]),
-                      **({"iterations": p.info["iterations"]} if "iterations" in p.info else {})}
-                     for sl, p in zip(dense.take_slices, parts, strict=True)]
-    info["info_of_take"] = longest
-    return Estimate(parts[0].method, np.concatenate([p.xyz_m for p in parts]),
-                    np.concatenate([p.cov_m2 for p in parts]), np.concatenate([p.outlier for p in parts], axis=1),
-                    sum(p.runtime_s for p in parts), info)
-
-
-def export_method(result: Result) -> str:
+def export_method(result: Run) -> str:
     """The method whose trajectories go to C3D/TRC: the verdict's (the smoother when it ran)."""
     return summary_mod.recommended(list(result.estimates))[0]
 
 
-#: The files of one result folder (CONTRACT.md section 3, and validation.csv): a folder holds one result,
+#: The files of one result folder: a folder holds one result,
 #: so one of these that a run does not write is not carried over from the previous result.
 OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
                 "trajectories.trc", "recording.rrd", "validation.csv")
 
 
-def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
+def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
                   validation_table: pd.DataFrame | None = None, report: forked.Standby | None = None) -> list[Path]:
-    """Write the whole output set of CONTRACT.md section 3 into ``out_dir`` as one atomic replacement.
+    """Write a result folder's files (:data:`OUTPUT_FILES`) into ``out_dir`` as one atomic replacement.
 
     viewer: "save" or "spawn" write recording.rrd; "none" skips it. validation_table: also write
     validation.csv (batgraph.validate). Every file is written into a staging folder beside ``out_dir``
@@ -175,17 +88,14 @@ def write_outputs(result: Result, out_dir: str | Path, viewer: str = "save", opt
     with atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place) as stage:
         files = _write_files(result, stage, viewer, options, report or report_standby())
         if validation_table is not None:
-            from .validate import CSV_NAME, write_csv
-            write_csv(validation_table, stage / CSV_NAME)
-            files.append(stage / CSV_NAME)
+            validation_mod.write_csv(validation_table, stage / validation_mod.CSV_NAME)
+            files.append(stage / validation_mod.CSV_NAME)
     return [out_dir / p.name for p in files]
 
 
 def _report_writer():
-    """The report child's preparation: import the report; returns its writer."""
-    from .report import write_report
-
-    return write_report
+    """The report child's preparation: returns the report's writer (looked up when the child starts)."""
+    return report_mod.write_report
 
 
 def report_standby() -> forked.Standby:
@@ -194,13 +104,11 @@ def report_standby() -> forked.Standby:
     return forked.Standby(_report_writer, "report")
 
 
-def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | None,
+def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | None,
                  report: forked.Standby) -> list[Path]:
-    """Write every output file of CONTRACT.md section 3 into the (staging) folder ``out_dir``: the two CSV tables
+    """Write every output file into the (staging) folder ``out_dir``: the two CSV tables
     by a child forked here (batgraph.forked.Standby) and report.html by ``report``, beside this process's writing
     of the others (at 30 x 180 x 160 the CSVs take 1.3 s, the rest ~0.8 s)."""
-    from .formats.c3d_trc import write_c3d, write_trc
-
     out_dir.mkdir(parents=True, exist_ok=True)
     s = result.session
     report_path = out_dir / "report.html"
@@ -212,7 +120,8 @@ def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | 
 
     tables = forked.Standby(lambda: write_tables, "CSV tables").run()  # a child forked now: nothing is pickled
     try:
-        pending = report.run(report_path, s, result.trajectories, result.reprojection, result.summary)
+        pending = report.run(report_path, s, result.trajectories, result.reprojection,
+                             summary_mod.Summary.from_json(result.summary))
         atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
         method = export_method(result)
         one = result.trajectories[result.trajectories["method"] == method]
@@ -220,7 +129,6 @@ def _write_files(result: Result, out_dir: Path, viewer: str, options: Options | 
                                                           reprojection=result.reprojection, cameras=s.rig.names)),
                  ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers, keep="span"))]
         if viewer != "none":
-            from .viewer import RECORDING_NAME, write_recording
             steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
                                                                     result.reprojection)))
         progress = options.progress if options else False
@@ -256,15 +164,13 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         session = read_session(session_dir, calibration)
         methods = list(methods or DEFAULT_METHODS)
         if viewer == "spawn":
-            from .viewer import LiveViewer
             with LiveViewer(session, dense_observations(session), method="filter") as live:
-                result = run_methods(session, methods, options, live=live)
+                run = run_methods(session, methods, options, live=live)
         else:
-            result = run_methods(session, methods, options)
-        result.out_dir = out
+            run = run_methods(session, methods, options)
+        result = Result(**vars(run), out_dir=out)
         validation = None
         if validate:
-            from .validate import validate_session
             validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
             result.summary["validation"] = validation.to_summary()
             summary_mod.refresh_verdict(result.summary)
@@ -281,8 +187,6 @@ _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")
 def _typed_result_table(path: Path, required: list[str]) -> pd.DataFrame:
     """One result CSV through batgraph.inputs: text columns as str, frame as checked int64 (limits and gaps
     as observations'), outlier as bool, every other column as float; InputError naming the line otherwise."""
-    from . import inputs
-
     raw, is_csv = inputs.read_table(path, required, "rows")
     df = pd.DataFrame(index=raw.index)
     for c in raw.columns:
@@ -313,8 +217,6 @@ def read_result_tables(out_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]
 
     A trajectories.csv written before the ``span`` column existed gets it computed from n_views.
     """
-    from .evaluate import REPROJ_COLUMNS, TRAJ_COLUMNS, add_span
-
     out_dir = Path(out_dir)
     tables = []
     for name, cols in (("trajectories.csv", [c for c in TRAJ_COLUMNS if c != "span"]),

@@ -1,11 +1,11 @@
 """The self-contained HTML comparison report (report.html): every method side by side, plots embedded.
 
-It reads finished tables (trajectories, reprojection, summary) and draws them; it estimates nothing
-and writes nothing but the one HTML file. Figures are inline SVG (batgraph.svg: drawn by the browser,
-sharp at any zoom, ~30x cheaper to make than the matplotlib PNGs they replaced), so the file opens
-anywhere, offline, with no script and no external ``src`` or ``href``.
+It draws finished tables (trajectories, reprojection) and a batgraph.summary.Summary; it estimates
+nothing and writes nothing but the one HTML file. Figures are inline SVG (batgraph.svg: drawn by the
+browser, sharp at any zoom), so the file opens anywhere, offline, with no script and no external ``src``
+or ``href``.
 
-Sections: overview, 3D trajectories, reprojection error per camera with 95 % ellipses in mm at the
+Sections: the verdict, overview, 3D trajectories, reprojection error per camera with 95 % ellipses in mm at the
 marker's depth (the paper's Fig. 5 b-f), reprojections over the 2D features (Fig. 6), marker
 coordinates over time with 95 % bands and occlusion shading, a per-camera error table next to the
 paper's published figures, and -- when the session has them -- errors against truth (RMSE by status,
@@ -17,6 +17,7 @@ from __future__ import annotations
 import html
 import math
 import textwrap
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,8 @@ import pandas as pd
 
 from . import atomic, evaluate, svg
 from . import methods as methods_registry
-from .summary import HEADLINE_GROUPS, Summary, refresh_verdict, summarize
+from .summary import HEADLINE_GROUPS, UNITS, Summary, comparison_rows
+from .validation_table import COLUMNS, SUBSETS, group_label
 
 # The markers named in the paper's Fig. 6, in its order.
 PAPER_MARKERS = ("body2", "shoulder_r", "elbow_r", "wrist_r", "digit5_r", "digit4_r", "digit3_r")
@@ -41,9 +43,9 @@ MAX_ASPECT = 4.0  # 3D panels: an axis shorter than 1/4 of the longest is stretc
 # ----------------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------------
-def _methods(trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: dict) -> list[str]:
+def _methods(trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: Summary) -> list[str]:
     found = {str(m) for table in (trajectories, reprojection) for m in pd.unique(table["method"])}
-    found |= set((summary or {}).get("methods", {}) or {})
+    found |= set(summary.methods)
     return methods_registry.ordered(found)
 
 
@@ -157,49 +159,63 @@ def _separated(parts: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([x for p in parts for x in (p, gap)])
 
 
-def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, truth_cube):
-    """One 3D panel per method (svg.View3D: the same view for all); all markers' paths, coloured by marker;
-    the skeleton at a few frames; truth thin black."""
-    cubes = {m: _trajectory_cube(trajectories, m, frames, markers) for m in methods}
-    allpts = np.concatenate([c.reshape(-1, 3) for c in cubes.values()]
-                            + ([truth_cube.reshape(-1, 3)] if truth_cube is not None else []))
+def _marker_styles(markers: list[str]) -> list[dict]:
+    """A line style per marker (svg.Figure.legend): the colours of svg.colours, solid for the first 20, dashed
+    for the next 20, dotted beyond, so that no two of up to 60 markers look alike."""
+    cmap = svg.colours(len(markers))
+    return [{"colour": cmap[j], "dash": ("-", "--", ":")[min(j // 20, 2)], "width": 1.6} for j in range(len(markers))]
+
+
+def _robust_view(points: list[np.ndarray], pad_fraction: float = 0.08) -> svg.View3D | None:
+    """A View3D of the 1st-99th percentile box of ``points`` (arrays (..., 3) [m]), padded; None without any
+    finite point. Robust: a diverged method must not shrink everyone else's bat to a dot."""
+    allpts = np.concatenate([p.reshape(-1, 3) for p in points])
     allpts = allpts[np.isfinite(allpts).all(axis=1)]
     if len(allpts) == 0:
         return None
-    # robust limits: a diverged method must not shrink everyone else's bat to a dot
     lo, hi = np.percentile(allpts, 1, axis=0), np.percentile(allpts, 99, axis=0)
-    pad = 0.08 * max(float((hi - lo).max()), 1e-3)
+    pad = pad_fraction * max(float((hi - lo).max()), 1e-3)
     lo, hi = lo - pad, hi + pad
     span = np.maximum(hi - lo, 1e-9)
-    view = svg.View3D(lo, hi, np.maximum(span, span.max() / MAX_ASPECT))
-    cmap = svg.colours(len(markers))
+    return svg.View3D(lo, hi, np.maximum(span, span.max() / MAX_ASPECT))
+
+
+def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, truth_cube):
+    """One 3D panel per method, two to a row (svg.View3D: the same view for all); every marker's path in its own
+    style (legend beneath, every marker); the skeleton at a few frames; truth thin black."""
+    cubes = {m: _trajectory_cube(trajectories, m, frames, markers) for m in methods}
+    view = _robust_view(list(cubes.values()) + ([truth_cube] if truth_cube is not None else []))
+    if view is None:
+        return None
+    styles = _marker_styles(markers)
     mi = {m: i for i, m in enumerate(markers)}
     sk = [(mi[a], mi[b]) for a, b in skeleton if a in mi and b in mi]
     st = _stride(len(frames), MAX_TRACK_FRAMES)
     snap = np.linspace(0, len(frames) - 1, min(5, len(frames))).astype(int)
-    legend = [(mk, {"colour": cmap[j], "width": 2}) for j, mk in enumerate(markers[:20])]
+    legend = [(mk, styles[j]) for j, mk in enumerate(markers)]
     if truth_cube is not None:
         legend.append(("truth", {"colour": "#000", "width": 0.6, "opacity": 0.5}))
     if sk:
         legend.append(("skeleton (5 frames)", {"colour": "#3060c0", "width": 1.2}))
-    ncol_legend = min(len(legend), 8)
-    nrow, ncol = _grid(len(methods), 3)
+    nrow, ncol = _grid(len(methods), 2)
     (x0, x1), (y0, y1) = view.limits()
-    pw = 460
-    ih = min(max((pw - 100) * (y1 - y0) / (x1 - x0), 110.0), 330.0)  # the panels take the view's proportions
-    ph = ih + 60
-    legend_w = ncol_legend * (max(svg.text_width(lab, 11) for lab, _ in legend) + 40)
-    fig = svg.Figure(max(pw * ncol, legend_w + 20), ph * nrow + 10 + math.ceil(len(legend) / ncol_legend) * 18)
+    pw = 640
+    ih = min(max((pw - 120) * (y1 - y0) / (x1 - x0), 200.0), 460.0)  # the panels take the view's proportions
+    ph = ih + 70
+    cell = max(svg.text_width(lab, 11) for lab, _ in legend) + 40
+    width = max(pw * ncol, cell + 20)
+    ncol_legend = max(1, min(len(legend), int((width - 20) // cell)))
+    fig = svg.Figure(width, ph * nrow + 10 + math.ceil(len(legend) / ncol_legend) * 18)
     for k, m in enumerate(methods):
         r, c = divmod(k, ncol)
-        ax = fig.add_axes((c * pw + 50, r * ph + 28, pw - 100, ih), (x0, x1), (y0, y1), equal=True)
+        ax = fig.add_axes((c * pw + 60, r * ph + 30, pw - 120, ih), (x0, x1), (y0, y1), equal=True)
         cube = cubes[m]
         view.draw_box(ax)  # under the paths
         if truth_cube is not None:
             ax.line(*view.project(_separated(list(truth_cube[::st].transpose(1, 0, 2)))), "#000", 0.6, opacity=0.35)
         tracks = cube[::st]
         for j in range(len(markers)):
-            ax.line(*view.project(tracks[:, j]), cmap[j], 1.0)
+            ax.line(*view.project(tracks[:, j]), styles[j]["colour"], 1.0, styles[j]["dash"])
         bones = [cube[f, [a, b]] for f in snap for a, b in sk if np.isfinite(cube[f, [a, b]]).all()]
         if bones:
             ax.line(*view.project(_separated(bones)), "#3060c0", 1.2, opacity=0.7)
@@ -207,6 +223,48 @@ def _fig_trajectories(trajectories, methods, style, frames, markers, skeleton, t
         fig.text(c * pw + pw / 2, r * ph + 18, f"{m}  ({n_est}/{cube.shape[0] * cube.shape[1]} estimates)", 13,
                  style[m][0], "middle")
     fig.legend(legend, fig.width / 2, nrow * ph + 4, ncol=ncol_legend)
+    return fig
+
+
+SUBJECT_WINDOW_S = 0.05
+"""The verdict's picture draws each marker's path this long [s] before and after its frame."""
+
+
+def _fig_subject(trajectories, method: str, frame: int, frames, markers, skeleton, fps: float):
+    """The animal as the verdict's method sees it on ``frame``: each marker a dot (its name on hover), the
+    skeleton, and each marker's path SUBJECT_WINDOW_S around (the whole path where fewer than 3 markers make no
+    shape), zoomed on them; the track ends (extrapolated, outside a marker's span) left out. None when nothing
+    is estimated there."""
+    t = trajectories[(trajectories["method"] == method)]
+    if "span" in t:
+        t = t[t["span"] == "inside"]
+    cube = evaluate.dense_from_table(t, frames, markers)[0]  # (F, M, 3)
+    k = int(np.searchsorted(frames, frame))
+    now = cube[min(k, len(frames) - 1)]
+    ok = np.isfinite(now).all(axis=1)
+    if not ok.any():
+        return None
+    half = max(2, int(round(SUBJECT_WINDOW_S * fps)))
+    near = cube[max(0, k - half):k + half + 1] if ok.sum() >= 3 else cube
+    view = _robust_view([now[ok], near], pad_fraction=0.15)
+    styles = _marker_styles(markers)
+    (x0, x1), (y0, y1) = view.limits()
+    w = 560
+    ih = min(max((w - 100) * (y1 - y0) / (x1 - x0), 220.0), 400.0)
+    fig = svg.Figure(w, ih + 70)
+    ax = fig.add_axes((50, 30, w - 100, ih), (x0, x1), (y0, y1), equal=True)
+    view.draw_box(ax)
+    for j in range(len(markers)):
+        ax.line(*view.project(near[:, j]), styles[j]["colour"], 1.0, opacity=0.5)
+    mi = {m: i for i, m in enumerate(markers)}
+    bones = [now[[mi[a], mi[b]]] for a, b in skeleton if a in mi and b in mi and ok[[mi[a], mi[b]]].all()]
+    if bones:
+        ax.line(*view.project(_separated(bones)), "#222", 1.6)
+    X, Y = view.project(now[ok])
+    ax.marks(X, Y, [styles[j]["colour"] for j in np.flatnonzero(ok)], 7.0, [markers[j] for j in np.flatnonzero(ok)])
+    n = int(ok.sum())
+    fig.text(w / 2, 18, f"{method} on frame {frame} ({frame / fps:.3f} s): {n} marker{'s' if n != 1 else ''}", 13,
+             "#222", "middle")
     return fig
 
 
@@ -390,11 +448,11 @@ def _fig_group_bars(fig, box, values: dict[str, dict[str, float | None]], method
     return ax
 
 
-def _fig_truth(summary, errors, methods, style, fps):
+def _fig_truth(summary: Summary, errors, methods, style, fps):
     """RMSE and 95 % coverage per headline group (from summary.json), and the error over time."""
     fig = svg.Figure(1380, 330)
-    rmse = {m: _get(summary, "methods", m, "truth", "rmse_m") or {} for m in methods}
-    cov = {m: _get(summary, "methods", m, "truth", "coverage95") or {} for m in methods}
+    rmse = {m: _get(summary.methods, m, "truth", "rmse_m") or {} for m in methods}
+    cov = {m: _get(summary.methods, m, "truth", "coverage95") or {} for m in methods}
     _fig_group_bars(fig, (70, 30, 340, 210), rmse, methods, style, "RMSE [mm, log]", 1000.0, None, "RMSE vs truth",
                     log=True)
     _fig_group_bars(fig, (500, 30, 340, 210), cov, methods, style, "fraction inside", 1.0, 0.95,
@@ -426,7 +484,7 @@ def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: li
     row = 12 if len(markers) > 30 else 16
     left = 20 + max(svg.text_width(m, 10) for m in markers)
     legend_w = max(svg.text_width(lab, 11) for lab in _MAP_LABELS) + 50
-    fig = svg.Figure(1200, row * len(markers) + 50)
+    fig = svg.Figure(1200, max(row * len(markers) + 50, 18 * len(_MAP_LABELS) + 20))  # the legend fits too
     ax = fig.add_axes((left, 8, 1200 - left - legend_w - 20, row * len(markers)), (edges[0], edges[-1]),
                       (0, len(markers)), y_down=True)
     for c, colour in enumerate(_MAP_COLOURS):  # one rectangle per run of a status along a marker's row
@@ -482,8 +540,11 @@ div.warn{background:#fff3cd;border:1px solid #d39e00;padding:.3em 1em;max-width:
 table{border-collapse:collapse;font-size:.85em;margin:.6em 0} th,td{border:1px solid #ccc;padding:2px 8px}
 th{background:#f0f0f0} td{text-align:right} td.l,th.l{text-align:left}
 tr.paper td{background:#fff8e0;font-style:italic}
-p.verdict{font-size:1.05em;max-width:75em}
+p.verdict,ul.verdict{font-size:1.05em;max-width:75em} ul.verdict{margin-top:0}
+td.sub{padding-left:1.5em;color:#555}
 figure{margin:.6em 0} figure img{max-width:100%;height:auto;border:1px solid #eee}
+svg.fig{max-width:100%;height:auto} div.top{display:flex;flex-wrap:wrap;gap:1.5em;align-items:flex-start}
+div.top>div{flex:1 1 36em} div.top>figure{flex:0 1 560px;margin:0}
 figcaption{font-size:.85em;color:#444;max-width:75em}
 """
 
@@ -535,14 +596,14 @@ def _paper_camera_figure(experiment: str, cam_index: int) -> str:
     return "&lt; 3 mm" if cam_index == 0 else "&lt; 20 mm"
 
 
-def _camera_table(summary: dict, methods, cameras, experiment: str | None) -> str:
+def _camera_table(summary: Summary, methods, cameras, experiment: str | None) -> str:
     """Rows (camera, method), from summary.json's per-camera reprojection figures (inliers only)."""
     rows = []
     for ci, cam in enumerate(cameras):
-        present = [m for m in methods if (_get(summary, "methods", m, "reprojection", cam, "n") or 0)
-                   + (_get(summary, "methods", m, "reprojection", cam, "n_outliers") or 0)]
+        present = [m for m in methods if (_get(summary.methods, m, "reprojection", cam, "n") or 0)
+                   + (_get(summary.methods, m, "reprojection", cam, "n_outliers") or 0)]
         for k, m in enumerate(present):
-            v = _get(summary, "methods", m, "reprojection", cam)
+            v = _get(summary.methods, m, "reprojection", cam)
             frac = v.get("outlier_fraction")
             row = [(html.escape(str(cam)), f'class="l" rowspan="{len(present)}"')] if k == 0 else []
             row += [(html.escape(m), 'class="l"'), _fmt(v.get("n"), 0), _fmt(v.get("n_outliers"), 0),
@@ -562,7 +623,7 @@ def _camera_table(summary: dict, methods, cameras, experiment: str | None) -> st
     return _table(header, rows, "cameras")
 
 
-def _group_table(summary: dict, methods, block: str) -> str:
+def _group_table(summary: Summary, methods, block: str) -> str:
     """Each method's own figures per headline group from summary.json ``methods[m][block]`` (truth or
     reference): n estimated, RMSE [mm] (and 95 % coverage against truth). Methods are *not* compared on the
     same points here: see the verdict's table for that."""
@@ -571,7 +632,7 @@ def _group_table(summary: dict, methods, block: str) -> str:
         header += [f"{html.escape(g)}: n", "RMSE [mm]"] + (["cov. 95 %"] if block == "truth" else [])
     rows = []
     for m in methods:
-        b = _get(summary, "methods", m, block) or {}
+        b = _get(summary.methods, m, block) or {}
         row = [(html.escape(m), 'class="l"')]
         for g in HEADLINE_GROUPS:
             if block == "truth":
@@ -585,38 +646,20 @@ def _group_table(summary: dict, methods, block: str) -> str:
     return _table(header, rows, "status")
 
 
-def _comparison_table(summary: dict, style) -> str:
-    """The like-for-like table: per headline group, the points every listed method estimates (n) and each
-    method's figure on exactly those points (summary.json ``comparison``)."""
-    c = Summary.from_json(summary).comparison
+def _comparison_table(summary: Summary, style) -> str:
+    """The verdict's table (summary.comparison_rows, as the terminal shows it): per kind of point, the verdict
+    method's points (n) and every method's figure on exactly those points."""
+    c = summary.comparison
     if c is None or not c.groups:
-        return '<p class="note">One method ran: nothing to compare.</p>'
-    unit = {"truth": "RMSE vs truth [mm] (95 % coverage)", "reference": "RMS difference to the reference [mm]",
-            "reprojection": "median reprojection error of inlier observations [px]"}[c.against]
+        return '<p class="note">No accuracy figure: nothing could be compared.</p>'
     header = [("points", 'class="l"'), "n"] + [(html.escape(m), f'style="color:{style.get(m, ("#000",))[0]}"')
                                                for m in c.methods]
-    rows = []
-    for g, label in HEADLINE_GROUPS.items():
-        gc = c.groups.get(g)
-        if gc is None:
-            continue
-        row = [(html.escape(label), 'class="l"'), _fmt(gc.n, 0)]
-        for m in c.methods:
-            v = gc.values.get(m)
-            if v is None:
-                row.append("not estimated")
-            elif c.against == "truth":
-                cov = v.get("coverage95")
-                row.append(_fmt(None if v.get("rmse_m") is None else 1000 * v["rmse_m"])
-                           + (f" ({100 * cov:.0f} %)" if cov is not None else ""))
-            elif c.against == "reference":
-                row.append(_fmt(None if v.get("rms_m") is None else 1000 * v["rms_m"]))
-            else:
-                row.append(_fmt(v.get("median_px")))
-        rows.append(row)
-    return (f'<p class="note">Methods compared on the same points: {unit}. n = the points (or observations) '
-            "every method of the row estimates; a method that estimates none of a group is marked, not counted."
-            "</p>" + _table(header, rows, "compare"))
+    rows = [[(html.escape(label), 'class="l sub"' if label.startswith(" ") else 'class="l"'), _fmt(n, 0)]
+            + [html.escape(cells[m]) for m in c.methods] for label, n, cells in comparison_rows(c)]
+    return (f'<p class="note">{html.escape(UNITS[c.against])}, per kind of point, on the points the '
+            f"{html.escape(str(c.use))} estimates (n). A method that estimates only some of them shows how many; "
+            "the row beneath then compares every method on the points they all estimate.</p>"
+            + _table(header, rows, "compare"))
 
 
 def _sigma_text(sigma) -> str:
@@ -625,15 +668,9 @@ def _sigma_text(sigma) -> str:
     return f"{_fmt(sigma)} px"
 
 
-def _validation_section(summary: dict) -> str | None:
-    """Leave-one-camera-out table (summary["validation"], see batgraph.validate): rows (held-out camera,
-    method), per (status, subset) group n, median and p90 [px]; None when the run was not validated."""
-    v = _get(summary, "validation")
-    if not isinstance(v, dict):
-        return None
-    from .validate import COLUMNS, SUBSETS, group_label
-
-    t = pd.DataFrame(v.get("table") or [], columns=COLUMNS)
+def _validation_rows(t: pd.DataFrame) -> tuple[list, list]:
+    """(header, rows) of the validation table: rows (held-out camera, method), per (status, subset) group
+    n, median and p90 [px]."""
     present = set(zip(t["status"], t["subset"], strict=True))
     groups = [(st, sub) for sub in SUBSETS for st in evaluate.STATUSES if (st, sub) in present]
     idx = t.set_index(["held_out", "method", "status", "subset"])
@@ -651,6 +688,16 @@ def _validation_section(summary: dict) -> str | None:
     header = [("held-out camera", 'class="l"'), ("method", 'class="l"')]
     for g in groups:
         header += [f"{html.escape(group_label(*g))}: n", "median [px]", "p90 [px]"]
+    return header, rows
+
+
+def _validation_section(summary: Summary) -> str | None:
+    """Leave-one-camera-out table (summary.validation, see batgraph.validation_table); None when the run was
+    not validated."""
+    v = summary.validation
+    if not isinstance(v, dict):
+        return None
+    header, rows = _validation_rows(pd.DataFrame(v.get("table") or [], columns=COLUMNS))
     failed = v.get("failed") or {}
     return (
         '<p class="note">For each camera, every method was run again without that camera\'s observations, and '
@@ -670,65 +717,65 @@ def _validation_section(summary: dict) -> str | None:
     )
 
 
-def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
-                  summary: dict | None) -> str:
-    """The report as one HTML string (see the module docstring for its sections).
+@dataclass
+class _Report:
+    """What every section of one report reads: the tables, the summary and what is derived once from them."""
 
-    session: :class:`batgraph.session.Session` (rig, fps, markers, skeleton, truth, reference).
-    trajectories, reprojection: CONTRACT.md section 3 tables, every method stacked.
-    summary: the summary.json dict, whose figures are shown as they are; None (or one without ``methods``)
-        computes it from the tables with batgraph.summary.summarize, as reconstruct does.
-    """
+    session: object
+    trajectories: pd.DataFrame
+    reprojection: pd.DataFrame
+    summary: Summary
+    methods: list[str]
+    plotted: list[str]  # the methods with at least one estimate (the others have nothing to draw)
+    style: dict[str, tuple[str, str]]
+    frames: np.ndarray  # the result's frame axis: every frame of every take, none between
+    markers: list[str]
+    selected: list[str]
+    truth: pd.DataFrame | None
+    reference: pd.DataFrame | None
+    figures: _Figures = field(default_factory=lambda: _Figures())
+
+    @property
+    def fps(self) -> float:
+        return float(self.session.fps)
+
+    @property
+    def experiment(self) -> str | None:
+        return self.summary.paper_experiment
+
+
+def _prepare(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: Summary) -> _Report:
     trajectories = trajectories.copy()
     trajectories["method"] = trajectories["method"].astype(str)
     if "span" not in trajectories and "n_views" in trajectories:
         trajectories = evaluate.add_span(trajectories)
     reprojection = reprojection.copy()
     reprojection["method"] = reprojection["method"].astype(str)
-    if not summary or not summary.get("methods"):
-        summary = summarize(session, trajectories, reprojection)
-    elif not summary.get("verdict"):
-        summary = refresh_verdict(dict(summary))
     methods = _methods(trajectories, reprojection, summary)
-    style = _style(methods)
     has_xyz = np.isfinite(trajectories[["x", "y", "z"]].to_numpy(float)).all(axis=1)
     estimated = set(trajectories.loc[has_xyz, "method"])
-    plotted = [m for m in methods if m in estimated]  # a method without a single estimate has nothing to draw
-    fps = float(session.fps)
-    cameras = session.rig.names
-    panel_cameras, panel_note = _panel_cameras(cameras)
     markers = list(session.markers)
     markers += [m for m in pd.unique(trajectories["marker"].astype(str)) if m not in markers]
-    # the result's frame axis: every frame of every take, none between (batgraph.session.frame_axis)
     frames = np.unique(trajectories["frame"].to_numpy(np.int64)) if len(trajectories) else session.frames
-    n_takes = int(evaluate.take_of(frames).max()) + 1 if len(frames) else 0
-    selected = _selected_markers(markers)
-    experiment = summary.get("paper_experiment")
-    truth = session.truth if session.truth is not None and len(session.truth) else None
-    reference = session.reference if session.reference is not None and len(session.reference) else None
-    verdict = Summary.from_json(summary).verdict
+    return _Report(session, trajectories, reprojection, summary, methods, [m for m in methods if m in estimated],
+                   _style(methods), frames, markers, _selected_markers(markers),
+                   session.truth if session.truth is not None and len(session.truth) else None,
+                   session.reference if session.reference is not None and len(session.reference) else None)
 
-    status_fm = None
-    if "status" in trajectories and plotted:
-        st = trajectories[trajectories["method"] == plotted[0]].drop_duplicates(["frame", "marker"])
-        st = st.pivot(index="frame", columns="marker", values="status").reindex(frames)
-        status_fm = {mk: st[mk].astype(str).to_numpy() if mk in st else np.full(len(frames), "")
-                     for mk in selected}
 
-    sections: list[tuple[str, str, str]] = []  # (anchor, title, body html)
-    figures = _Figures()  # drawn at the end, over the cores
+def _warnings_html(summary: Summary) -> str:
+    """The warnings, one line each, with their details (summary.json ``warning_details``) beneath."""
+    if not summary.warnings:
+        return ""
+    items = "".join(f"<li>{html.escape(str(w))}"
+                    + (f'<br><span class="note">{html.escape(summary.warning_details[w])}</span>'
+                       if summary.warning_details.get(w) else "") + "</li>" for w in summary.warnings)
+    return f'<div class="warn"><p><b>Warnings</b></p><ul>{items}</ul></div>'
 
-    # --- the verdict: which result, how good, what to look at, where the gaps are
-    warnings = summary.get("warnings") or []
-    warn_html = ('<div class="warn"><p><b>Warnings</b> (self-checks before any estimator ran, the noise '
-                 "model's outlier counts, and the smoother's notes on its segments and motion model):</p><ul>"
-                 + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul></div>") if warnings else ""
-    use = verdict.use if verdict else (plotted[0] if plotted else None)
 
-    def data_map():
-        return _fig_coverage_map(trajectories, use, frames, markers, fps) if use and len(frames) else None
-
-    ends = _get(summary, "methods", "smoother", "info", "track_ends") or {}
+def _ends_note(summary: Summary) -> str:
+    """What the smoother did at the track ends (its info ``track_ends``), one sentence, or ""."""
+    ends = _get(summary.methods, "smoother", "info", "track_ends") or {}
     widened = []
     if ends.get("widened_points"):
         widened.append(f"the covariances of the {ends['widened_points']} unseen points at the track ends by 1 + "
@@ -742,117 +789,161 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
                                          "without that view)" if floored else "")
                        + f" by 1 + {ends['ray_growth_per_frame']:.3f} h"
                        + (f" (the errors along those cameras' rays: {ratio:.2f}x)" if ratio is not None else ""))
-    ends_note = (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
-                 f"{ends['backtest_frames']} frames hidden) and widened " + " and ".join(widened) +
-                 ", h the distance in frames from the track (batgraph.graph.ends)." if widened else "")
+    return (f" The smoother checked its extrapolation on {ends['markers']} tracks (their first and last "
+            f"{ends['backtest_frames']} frames hidden) and widened " + " and ".join(widened) +
+            ", h the distance in frames from the track." if widened else "")
 
-    verdict_html = (
-        (f'<p class="verdict">Use the <b style="color:{style.get(use, ("#000",))[0]}">{html.escape(use)}</b> '
-         f"result: {html.escape(verdict.why)}.</p><p class=\"verdict\"><b>How good:</b> "
-         f"{html.escape(verdict.headline)}.</p>" if verdict else "")
-        + warn_html
-        + _comparison_table(summary, style)
-        + figures.add(data_map, "Where the data are, per marker and frame: seen by two or more cameras (green), "
-                      "by one (orange) or none (red) inside the marker's track, and the track ends before its "
-                      "first and after its last frame seen twice (grey), where every method extrapolates. "
-                      "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
-                      "track ends out by default." + ends_note, "where the data are")
-    )
-    sections.append(("verdict", "Verdict", verdict_html))
 
-    # --- session facts
-    noise = _get(summary, "pixel_noise", "cameras") or {}
+def _verdict_section(r: _Report) -> str:
+    """Which result to use, its headlines (one per kind of point), the warnings, the comparison, the data map."""
+    verdict = r.summary.verdict
+    use = verdict.use if verdict else (r.plotted[0] if r.plotted else None)
+
+    def data_map():
+        return _fig_coverage_map(r.trajectories, use, r.frames, r.markers, r.fps) if use and len(r.frames) else None
+
+    def subject():
+        frame = r.summary.opening_frame
+        return None if use is None or frame is None else _fig_subject(
+            r.trajectories, use, frame, r.frames, r.markers, r.session.skeleton, r.fps)
+
+    head = ""
+    if verdict:
+        head = (f'<p class="verdict">Use the <b style="color:{r.style.get(use, ("#000",))[0]}">{html.escape(use)}'
+                f"</b> result: {html.escape(verdict.why)}.</p><p class=\"verdict\"><b>How good:</b></p>"
+                '<ul class="verdict">' + "".join(f"<li>{html.escape(h)}</li>" for h in verdict.headlines) + "</ul>")
+    picture = r.figures.add(subject, "The first frame where nearly every marker is seen by two or more cameras "
+                            "(where the 3D viewer opens), with the markers' paths around it; the track ends are left "
+                            "out. A marker's name shows on hover.",
+                            "the animal on its first well-seen frame")
+    return ('<div class="top"><div>' + head + _warnings_html(r.summary) + _comparison_table(r.summary, r.style)
+            + f"</div>{picture}</div>"
+            + r.figures.add(data_map, "Where the data are, per marker and frame: seen by two or more cameras (green), "
+                            "by one (orange) or none (red) inside the marker's track, and the track ends before its "
+                            "first and after its last frame seen twice (grey), where every method extrapolates. "
+                            "trajectories.csv has the same as its status and span columns; C3D/TRC exports leave the "
+                            "track ends out by default." + _ends_note(r.summary), "where the data are"))
+
+
+PAPER_REFERENCE = ("M. J. Bender, H. G. McClelland, G. Bledt, A. Kurdila, T. Furukawa and R. Müller: “Trajectory "
+                   "Estimation of Bat Flight Using a Multi-View Camera System”, American Institute of Aeronautics "
+                   "and Astronautics (AIAA) paper, Virginia Tech.")
+"""The paper whose EKF and UKF batgraph implements and whose published figures the report shows."""
+
+
+def _overview_section(r: _Report) -> str:
+    """The session's facts, each method's run (runtime, what it estimates) and the rig."""
+    s, frames = r.summary, r.frames
+    noise = _get(s.pixel_noise, "cameras") or {}
     cam_rows = [[(html.escape(c.name), 'class="l"'), f"{c.size_wh[0]}×{c.size_wh[1]}",
                  _fmt(c.K[0, 0], 1), _fmt(np.linalg.norm(c.center_world), 2),
-                 _fmt(_get(noise, c.name, "sigma_px"), 2), _fmt(_get(summary, "pixel_sigma_px", c.name), 2)]
-                for c in session.rig]
+                 _fmt(_get(noise, c.name, "sigma_px"), 2), _fmt(_get(s.pixel_sigma_px, c.name), 2)]
+                for c in r.session.rig]
     run_rows = []
-    for m in methods:
-        est, pts = _get(summary, "methods", m, "estimated") or {}, _get(summary, "methods", m, "points") or {}
-        run_rows.append([(html.escape(m), f'class="l" style="color:{style[m][0]}"'),
-                         _fmt(_get(summary, "methods", m, "runtime_s"), 2)]
+    for m in r.methods:
+        est, pts = _get(s.methods, m, "estimated") or {}, _get(s.methods, m, "points") or {}
+        run_rows.append([(html.escape(m), f'class="l" style="color:{r.style[m][0]}"'),
+                         _fmt(_get(s.methods, m, "runtime_s"), 2)]
                         + [f"{_fmt(est.get(g), 0)} / {_fmt(pts.get(g), 0)}" for g in HEADLINE_GROUPS])
-    overview = (
-        f'<p>Session <b>{html.escape(str(session.name))}</b>: {len(cameras)} cameras, {len(markers)} markers, '
-        f"frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {fps:g} fps, {len(frames) / fps:.2f} s"
+    n_takes = int(evaluate.take_of(frames).max()) + 1 if len(frames) else 0
+    return (
+        f'<p>Session <b>{html.escape(str(r.session.name))}</b>: {len(r.session.rig)} cameras, {len(r.markers)} '
+        f"markers, frames {frames[0]}–{frames[-1]} ({len(frames)} frames at {r.fps:g} fps, {len(frames) / r.fps:.2f} s"
         + (f", in {n_takes} takes solved on their own" if n_takes > 1 else "") + "). "
-        f"Methods: {', '.join(html.escape(m) for m in methods)}. "
-        + (f"This session is the paper's <b>{experiment}</b> experiment (declared by the session), so the "
-           "paper's published figures are shown beside batgraph's." if experiment else
-           "The paper's published figures are not shown: the session does not declare itself one of the "
+        f"Methods: {', '.join(html.escape(m) for m in r.methods)}. "
+        + f"The EKF and UKF are those of {html.escape(PAPER_REFERENCE)} "
+        + (f"This session is that paper's <b>{r.experiment}</b> experiment (declared by the session), so its "
+           "published figures are shown beside batgraph's." if r.experiment else
+           "Its published figures are not shown: the session does not declare itself one of the "
            "paper's scenes (session.toml <code>[paper] experiment = \"flight\"</code> or <code>\"ear\"</code>).")
         + "</p>"
         + _table([("method", 'class="l"'), "runtime [s]"] + [f"estimated: {html.escape(g)}"
                                                               for g in HEADLINE_GROUPS.values()], run_rows, "runs")
         + _table([("camera", 'class="l"'), "size [px]", "fx [px]", "distance to origin [m]",
-                  "measured noise [px]", "noise used [px]"], cam_rows, "rig")
-    )
-    sections.append(("overview", "Session and runs", overview))
+                  "measured noise [px]", "noise used [px]"], cam_rows, "rig"))
 
-    # --- 3D trajectories
+
+def _trajectories_section(r: _Report) -> str:
     def paths():
-        return _fig_trajectories(trajectories, plotted, style, frames, markers, session.skeleton,
-                                 _points_cube(truth, frames, markers)) if plotted else None
+        return _fig_trajectories(r.trajectories, r.plotted, r.style, r.frames, r.markers, r.session.skeleton,
+                                 _points_cube(r.truth, r.frames, r.markers)) if r.plotted else None
 
-    sections.append(("trajectories", "3D trajectories", figures.add(
-        paths, "Every marker's path (colour = marker) for each method, in the world frame [m], on common "
+    return r.figures.add(
+        paths, "Every marker's path (colour and dash = marker) for each method, in the world frame [m], on common "
         "axes (1st–99th percentile of all estimates), equally scaled unless one range is under a quarter of "
         "the longest (then that axis is stretched). Blue segments: the skeleton at five evenly spaced "
         "frames (the paper's Fig. 5a draws the wing the same way). Thin black: truth, when known.",
-        "3D trajectories per method")))
+        "3D trajectories per method")
 
-    # --- reprojection ellipses (Fig. 5 b-f)
+
+def _ellipses_section(r: _Report) -> str:
+    panel_cameras, panel_note = _panel_cameras(r.session.rig.names)
+
     def ellipses():
-        drawn = reprojection[reprojection["camera"].isin(panel_cameras)]  # the others are not drawn
+        drawn = r.reprojection[r.reprojection["camera"].isin(panel_cameras)]  # the others are not drawn
         if not len(drawn):
             return None
-        rep_mm = evaluate.reprojection_in_mm(drawn, trajectories, session.rig)
+        rep_mm = evaluate.reprojection_in_mm(drawn, r.trajectories, r.session.rig)
         rng = np.random.default_rng(0)  # only for thinning the scatter; fixed so reports are reproducible
-        return _fig_reprojection_ellipses(rep_mm, methods, style, panel_cameras, rng)
+        return _fig_reprojection_ellipses(rep_mm, r.methods, r.style, panel_cameras, rng)
 
-    sections.append(("ellipses", "Reprojection error per camera (paper Fig. 5 b–f)", figures.add(
+    return r.figures.add(
         ellipses, "Reprojection residual (û − u, v̂ − v) of every inlier observation, expressed in millimetres at "
         "the marker's depth in that camera (residual × depth / f). Ellipses: 95 % ellipse of each method's "
         "residuals (mean ± χ²₂ 95 % of their covariance); line styles and colours as everywhere in batgraph "
         "(EKF dashed and UKF solid as in the paper). Axes: v downward as in the image." + panel_note,
-        "reprojection error ellipses per camera")))
+        "reprojection error ellipses per camera")
 
-    # --- reprojection over image features (Fig. 6)
+
+def _features_section(r: _Report) -> str:
+    panel_cameras, panel_note = _panel_cameras(r.session.rig.names)
+
     def features():
-        if not plotted:
+        if not r.plotted:
             return None
-        sel_idx = [markers.index(m) for m in selected]
+        sel_idx = [r.markers.index(m) for m in r.selected]
         reproj_tracks = {}
-        for m in plotted:
-            cube = session.rig.to_user(_trajectory_cube(trajectories, m, frames, markers)[:, sel_idx])
-            reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in session.rig
+        for m in r.plotted:
+            cube = r.session.rig.to_user(_trajectory_cube(r.trajectories, m, r.frames, r.markers)[:, sel_idx])
+            reproj_tracks[m] = {c.name: c.project(cube, distort=True) for c in r.session.rig
                                 if c.name in panel_cameras}
-        return _fig_reprojection_image(session, reproj_tracks, plotted, style, panel_cameras, selected, frames)
+        return _fig_reprojection_image(r.session, reproj_tracks, r.plotted, r.style, panel_cameras, r.selected,
+                                       r.frames)
 
-    sections.append(("features", "Reprojections over the 2D features (paper Fig. 6)", figures.add(
-        features, f"Image features (open circles, colour = marker) of the markers {', '.join(selected)} and "
+    return r.figures.add(
+        features, f"Image features (open circles, colour = marker) of the markers {', '.join(r.selected)} and "
         "each method's 3D estimate projected back into the raw (distorted) image over every frame "
         "(lines, method style), so the lines also run through occlusion gaps. Pixels: OpenCV convention, "
-        "v downward; each panel is zoomed to the features." + panel_note,
-        "reprojections over image features")))
+        "v downward; each panel is zoomed to the features." + panel_note, "reprojections over image features")
 
-    # --- coordinates over time
+
+def _coordinates_section(r: _Report) -> str:
+    status_fm = None
+    if "status" in r.trajectories and r.plotted:
+        st = r.trajectories[r.trajectories["method"] == r.plotted[0]].drop_duplicates(["frame", "marker"])
+        st = st.pivot(index="frame", columns="marker", values="status").reindex(r.frames)
+        status_fm = {mk: st[mk].astype(str).to_numpy() if mk in st else np.full(len(r.frames), "")
+                     for mk in r.selected}
+
     def coordinates():
-        return _fig_coordinates(trajectories, plotted, style, frames, fps, selected, status_fm,
-                                _points_cube(truth, frames, selected),
-                                _points_cube(reference, frames, selected)) if plotted else None
+        return _fig_coordinates(r.trajectories, r.plotted, r.style, r.frames, r.fps, r.selected, status_fm,
+                                _points_cube(r.truth, r.frames, r.selected),
+                                _points_cube(r.reference, r.frames, r.selected)) if r.plotted else None
 
-    sections.append(("coordinates", "Marker coordinates over time", figures.add(
+    return r.figures.add(
         coordinates, "World x, y, z [m] of the selected markers for each method, with 95 % bands (± 1.96 σ per axis "
         f"from the marginal covariance). Shaded: frames where the marker was seen by one camera only "
-        f"(orange) or by none (red), from the status column of {html.escape(plotted[0]) if plotted else '–'}."
-        + (" Dotted black: truth." if truth is not None else "")
-        + (" Purple dots: reference reconstruction." if reference is not None else ""),
-        "marker coordinates over time")))
+        f"(orange) or by none (red), from the status column of {html.escape(r.plotted[0]) if r.plotted else '–'}."
+        + (" Dotted black: truth." if r.truth is not None else "")
+        + (" Purple dots: reference reconstruction." if r.reference is not None else ""),
+        "marker coordinates over time")
 
-    # --- per-camera table
-    table = _camera_table(summary, methods, cameras, experiment)
-    sections.append(("table", "Reprojection error per camera", (
+
+
+
+def _camera_table_section(r: _Report) -> str:
+    experiment = r.experiment
+    return (
         '<p class="note">Per camera and method, over the inlier observations only (n): pixel statistics of '
         "|(û, v̂) − (u, v)| on the raw image, and the same error in millimetres at the marker's depth "
         "(err_px × depth / f × 1000, depth = z of the method's estimate in that camera). Observations the "
@@ -860,54 +951,73 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
         + (f" The last column is the paper's published figure for its {experiment} experiment"
            + (" (its camera 1 was the base of a pairwise calibration, hence its smaller error)"
               if experiment == "flight" else "") + "." if experiment else "")
-        + "</p>" + table
-        + ("<p class=\"note\">The paper's published figures (Bender et al., PAPER.md):</p>"
-           + _paper_table(experiment) if experiment else ""))))
+        + "</p>" + _camera_table(r.summary, r.methods, r.session.rig.names, experiment)
+        + ('<p class="note">The paper\'s published figures (Bender et al., cited under "Session and runs"):</p>'
+           + _paper_table(experiment) if experiment else ""))
 
-    # --- truth
-    if truth is not None and plotted:
-        errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], truth)
-        sections.append(("truth", "Errors against truth", (
-            '<p class="note">Each method\'s own estimates against truth.csv, per kind of point: seen by ≥ 2 '
-            "cameras, gaps inside a track seen by one camera or none, and the track ends (before a marker's first "
-            "and after its last frame seen twice: extrapolation); n = the points the method estimates, so the "
-            "rows differ in n — the verdict's table compares the methods on the same points. Coverage: the "
-            "fraction of truth points inside their estimate's 95 % ellipsoid (squared Mahalanobis distance "
-            "≤ 7.815, χ²₃ 95 %): an honest covariance gives about 95 %.</p>"
-            + _group_table(summary, plotted, "truth")
-            + figures.add(lambda: _fig_truth(summary, errors, plotted, style, fps) if len(errors) else None,
-                          "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
-                          "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
-                          "errors against truth"))))
 
-    # --- reference
-    if reference is not None and plotted:
-        ref_errors = evaluate.point_errors(trajectories[trajectories["method"].isin(plotted)], reference)
-        sections.append(("reference", "Differences to the reference reconstruction", (
-            '<p class="note">Distance between each method\'s estimate and the reference 3D points '
-            "(reference_xyz.csv, e.g. DLTdv's xyzpts from an import) on the frames both have. Paper (ear "
-            "data): EKF and UKF within 1 mm of stereo triangulation.</p>"
-            + (_group_table(summary, plotted, "reference") if len(ref_errors)
-               else '<p class="note">No common (frame, marker) pairs.</p>')
-            + figures.add(lambda: _fig_reference(ref_errors, plotted, style, fps) if len(ref_errors) else None,
-                          "Median over markers of the distance to the reference on each frame [mm, "
-                          "log]; dashed: the paper's 1 mm.", "differences to the reference"))))
+def _truth_section(r: _Report) -> str:
+    errors = evaluate.point_errors(r.trajectories[r.trajectories["method"].isin(r.plotted)], r.truth)
+    return (
+        '<p class="note">Each method\'s own estimates against truth.csv, per kind of point: seen by ≥ 2 '
+        "cameras, gaps inside a track seen by one camera or none, and the track ends (before a marker's first "
+        "and after its last frame seen twice: extrapolation); n = the points the method estimates, so the "
+        "rows differ in n — the verdict's table compares the methods on the same points. Coverage: the "
+        "fraction of truth points inside their estimate's 95 % ellipsoid (squared Mahalanobis distance "
+        "≤ 7.815, χ²₃ 95 %): an honest covariance gives about 95 %.</p>"
+        + _group_table(r.summary, r.plotted, "truth")
+        + r.figures.add(lambda: _fig_truth(r.summary, errors, r.plotted, r.style, r.fps) if len(errors) else None,
+                        "Left: RMSE per kind of point [mm, log]. Middle: 95 % coverage (dashed: the "
+                        "nominal 0.95). Right: median over markers of the error on each frame [mm, log].",
+                        "errors against truth"))
 
+
+def _reference_section(r: _Report) -> str:
+    ref_errors = evaluate.point_errors(r.trajectories[r.trajectories["method"].isin(r.plotted)], r.reference)
+    return (
+        '<p class="note">Distance between each method\'s estimate and the reference 3D points '
+        "(reference_xyz.csv, e.g. DLTdv's xyzpts from an import) on the frames both have. Paper (ear "
+        "data): EKF and UKF within 1 mm of stereo triangulation.</p>"
+        + (_group_table(r.summary, r.plotted, "reference") if len(ref_errors)
+           else '<p class="note">No common (frame, marker) pairs.</p>')
+        + r.figures.add(lambda: _fig_reference(ref_errors, r.plotted, r.style, r.fps) if len(ref_errors) else None,
+                        "Median over markers of the distance to the reference on each frame [mm, "
+                        "log]; dashed: the paper's 1 mm.", "differences to the reference"))
+
+
+def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, summary: Summary) -> str:
+    """The report as one HTML string: a section per part of the result, each title used once.
+
+    session: :class:`batgraph.session.Session` (rig, fps, markers, skeleton, truth, reference).
+    trajectories, reprojection: the result's tables, every method stacked. summary: the run's
+    :class:`batgraph.summary.Summary`, whose figures are shown as they are (nothing is recomputed).
+    """
+    r = _prepare(session, trajectories, reprojection, summary)
+    sections = [("verdict", "Verdict", _verdict_section(r)),
+                ("overview", "Session and runs", _overview_section(r)),
+                ("trajectories", "3D trajectories", _trajectories_section(r)),
+                ("ellipses", "Residual ellipses in mm at depth (paper Fig. 5 b–f)", _ellipses_section(r)),
+                ("features", "Reprojections over the 2D features (paper Fig. 6)", _features_section(r)),
+                ("coordinates", "Marker coordinates over time", _coordinates_section(r)),
+                ("table", "Reprojection error per camera and method", _camera_table_section(r))]
+    if r.truth is not None and r.plotted:
+        sections.append(("truth", "Errors against truth", _truth_section(r)))
+    if r.reference is not None and r.plotted:
+        sections.append(("reference", "Differences to the reference reconstruction", _reference_section(r)))
     validation = _validation_section(summary)
     if validation is not None:
         sections.append(("validation", "Leave-one-camera-out validation", validation))
-
     nav = " ".join(f'<a href="#{a}">{html.escape(t)}</a>' for a, t, _ in sections)
     body = "\n".join(f'<section id="{a}"><h2>{html.escape(t)}</h2>\n{b}\n</section>' for a, t, b in sections)
     title = f"batgraph report: {html.escape(str(session.name))}"
-    return figures.fill(f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
-            f"<style>{CSS}</style></head><body>\n<h1>{title}</h1>\n<nav>{nav}</nav>\n{body}\n"
-            '<p class="note">Written by batgraph. Self-contained: every figure is embedded.</p>'
-            "</body></html>\n")
+    return r.figures.fill(
+        f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{title}</title>'
+        f"<style>{CSS}</style></head><body>\n<h1>{title}</h1>\n<nav>{nav}</nav>\n{body}\n"
+        '<p class="note">Written by batgraph. Self-contained: every figure is embedded.</p></body></html>\n')
 
 
 def write_report(path: str | Path, session, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
-                 summary: dict | None) -> Path:
+                 summary: Summary) -> Path:
     """Render the report (see :func:`render_report`) and write it to ``path`` atomically. Returns the path."""
     path = Path(path)
     atomic.write_text(path, render_report(session, trajectories, reprojection, summary))

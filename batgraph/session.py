@@ -124,7 +124,7 @@ class Session:
     warnings: non-fatal remarks found while loading (e.g. points outside the image).
     take_gap_s: [session] take_gap_s [s]: longer runs of frames with no observation split takes (:func:`frame_axis`).
     rigid: [markers] rigid, pairs of markers on one rigid segment (a bone): the smoother ties their
-        distance to one estimated length per segment (batgraph.graph.rigid); none by default.
+        distance to one estimated length per segment (batgraph.solver.segments); none by default.
     rigid_sigma_m: [markers] rigid_sigma_m, the std of such a distance about its length [m].
     true_timing: simulated sessions (truth_timing.toml): columns camera, fps, time_offset_s, readout_s, the
         timing the observations were rendered with (the rig may state less: nothing by default).

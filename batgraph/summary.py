@@ -1,21 +1,13 @@
 """summary.json as types: every figure a user reads is computed here once, from the result tables.
 
-The terminal table (cli), the report and batch read a :class:`Summary` (or its JSON) and never recompute.
-Layout of summary.json (``Summary.to_json``; strict JSON, NaN -> null):
-
-* session facts: session, fps, n_cameras, n_frames, n_markers, n_observations, views, spans
-* pixel_sigma_px, pixel_noise, checks, world, import, warnings (self-checks and noise-model warnings)
-* paper_experiment: "flight" / "ear" when the session is one of the paper's scenes (session.toml
-  ``[paper] experiment``, or the simulator's ``[simulation] scene``), else null: the paper's
-  published figures are shown only then, never guessed from the session name.
-* methods: per method (batgraph.evaluate.method_summary): runtime_s, n_estimated, n_points, reprojection
-  (per camera, inlier statistics and outlier counts), truth / reference (per group: all, each status, each
-  span, each status/span), info.
-* comparison: like-for-like: per group, the points *every* compared method estimates, their count n, and
-  each method's figure on exactly those points (against truth, else a reference, else reprojection).
-* verdict: which result to use and why, its headline accuracy, and the warnings that bear on it.
-* validation: leave-one-camera-out (batgraph.validate), when run.
-
+The terminal (:func:`terminal_lines`), the report and batch read a :class:`Summary` (or its JSON) and never
+recompute. summary.json (``Summary.to_json``; strict JSON, NaN -> null) holds: the session's facts (session,
+fps, n_cameras, n_frames, n_markers, n_observations, views, spans, opening_frame: where a viewer opens);
+pixel_sigma_px, pixel_noise, checks, world, import; warnings (one line each) and warning_details (line ->
+figures and reasons); paper_experiment ("flight" / "ear" only when the session declares itself one of the
+paper's scenes); methods (per method: runtime, counts, reprojection per camera, truth / reference per
+group, info); comparison (every method on the points the verdict's method estimates, per group); verdict
+(which result, why, one headline per kind of point); validation (batgraph.validation_table), when run.
 Groups: ``all``; a status (observed / single_view / unobserved); a span (inside / outside); or
 ``status/span`` (e.g. ``single_view/inside``: gaps inside a track seen by one camera).
 """
@@ -23,7 +15,7 @@ Groups: ``all``; a status (observed / single_view / unobserved); a span (inside 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -38,6 +30,7 @@ from .evaluate import (
     group_masks,
     method_rows,
     method_summary,
+    opening_frame,
     point_errors,
 )
 from .motion import CHI2_3DOF_95
@@ -62,112 +55,151 @@ point once (observed points are always inside a span)."""
 
 @dataclass
 class GroupComparison:
-    """Methods compared on the same points of one group.
+    """The methods' figures on the points of one group that the verdict's method estimates.
 
-    n: points (truth/reference) or observations (reprojection) every compared method estimates.
-    values: the compared methods (those with any estimate in the group) -> {"rmse_m", "coverage95"}
-        (truth), {"rms_m"} (reference) or {"median_px", "mean_px"} (reprojection).
+    n: those points (truth/reference) or observations (reprojection); values: each method that estimates any
+    of them -> its figures on all n ({"rmse_m", "coverage95"} against truth, {"rms_m"} against a reference,
+    {"median_px", "mean_px"} for reprojection), or None when it estimates only ``estimated[method]`` of them;
+    common: the same on the points every one of those methods estimates, when that is fewer than n.
     """
 
     n: int
-    values: dict[str, dict[str, float | None]]
+    values: dict[str, dict[str, float | None] | None]
+    estimated: dict[str, int] = field(default_factory=dict)
+    common: GroupComparison | None = None
+
+    def to_json(self) -> dict:
+        return {"n": self.n, "values": self.values, "estimated": self.estimated,
+                "common": self.common.to_json() if self.common else None}
+
+    @classmethod
+    def from_json(cls, d: dict) -> GroupComparison:
+        values = d.get("values") or {}
+        return cls(int(d["n"]), values, d.get("estimated") or {m: int(d["n"]) for m in values},
+                   cls.from_json(d["common"]) if d.get("common") else None)
 
 
 @dataclass
 class Comparison:
-    """Like-for-like comparison of ``methods`` (registry order) ``against`` truth, reference or reprojection."""
+    """``methods`` (registry order) on the points of the verdict's method ``use``, per group (GROUPS), ``against``
+    truth, a reference or reprojection."""
 
     methods: list[str]
     against: str
+    use: str | None = None
     groups: dict[str, GroupComparison] = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        return {"methods": self.methods, "against": self.against,
-                "groups": {g: asdict(c) for g, c in self.groups.items()}}
+        return {"methods": self.methods, "against": self.against, "use": self.use,
+                "groups": {g: c.to_json() for g, c in self.groups.items()}}
 
     @classmethod
     def from_json(cls, d: dict | None) -> Comparison | None:
         if not d:
             return None
-        return cls(list(d["methods"]), d["against"],
-                   {g: GroupComparison(int(c["n"]), c["values"]) for g, c in d.get("groups", {}).items()})
+        return cls(list(d["methods"]), d["against"], d.get("use"),
+                   {g: GroupComparison.from_json(c) for g, c in d.get("groups", {}).items()})
 
 
 @dataclass
 class Verdict:
     """Which result to use, why, how good it is, and what to look at first.
 
-    use: a method name; why: one sentence; headline: one sentence with the accuracy figure and where it
-    comes from (validation, truth, or reprojection); warnings: lines that bear on this result.
+    use: a method name; why: one sentence; headlines: one line per accuracy figure, each on one set of points
+    named with its n (held-out cameras first when validated, then each kind of point of HEADLINE_GROUPS, seen
+    by >= 2 cameras first), the same figures as the comparison table; warnings: lines that bear on this result.
     """
 
     use: str
     why: str
-    headline: str
+    headlines: list[str]
     warnings: list[str] = field(default_factory=list)
+
+    @property
+    def headline(self) -> str:
+        """The headlines as one sentence."""
+        return "; ".join(self.headlines)
+
+
+@dataclass(frozen=True)
+class WarningLine:
+    """A warning: ``text``, one line (at most WARNING_CHARS) saying what is wrong and what to do; ``details``,
+    the figures and reasons behind it (summary.json ``warning_details``, the report)."""
+
+    text: str
+    details: str = ""
+
+
+WARNING_CHARS = 160
+"""The longest warning line: a terminal shows it whole, and the details go to summary.json and the report."""
 
 
 def _finite(x) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
-def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: list[str],
+def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: list[str], use: str,
             truth: pd.DataFrame | None = None, reference: pd.DataFrame | None = None,
             joined: dict[str, pd.DataFrame] | None = None) -> Comparison | None:
-    """Each method's figure on the points every method in ``methods`` estimates, per group.
+    """Each method's figure on the points of each group that ``use`` (the verdict's method) estimates.
 
     trajectories, reprojection: the contract's tables (every method stacked). Against truth: RMSE [m] and
     95 % coverage; else against a reference: RMS difference [m]; else the reprojection error [px] of the
-    observations of the common points that no compared method flags as an outlier. None for < 2 methods.
+    observations of those points that no compared method flags as an outlier. None when ``use`` did not run.
     joined: per method, the trajectories joined with the truth (else the reference) where the caller has
     them (batgraph.evaluate.errors_by_method).
     """
     rows = method_rows(trajectories)
     methods = [m for m in methods_registry.ordered(methods) if m in rows]
-    if len(methods) < 2:
+    if use not in methods:
         return None
     points = truth if truth is not None else reference
     if points is not None:
         joined = errors_by_method(trajectories, points) if joined is None else joined
-        errs = {m: point_errors(trajectories.iloc[rows[m]], points, joined.get(m)).set_index(["frame", "marker"])
+        tabs = {m: point_errors(trajectories.iloc[rows[m]], points, joined.get(m)).set_index(["frame", "marker"])
                 for m in methods}
-        out = Comparison(methods, "truth" if truth is not None else "reference")
-        masks = {m: group_masks(e) for m, e in errs.items()}
-        for g in GROUPS:
-            idx = {m: e.index[masks[m][g]] for m, e in errs.items()}
-            _add_group(out, g, idx, lambda m, sel: _point_figures(errs[m].loc[sel], truth is not None))
-        return out
-    # reprojection: observations (frame, camera, marker) of the group a method reprojects and does not flag
-    keys = ["frame", "camera", "marker"]
-    tabs = {}
-    rep_rows = method_rows(reprojection)
-    for m in methods:
-        t = (reprojection.iloc[rep_rows[m]] if m in rep_rows else reprojection.iloc[:0]).set_index(keys)
-        ok = np.isfinite(t["err_px"].to_numpy(float)) & ~t["outlier"].fillna(False).astype(bool).to_numpy()
-        tabs[m] = pd.concat([t[ok].reset_index(), _status_of_observations(trajectories, m, t.index[ok])],
-                            axis=1).set_index(keys)
-    out = Comparison(methods, "reprojection")
+        out = Comparison(methods, "truth" if truth is not None else "reference", use)
+
+        def figures(m, sel):
+            return _point_figures(tabs[m].loc[sel], truth is not None)
+    else:  # observations (frame, camera, marker) of the group a method reprojects and does not flag
+        keys = ["frame", "camera", "marker"]
+        tabs = {}
+        rep_rows = method_rows(reprojection)
+        for m in methods:
+            t = (reprojection.iloc[rep_rows[m]] if m in rep_rows else reprojection.iloc[:0]).set_index(keys)
+            ok = np.isfinite(t["err_px"].to_numpy(float)) & ~t["outlier"].fillna(False).astype(bool).to_numpy()
+            tabs[m] = pd.concat([t[ok].reset_index(), _status_of_observations(trajectories, m, t.index[ok])],
+                                axis=1).set_index(keys)
+        out = Comparison(methods, "reprojection", use)
+
+        def figures(m, sel):
+            return _pixel_figures(tabs[m].loc[sel, "err_px"].to_numpy(float))
     masks = {m: group_masks(t) for m, t in tabs.items()}
     for g in GROUPS:
-        idx = {m: t.index[masks[m][g]] for m, t in tabs.items()}
-        _add_group(out, g, idx, lambda m, sel: _pixel_figures(tabs[m].loc[sel, "err_px"].to_numpy(float)))
+        group = _group(methods, use, {m: t.index[masks[m][g]] for m, t in tabs.items()}, figures)
+        if group is not None:
+            out.groups[g] = group
     return out
 
 
-def _add_group(out: Comparison, group: str, index: dict[str, pd.Index], figures) -> None:
-    """Add ``group`` to ``out``: the methods with any point in it, compared on the points all of them have.
-
-    A method that estimates nothing in the group (triangulation where one camera sees the marker) is left
-    out of that group rather than shrinking it to nothing; the group lists the methods it compares.
-    """
-    present = [m for m in out.methods if len(index[m])]
-    if len(present) < 2:
-        return
-    common = index[present[0]]
-    for m in present[1:]:
-        common = common.intersection(index[m])
-    if len(common):
-        out.groups[group] = GroupComparison(int(len(common)), {m: figures(m, common) for m in present})
+def _group(methods: list[str], use: str, index: dict[str, pd.Index], figures) -> GroupComparison | None:
+    """One group: the points of ``use`` (index[use]), each method's figures on them when it estimates all, its
+    count when it estimates some; and the figures on the points they all estimate when that is fewer."""
+    base = index[use]
+    if not len(base):
+        return None
+    shared = {m: index[m].intersection(base) for m in methods}
+    shared = {m: i for m, i in shared.items() if len(i)}
+    values = {m: figures(m, base) if len(i) == len(base) else None for m, i in shared.items()}
+    common = None
+    if any(len(i) < len(base) for i in shared.values()):
+        both = base
+        for i in shared.values():
+            both = both.intersection(i)
+        if len(both):
+            common = GroupComparison(len(both), {m: figures(m, both) for m in shared}, {m: len(both) for m in shared})
+    return GroupComparison(len(base), values, {m: len(i) for m, i in shared.items()}, common)
 
 
 def _point_figures(e: pd.DataFrame, with_truth: bool) -> dict:
@@ -201,85 +233,147 @@ def recommended(methods: list[str]) -> tuple[str, str]:
     return first, "the smoother did not run; this is the first of the methods that did, in batgraph's order"
 
 
-def outlier_warnings(method_summary: dict, method: str) -> list[str]:
-    """One line per camera where ``method`` flagged more than OUTLIER_WARN_FRACTION of the observations."""
+def outlier_warnings(method_summary: dict, method: str) -> list[WarningLine]:
+    """One warning per camera where ``method`` flagged more than OUTLIER_WARN_FRACTION of the observations."""
     out = []
     for cam, s in (method_summary.get("reprojection") or {}).items():
         n, k = s.get("n", 0) or 0, s.get("n_outliers", 0) or 0
         if n + k and k / (n + k) > OUTLIER_WARN_FRACTION:
-            out.append(f"camera {cam}: the {method} flagged {k} of its {n + k} observations "
-                       f"({100 * k / (n + k):.0f} %) as outliers (more than {100 * OUTLIER_WARN_FRACTION:.0f} %): "
-                       "check this camera's calibration, synchronisation and marker labels")
+            out.append(WarningLine(
+                f"camera {cam}: {100 * k / (n + k):.0f} % of its observations are outliers: check its calibration, "
+                "synchronisation and marker labels",
+                f"the {method} flagged {k} of the {n + k} observations of camera {cam} as outliers, more than "
+                f"{100 * OUTLIER_WARN_FRACTION:.0f} %: their reprojection errors are far beyond the pixel noise"))
     return out
 
 
-#: The smoother's own notes (its info) that summary.json lists as warnings, each one line of text.
-SMOOTHER_NOTES = ("segments_left_out", "wingbeat_left_out", "wingbeat_advice")
 
 
-def smoother_warnings(info: dict | None) -> list[str]:
-    """One line per rigid segment (``[markers] rigid``) whose length scatters over the frames by more than
+def smoother_warnings(info: dict | None) -> list[WarningLine]:
+    """One warning per rigid segment (``[markers] rigid``) whose length scatters over the frames by more than
     RIGID_WARN_FACTOR x rigid_sigma_m RMS at the smoother's solution or, beyond the triangulation's noise, in the
-    per-frame triangulation (graph.rigid.triangulated_excess): the pair is not rigid, or a label is
-    swapped, and the segment factor is pulling the two markers toward a length they do not keep. Before
-    them, the smoother's notes (:data:`SMOOTHER_NOTES`): why it left the segments out, or the wingbeat
-    model's oscillation for want of a frequency, or that the tracks move periodically and its motion model
-    does not follow that (batgraph.graph.schedule.periodic_advice)."""
+    per-frame triangulation (solver.segments.triangulated_excess): the pair is not rigid, or a label is swapped."""
     info = info or {}
     sigma = info.get("rigid_sigma_m")
-    out = [info[key] for key in SMOOTHER_NOTES if info.get(key)]
+    out = []
     for name, s in (info.get("segments") or {}).items():
         scatter = max(s["scatter_rms_m"], s.get("triangulated_excess_m") or 0.0)
         if sigma and scatter > RIGID_WARN_FACTOR * sigma:
-            out.append(f"segment {name}: its length varies by {1000 * scatter:.1f} mm RMS over the frames, "
-                       f"more than {RIGID_WARN_FACTOR:g} x [markers] rigid_sigma_m = {1000 * sigma:g} mm: these two "
-                       "markers are not on one rigid segment, or a label is swapped; check [markers] rigid")
+            out.append(WarningLine(
+                f"segment {name}: its length varies by {1000 * scatter:.1f} mm RMS: the two markers are not on one "
+                "rigid segment, or a label is swapped; check [markers] rigid",
+                f"more than {RIGID_WARN_FACTOR:g} x [markers] rigid_sigma_m = {1000 * sigma:g} mm, at the smoother's "
+                f"solution ({1000 * s['scatter_rms_m']:.1f} mm) or in the per-frame triangulation beyond its noise "
+                f"({1000 * (s.get('triangulated_excess_m') or 0.0):.1f} mm); the segment factor pulls the two "
+                "markers toward a length they do not keep"))
     return out
 
 
 def _mm(x) -> str:
-    return "-" if x is None else f"{1000 * x:.2f} mm"
+    return "-" if x is None else f"{1000 * x:.2f}"
 
 
-def headline(summary: dict, use: str) -> str:
-    """The headline accuracy of method ``use``: held-out-camera error when validated, truth RMSE when known,
-    the difference to a reference when there is one, and the inlier reprojection error (median over cameras
-    of each camera's median)."""
-    parts = []
+def figure_text(against: str, v: dict | None) -> str:
+    """A method's figure in a comparison cell: RMSE [mm] (95 % coverage) against truth, RMS [mm] against a
+    reference, the median [px] of reprojection errors; "-" without one."""
+    if not v:
+        return "-"
+    if against == "truth":
+        cov = v.get("coverage95")
+        return _mm(v.get("rmse_m")) + (f" ({100 * cov:.0f}%)" if cov is not None else "")
+    if against == "reference":
+        return _mm(v.get("rms_m"))
+    return "-" if v.get("median_px") is None else f"{v['median_px']:.2f}"
+
+
+UNITS = {"truth": "RMSE [mm] against truth (in brackets: truth inside the 95 % ellipsoid)",
+         "reference": "RMS difference to the reference 3D [mm]",
+         "reprojection": "median reprojection error of inlier observations [px]"}
+"""What a comparison's figures are, by what they are against."""
+
+
+def _headline(against: str, label: str, n: int, v: dict) -> str:
+    """One headline: a kind of point, its n, the verdict method's figure on exactly those points."""
+    if against == "truth":
+        cov = v.get("coverage95")
+        what = f"RMSE {_mm(v.get('rmse_m'))} mm against truth" + (
+            f", {100 * cov:.0f} % inside the 95 % ellipsoid" if cov is not None else "")
+    elif against == "reference":
+        what = f"{_mm(v.get('rms_m'))} mm RMS from the reference 3D"
+    else:
+        what = f"reprojection error {figure_text(against, v)} px median"
+    return f"{label} (n={n}{' observations' if against == 'reprojection' else ''}): {what}"
+
+
+def headlines(summary: dict, use: str) -> list[str]:
+    """The verdict's headlines for method ``use``: the held-out-camera error when validated, then per kind of point
+    (HEADLINE_GROUPS, seen by >= 2 cameras first) its figure on the points it estimates there, as in the
+    comparison table (summary["comparison"]): one set of points per line, with its n."""
+    lines = []
     v = summary.get("validation") or {}
     rows = [r for r in v.get("table") or [] if r.get("held_out") == "all" and r.get("method") == use
             and r.get("status") == "observed" and r.get("subset") == "common"]
     if rows and rows[0].get("median_px") is not None:
         r = rows[0]
-        parts.append(f"held-out-camera error {r['median_px']:.2f} px median, {r['p90_px']:.2f} px p90 "
-                     f"(n={r['n']}, each camera predicted from the others)")
-    m = (summary.get("methods") or {}).get(use) or {}
-    t = m.get("truth")
-    if t:
-        parts.append("against truth: RMSE " + ", ".join(
-            f"{_mm(t['rmse_m'].get(g))} {where} (n={t['n_estimated'].get(g, 0)})"
-            for g, where in (("observed/inside", "where seen by >= 2 cameras"),
-                             ("single_view/inside", "in one-camera gaps"), ("unobserved/inside", "in unseen gaps"),
-                             ("outside", "at track ends"))
-            if t["n_estimated"].get(g)))
-    ref = m.get("reference") or {}
-    if ref.get("n"):
-        parts.append(f"{_mm(ref.get('rms_m'))} RMS from the reference 3D (reference_xyz.csv, n={ref['n']})")
-    rep = [c for c in (m.get("reprojection") or {}).values() if c.get("median_px") is not None]
-    if rep:
-        med = float(np.median([c["median_px"] for c in rep]))
-        mm = [c["median_mm_at_depth"] for c in rep if c.get("median_mm_at_depth") is not None]
-        parts.append(f"reprojection error {med:.2f} px median over cameras"
-                     + (f" (about {float(np.median(mm)):.2f} mm at the markers' depth)" if mm else ""))
-    return "; ".join(parts) if parts else "no accuracy figure (no observation could be reprojected)"
+        lines.append(f"each camera predicted from the others, seen by >= 2 cameras (n={r['n']}): "
+                     f"{r['median_px']:.2f} px median, {r['p90_px']:.2f} px p90")
+    c = Comparison.from_json(summary.get("comparison"))
+    if c is not None and c.use == use:
+        for g, label in HEADLINE_GROUPS.items():
+            gc = c.groups.get(g)
+            if gc is not None and gc.values.get(use):
+                lines.append(_headline(c.against, label, gc.n, gc.values[use]))
+    return lines or ["no accuracy figure (no observation could be reprojected)"]
 
 
 def verdict(summary: dict) -> Verdict:
-    """The verdict from a summary dict whose methods (and validation, when run) are filled in."""
+    """The verdict from a summary dict whose methods, comparison (and validation, when run) are filled in."""
     methods = list(summary.get("methods") or {})
     use, why = recommended(methods)
-    warnings = list(summary.get("warnings") or [])
-    return Verdict(use, why, headline(summary, use), warnings)
+    return Verdict(use, why, headlines(summary, use), list(summary.get("warnings") or []))
+
+
+def comparison_rows(c: Comparison) -> list[tuple[str, int, dict[str, str]]]:
+    """The comparison table's rows, one text for the terminal and the report: (label, n, method -> cell) per
+    kind of point (HEADLINE_GROUPS), each followed, where a method estimates only some of its points, by a row
+    on the points every method of that row estimates."""
+    rows = []
+    for g, label in HEADLINE_GROUPS.items():
+        gc = c.groups.get(g)
+        if gc is None:
+            continue
+        cells = {m: ("not estimated" if m not in gc.estimated else figure_text(c.against, gc.values[m])
+                     if gc.values.get(m) else f"{gc.estimated[m]} estimated") for m in c.methods}
+        rows.append((label, gc.n, cells))
+        if gc.common is not None:
+            rows.append(("  where every method estimates", gc.common.n,
+                         {m: figure_text(c.against, gc.common.values.get(m)) if m in gc.common.values else ""
+                          for m in c.methods}))
+    return rows
+
+
+def terminal_lines(summary: dict) -> list[str]:
+    """The end-of-run text: the verdict and its headlines, the comparison table (the same figures on the same
+    points, and the other methods beside them), then runtimes. Reads summary.json's figures; computes none."""
+    s = Summary.from_json(summary)
+    lines = []
+    if s.verdict:
+        lines += [f"use: {s.verdict.use} ({s.verdict.why})"] + [f"  {h}" for h in s.verdict.headlines]
+    methods = list(s.methods)
+    c = s.comparison
+    width = max(len(label) for label in [*HEADLINE_GROUPS.values(), "  where every method estimates"]) + 2
+    if c is not None and c.groups:
+        lines.append(f"per kind of point, on the {c.use}'s points (n): {UNITS[c.against]}")
+        lines.append(f"{'':<{width}}{'n':>7}" + "".join(f"{m:>16}" for m in c.methods))
+        lines += [f"{label:<{width}}{n:>7}" + "".join(f"{cells[m]:>16}" for m in c.methods)
+                  for label, n, cells in comparison_rows(c)]
+    lines.append(f"{'runtime s':<{width + 7}}" + "".join(f"{_fmt_s(s.methods[m].get('runtime_s')):>16}"
+                                                         for m in methods))
+    return lines
+
+
+def _fmt_s(x) -> str:
+    return "-" if x is None else f"{x:.2f}"
 
 
 @dataclass
@@ -303,6 +397,8 @@ class Summary:
     warnings: list[str]
     paper_experiment: str | None
     methods: dict[str, dict]
+    warning_details: dict[str, str] = field(default_factory=dict)
+    opening_frame: int | None = None
     comparison: Comparison | None = None
     verdict: Verdict | None = None
     validation: dict | None = None
@@ -312,7 +408,8 @@ class Summary:
                                                                                "verdict", "validation")}
         d["import"] = self.imported
         d["comparison"] = self.comparison.to_json() if self.comparison else None
-        d["verdict"] = asdict(self.verdict) if self.verdict else None
+        d["verdict"] = ({"use": self.verdict.use, "why": self.verdict.why, "headlines": self.verdict.headlines,
+                         "warnings": self.verdict.warnings} if self.verdict else None)
         if self.validation is not None:
             d["validation"] = self.validation
         return clean(d)
@@ -321,20 +418,25 @@ class Summary:
     def from_json(cls, d: dict) -> Summary:
         plain = {k: d.get(k) for k in cls.__dataclass_fields__
                  if k not in ("imported", "comparison", "verdict", "validation")}
-        for k in ("views", "spans", "pixel_sigma_px", "pixel_noise", "checks", "world", "methods"):
+        for k in ("views", "spans", "pixel_sigma_px", "pixel_noise", "checks", "world", "methods", "warning_details"):
             plain[k] = plain[k] or {}
         plain["warnings"] = plain["warnings"] or []
         v = d.get("verdict")
+        verdict_ = None
+        if v:
+            lines = v.get("headlines") or ([v["headline"]] if v.get("headline") else [])
+            verdict_ = Verdict(v["use"], v["why"], list(lines), list(v.get("warnings") or []))
         return cls(**plain, imported=d.get("import") or {}, comparison=Comparison.from_json(d.get("comparison")),
-                   verdict=Verdict(**v) if v else None, validation=d.get("validation"))
+                   verdict=verdict_, validation=d.get("validation"))
 
 
 def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *,
               runtimes: dict[str, float] | None = None, infos: dict[str, dict] | None = None,
               pixel_sigma_px: dict[str, float] | None = None, pixel_noise: dict | None = None,
-              checks: dict | None = None) -> dict:
-    """summary.json (as a dict) computed once from the result tables: every method's figures, the like-for-like
-    comparison and the verdict. Adds a noise-model warning (:func:`outlier_warnings`) to the session's warnings.
+              checks: dict | None = None, warnings: list[WarningLine] = ()) -> dict:
+    """summary.json (as a dict) computed once from the result tables: every method's figures, the comparison
+    and the verdict, and the warnings: the session's, then ``warnings``, the outliers' (:func:`outlier_warnings`)
+    and the smoother's (:func:`smoother_warnings`), with their details in ``warning_details``.
 
     session: batgraph.session.Session (rig, truth, reference, warnings, extra_toml); trajectories, reprojection:
     the contract's tables, every method stacked (trajectories with status and span); runtimes, infos: per
@@ -354,10 +456,10 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
         per_method[m] = method_summary(session, traj_of[m], rep_of[m], (runtimes or {}).get(m), (infos or {}).get(m),
                                        truth_errors=truth_errors.get(m), reference_errors=ref_errors.get(m))
     use = recommended(methods)[0] if methods else None
-    warnings = list(session.warnings)
+    found = list(warnings)
     if use is not None:
-        warnings += [w for w in outlier_warnings(per_method[use], use) + smoother_warnings((infos or {}).get(use))
-                     if w not in warnings]
+        found += outlier_warnings(per_method[use], use) + smoother_warnings((infos or {}).get(use))
+    lines = list(session.warnings) + [w.text for w in found if w.text not in session.warnings]
     first = traj_of[methods[0]] if methods else trajectories
     reproj_first = rep_of[methods[0]] if methods else reprojection
     summary = Summary(
@@ -368,17 +470,28 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
         spans={s: int((first["span"] == s).sum()) for s in SPANS},
         pixel_sigma_px=pixel_sigma_px or {}, pixel_noise=pixel_noise or {}, checks=checks or {},
         world={"units": "m", "world_mirror": session.world_mirror.tolist()},
-        imported=session.extra_toml.get("import", {}), warnings=warnings,
+        imported=session.extra_toml.get("import", {}), warnings=list(dict.fromkeys(lines)),
+        warning_details={w.text: w.details for w in found if w.details},
+        opening_frame=_opening_frame(first),
         paper_experiment=paper_experiment(session), methods=per_method,
-        comparison=compare(trajectories, reprojection, methods, session.truth, session.reference,
+        comparison=compare(trajectories, reprojection, methods, use, session.truth, session.reference,
                            joined=truth_errors if session.truth is not None else ref_errors),
     ).to_json()
     return refresh_verdict(summary)
 
 
+def _opening_frame(traj: pd.DataFrame) -> int | None:
+    """evaluate.opening_frame of one method's trajectories rows (frame, marker, n_views)."""
+    if not len(traj):
+        return None
+    seen = (traj["n_views"] >= 2).groupby(traj["frame"].to_numpy()).sum()
+    return opening_frame(seen.to_numpy(), seen.index.to_numpy())
+
+
 def refresh_verdict(summary: dict) -> dict:
     """summary (a JSON dict) with its ``verdict`` recomputed, e.g. after validation was added."""
-    summary["verdict"] = asdict(verdict(summary))
+    v = verdict(summary)
+    summary["verdict"] = {"use": v.use, "why": v.why, "headlines": v.headlines, "warnings": v.warnings}
     return summary
 
 

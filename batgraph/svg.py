@@ -1,12 +1,10 @@
 """Small charts as inline SVG text: the report's figures (batgraph.report), drawn by the browser.
 
-Why not matplotlib (what the report used before): it builds a Python object per tick, label and line and
-rasterises them, ~1.4 s of CPU for the bundled sample's six figures and ~2.7 s at 30 cameras x 180 markers,
-which was most of what a user waited for after the estimators (issue "Speed a user feels"). Here a
-figure is a few strings per panel, each line or point cloud one SVG element whose coordinates numpy
-formats in one call: ~0.05 s for the same figures, and the figures stay sharp at any zoom. Why not a
-JavaScript plotting library: the report is one self-contained file without scripts (its tests check
-that), and the figures need only lines, bands, points, ellipses, rectangles and text.
+Why not matplotlib: it builds a Python object per tick, label and line and rasterises them, seconds of
+CPU for a report's figures; here a figure is a few strings per panel, each line or point cloud one SVG
+element whose coordinates numpy formats in one call, and the figures stay sharp at any zoom. Why not a
+JavaScript plotting library: the report is one self-contained file without scripts, and the figures need
+only lines, bands, points, ellipses, rectangles and text.
 
 Units: pixels of the figure's own canvas (``width`` x ``height``; SVG's y axis points down). A
 :class:`Figure` holds :class:`Axes` panels, each mapping data coordinates into its box (linear or log10
@@ -194,6 +192,15 @@ class Axes:
             d = "M%.1f,%.1fh0" * len(X) % tuple(xy.tolist())
             self.parts.append(f'<path d="{d}" stroke="{colour}" stroke-width="{_num(size)}" stroke-linecap="round"'
                               f'{_opacity(opacity, "stroke")}/>')
+
+    def marks(self, x, y, colours: list[str], size: float, titles: list[str]) -> None:
+        """A dot (diameter ``size`` px) at each (x, y) in its own colour, its title shown on hover (a browser's
+        tooltip: the names of many points without a label on each)."""
+        X, Y = self.px(x), self.py(y)
+        for xi, yi, c, t in zip(X, Y, colours, titles, strict=True):
+            if math.isfinite(xi) and math.isfinite(yi):
+                self.parts.append(f'<circle cx="{_num(xi)}" cy="{_num(yi)}" r="{_num(size / 2)}" fill="{c}" '
+                                  f'stroke="#222" stroke-width="0.6"><title>{html.escape(t)}</title></circle>')
 
     def rects(self, x0, x1, y0, y1, colour: str, opacity: float = 1.0) -> None:
         """Filled rectangles [x0, x1] x [y0, y1] (arrays of one length), one element for all."""

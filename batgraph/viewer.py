@@ -1,48 +1,29 @@
-"""Rerun logging of a session and its reconstructions (saved .rrd, live viewer, opening a file); estimates nothing.
+"""Rerun recordings of a session and its results (saved .rrd, live viewer, opening a file); estimates nothing.
 
-Rerun is imported lazily inside each function, so ``import batgraph`` never loads it.
-
-Timelines
-    ``frame`` (sequence: the frame index) and ``time`` (duration: ``frame / fps`` seconds).
-
-Entity paths (each ``{cam}`` / ``{method}`` part is escaped with ``rr.escape_entity_path_part``)
-
-=================================================  ========================================================
-``world``                                          AnnotationContext (static): class id ``i`` is marker
-                                                   ``i`` of ``session.markers`` (its label on hover)
-``world/cameras/{cam}``                            Transform3D world_from_cam (static) [m]
-``world/cameras/{cam}/image``                      Pinhole: K and image size [px] (static); 2D children
-                                                   live in this image's pixel space
-``world/cameras/{cam}/image/detections``           Points2D: the observed **raw (distorted)** pixels, per
-                                                   frame, class id = marker
-``world/cameras/{cam}/image/reproj/{method}``      Points2D: predicted raw pixels (u_hat, v_hat) per
-                                                   frame, in the method's colour, outliers in red
-``world/cameras/{cam}/image/reproj/{method}/residuals``  LineStrips2D: observed -> predicted, per frame
-``world/{method}/markers``                         Points3D per frame [m, world], class id = marker
-``world/{method}/ellipsoids``                      Ellipsoids3D: 95 % ellipsoid of each marker's covariance
-``world/{method}/skeleton``                        LineStrips3D: the ``[markers] skeleton`` edges of
-                                                   session.toml, per frame (an edge is drawn when both
-                                                   ends are estimated)
-``world/{method}/trails``                          LineStrips3D: each marker's last ``trail_frames``
-                                                   positions, per frame
-=================================================  ========================================================
-
-Every per-frame entity gets a row on every frame of the recording, possibly empty, because Rerun
-shows the latest row at or before the time cursor: a missing row would keep showing an old frame.
-
-Distortion: Rerun's Pinhole is an ideal pinhole (K only). The 2D entities are logged in raw pixels so
-that they sit where the marker is in the real image; in the 3D view, their rays through a strongly
-distorted lens are therefore slightly off the 3D markers (by the lens's distortion, not an error).
+Rerun is imported inside functions, so ``import batgraph`` never loads it. Timelines: ``frame`` (the frame
+number) and ``time`` (frame / fps s). Entities ({cam}, {method} escaped): ``world`` (annotation context:
+class id i = marker i, its name on hover); ``world/cameras/{cam}`` (pose, static) and its ``image`` (Pinhole
+K and size) holding ``border``, ``detections`` (raw pixels per frame) and ``reproj/{method}`` (predicted
+raw pixels, outliers red; ``residuals`` lines); ``world/{method}/`` ``markers`` and ``ellipsoids`` (95 %)
+inside each marker's span, ``names`` (a few markers named), ``skeleton`` (session.toml's edges),
+``trails`` (last positions) and ``track_ends/`` (the markers and ellipsoids outside the spans: hidden).
+Every per-frame entity has a row on every frame (Rerun shows the latest row at the cursor). A recording
+opens (:func:`default_blueprint`) aimed at the animal on its opening frame; ``batgraph view`` also moves
+the time cursor there. The 2D entities are raw (distorted) pixels where the marker is in the image;
+Rerun's Pinhole is ideal, so in 3D their rays are off by the lens's distortion, not by an error.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
 import sys
+import time
 import uuid
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +32,7 @@ import pandas as pd
 from . import methods
 from .atomic import atomic_path
 from .errors import InputError
+from .evaluate import add_span, dense_from_table, opening_frame
 from .motion import CHI2_3DOF_95
 
 #: chi-square quantile, 3 degrees of freedom, 0.95: a 3D Gaussian's 95 % ellipsoid is
@@ -62,6 +44,10 @@ APPLICATION_ID = "batgraph"
 
 DETECTION_COLOR = (255, 255, 255)
 OUTLIER_COLOR = (214, 39, 40)
+BORDER_COLOR = (110, 110, 110)
+TRACK_END_COLOR = (150, 150, 150)
+NAMED_MARKERS = 5
+"""Markers whose names the 3D view shows (chosen far apart, :func:`named_markers`); the others' on hover."""
 
 
 class ViewerUnavailable(InputError):
@@ -200,8 +186,6 @@ def _window_strips(win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _dense_results(table: pd.DataFrame, frames: np.ndarray, markers: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """One method's trajectory rows -> xyz (F, M, 3) [m] and cov (F, M, 3, 3) [m^2], NaN where absent."""
-    from .evaluate import dense_from_table
-
     xyz, cov, _, _ = dense_from_table(table, frames, markers)
     return xyz, cov
 
@@ -264,6 +248,10 @@ def log_session(rec, session, dense=None) -> None:
         rec.log(_path("world", "cameras", cam.name, "image"),
                 rr.Pinhole(image_from_camera=cam.K, resolution=list(cam.size_wh), camera_xyz=rr.ViewCoordinates.RDF,
                            image_plane_distance=depth), static=True)
+        w, h = cam.size_wh
+        rec.log(_path("world", "cameras", cam.name, "image", "border"),
+                rr.LineStrips2D([[(-0.5, -0.5), (w - 0.5, -0.5), (w - 0.5, h - 0.5), (-0.5, h - 0.5), (-0.5, -0.5)]],
+                                colors=BORDER_COLOR, radii=rr.Radius.ui_points(1.0)), static=True)
     if dense is None:
         return
     uv = np.asarray(dense.uv_px)
@@ -276,39 +264,34 @@ def log_session(rec, session, dense=None) -> None:
     for c, name in enumerate(dense.cameras):
         path = _path("world", "cameras", name, "image", "detections")
         seen = np.isfinite(uv[c]).all(axis=-1)  # (F, M)
-        rec.log(path, rr.Points2D.from_fields(colors=DETECTION_COLOR, radii=rr.Radius.ui_points(3.0)), static=True)
+        rec.log(path, rr.Points2D.from_fields(colors=DETECTION_COLOR, radii=rr.Radius.ui_points(3.0),
+                                              show_labels=False), static=True)
         rec.send_columns(path, indexes=times, columns=rr.Points2D.columns(
             positions=uv[c][seen].astype(np.float32),
             class_ids=np.broadcast_to(ids_all, seen.shape)[seen]).partition(seen.sum(axis=1)))
 
 
 def _send_method_frames(rec, method: str, frames: np.ndarray, fps: float, xyz: np.ndarray, cov: np.ndarray,
-                        edges: np.ndarray, windows: np.ndarray | None, labels: bool = True) -> None:
+                        edges: np.ndarray, windows: np.ndarray | None, named: list[int] | None = None) -> None:
     """Log one method's 3D entities on the given frames.
 
     xyz (F, M, 3) [m]; cov (F, M, 3, 3) [m^2] (NaN: no ellipsoid); edges (E, 2) marker indices;
-    windows (F, M, n, 3) trail windows or None (no trails); labels: show the marker names next to the
-    points (one method only, so that names are not drawn once per method on top of each other).
+    windows (F, M, n, 3) trail windows or None (no trails); named: the markers (indices) whose names are shown
+    (one method only, so that names are not drawn once per method on top of each other).
     """
     rr = _rr()
     color = method_color(method)
     times = _time_columns(frames, fps)
     line = rr.Radius.ui_points(1.0)
-
-    path = _path("world", method, "markers")
-    ok = np.isfinite(xyz).all(axis=-1)  # (F, M)
-    rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(4.0), show_labels=labels),
-            static=True)
-    rec.send_columns(path, indexes=times, columns=rr.Points3D.columns(
-        positions=xyz[ok], class_ids=_class_ids(ok)).partition(ok.sum(axis=1)))
-
-    path = _path("world", method, "ellipsoids")
-    okc = ok & np.isfinite(cov).all(axis=(-2, -1))
-    half, quat = ellipsoid_axes(cov[okc])
-    rec.log(path, rr.Ellipsoids3D.from_fields(colors=(*color, 160), line_radii=rr.Radius.ui_points(0.5),
-                                              show_labels=False), static=True)
-    rec.send_columns(path, indexes=times, columns=rr.Ellipsoids3D.columns(
-        centers=xyz[okc], half_sizes=half, quaternions=quat, class_ids=_class_ids(okc)).partition(okc.sum(axis=1)))
+    _send_points(rec, _path("world", method), times, xyz, cov, color)
+    if named:
+        path = _path("world", method, "names")
+        ok = np.zeros(xyz.shape[:2], bool)
+        ok[:, named] = np.isfinite(xyz[:, named]).all(axis=-1)
+        rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(1.0), show_labels=True),
+                static=True)
+        rec.send_columns(path, indexes=times, columns=rr.Points3D.columns(
+            positions=xyz[ok], class_ids=_class_ids(ok)).partition(ok.sum(axis=1)))
 
     if len(edges):
         path = _path("world", method, "skeleton")
@@ -322,6 +305,39 @@ def _send_method_frames(rec, method: str, frames: np.ndarray, fps: float, xyz: n
         strips, keep = _window_strips(windows)
         rec.log(path, rr.LineStrips3D.from_fields(colors=(*color, 128), radii=line), static=True)
         rec.send_columns(path, indexes=times, columns=[_strips_column(rr.LineStrips3D, strips, keep.sum(axis=1))])
+
+
+def _send_points(rec, base: str, times: list, xyz: np.ndarray, cov: np.ndarray, color) -> None:
+    """``base``/markers (Points3D, names on hover) and ``base``/ellipsoids (95 %) of xyz (F, M, 3) [m] and cov
+    (F, M, 3, 3) [m^2] on every frame of ``times``; NaN draws nothing."""
+    rr = _rr()
+    path = f"{base}/markers"
+    ok = np.isfinite(xyz).all(axis=-1)  # (F, M)
+    rec.log(path, rr.Points3D.from_fields(colors=color, radii=rr.Radius.ui_points(4.0), show_labels=False),
+            static=True)
+    rec.send_columns(path, indexes=times, columns=rr.Points3D.columns(
+        positions=xyz[ok], class_ids=_class_ids(ok)).partition(ok.sum(axis=1)))
+
+    path = f"{base}/ellipsoids"
+    okc = ok & np.isfinite(cov).all(axis=(-2, -1))
+    half, quat = ellipsoid_axes(cov[okc])
+    rec.log(path, rr.Ellipsoids3D.from_fields(colors=(*color[:3], 160), line_radii=rr.Radius.ui_points(0.5),
+                                              show_labels=False), static=True)
+    rec.send_columns(path, indexes=times, columns=rr.Ellipsoids3D.columns(
+        centers=xyz[okc], half_sizes=half, quaternions=quat, class_ids=_class_ids(okc)).partition(okc.sum(axis=1)))
+
+
+def named_markers(xyz: np.ndarray, n: int = NAMED_MARKERS) -> list[int]:
+    """Up to ``n`` markers far apart (indices): the first estimated one, then each time the marker farthest from
+    those chosen (xyz (M, 3) [m], one frame; NaN: not estimated), so that their names do not overlap."""
+    ok = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    if not len(ok):
+        return []
+    chosen = [int(ok[0])]
+    while len(chosen) < min(n, len(ok)):
+        d = np.min(np.linalg.norm(xyz[ok][:, None] - xyz[chosen][None], axis=-1), axis=1)
+        chosen.append(int(ok[np.argmax(d)]))
+    return chosen
 
 
 def _strips_column(archetype, strips: np.ndarray, lengths: np.ndarray):
@@ -395,11 +411,73 @@ def _send_reprojection(rec, method: str, camera: str, frames: np.ndarray, fps: f
         rr.LineStrips2D, np.stack([uv[okr], uv_hat[okr]], axis=1), np.bincount(frame_idx[okr], minlength=len(frames)))])
 
 
+def _inside_span(table: pd.DataFrame, frames: np.ndarray, markers: list[str]) -> np.ndarray:
+    """(F, M) bool: one method's (frame, marker) cells inside the marker's span (the table's ``span`` column,
+    computed from n_views where absent; everything inside without either)."""
+    if "span" not in table:
+        if "n_views" not in table:
+            return np.ones((len(frames), len(markers)), bool)
+        table = add_span(table)
+    inside = np.zeros((len(frames), len(markers)), bool)
+    fi = np.searchsorted(frames, table["frame"].to_numpy(np.int64))
+    mi = _codes(table["marker"], markers)
+    ok = (mi >= 0) & (fi < len(frames))
+    inside[fi[ok], mi[ok]] = (table["span"].to_numpy() == "inside")[ok]
+    return inside
+
+
+@dataclass(frozen=True)
+class Focus:
+    """Where a recording opens: ``frame`` (batgraph.evaluate.opening_frame) and, in the rig's world [m], the
+    ``centre`` of the animal's estimated markers there and ``radius``, their largest distance from it (with
+    fewer than 3 markers, of the box their paths fill)."""
+
+    frame: int
+    centre: np.ndarray
+    radius: float
+
+
+def focus(session, trajectories: pd.DataFrame) -> Focus | None:
+    """The :class:`Focus` of the shown method's rows of ``trajectories`` (frame, marker, x, y, z, n_views,
+    span), or None when nothing is estimated inside a span."""
+    shown = shown_method(pd.unique(trajectories["method"].astype(str))) if len(trajectories) else None
+    if shown is None or "n_views" not in trajectories:
+        return None
+    t = trajectories[trajectories["method"].astype(str) == shown]
+    if "span" in t:
+        t = t[t["span"] == "inside"]
+    seen = (t["n_views"] >= 2).groupby(t["frame"].to_numpy()).sum()
+    frame = opening_frame(seen.to_numpy(), seen.index.to_numpy())
+    every = t[["x", "y", "z"]].to_numpy(float)
+    every = every[np.isfinite(every).all(axis=1)]
+    xyz = t.loc[t["frame"] == frame, ["x", "y", "z"]].to_numpy(float)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if frame is None or not len(xyz):
+        return None
+    if len(xyz) < 3:  # a point or two make no shape: show where they go (1st-99th percentile of their path)
+        xyz = np.percentile(every, [1, 99], axis=0)
+    xyz = session.rig.to_user(xyz)  # the user's frame -> the rig's world (the mirror is its own inverse)
+    centre = xyz.mean(axis=0)
+    return Focus(int(frame), centre, float(np.linalg.norm(xyz - centre, axis=1).max()))
+
+
+def _eye(session, f: Focus):
+    """The 3D view's eye on the animal of ``f``: from the side its cameras see it from (the mean of the directions
+    to them), at a distance where its markers fill about half the view."""
+    import rerun.blueprint as rrb
+
+    to_cams = np.array([cam.center_world for cam in session.rig]) - f.centre
+    to_cams /= np.maximum(np.linalg.norm(to_cams, axis=1, keepdims=True), 1e-12)
+    way = to_cams.mean(axis=0)
+    way = way / np.linalg.norm(way) if np.linalg.norm(way) > 0.3 else to_cams[0]
+    return rrb.EyeControls3D(position=f.centre + max(2.5 * f.radius, 0.3) * way, look_target=f.centre)
+
+
 def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataFrame | None = None,
                 *, trail_frames: int = 10) -> None:
     """Log every method's 3D markers, 95 % ellipsoids, skeleton, trails and 2D reprojections.
 
-    trajectories, reprojection: the tables of CONTRACT.md section 3 (reprojection may be None).
+    trajectories, reprojection: the result's tables (reprojection may be None).
     trail_frames: positions per trail (the current frame and the ``trail_frames - 1`` before it);
         0 or 1 logs no trails.
     Positions are metres in the world frame; frames are those of the two tables together.
@@ -414,12 +492,20 @@ def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataF
     frames = np.unique(np.concatenate(frame_sets))
     edges = _edges(session, markers)
     shown = shown_method(pd.unique(trajectories["method"].astype(str)))
+    opening = focus(session, trajectories)
+    times = _time_columns(frames, session.fps)
     for method, table in trajectories.groupby("method", sort=False):
         # the table is in the user's frame; the cameras are logged in the rig's (right-handed) world
         xyz, cov = session.rig.to_user(*_dense_results(table, frames, markers))
+        inside = _inside_span(table, frames, markers)
+        ends_xyz, ends_cov = np.where(inside[..., None], np.nan, xyz), np.where(inside[..., None, None], np.nan, cov)
+        xyz, cov = np.where(inside[..., None], xyz, np.nan), np.where(inside[..., None, None], cov, np.nan)
         windows = _trail_windows(xyz, trail_frames) if trail_frames > 1 else None
-        _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows,
-                            labels=str(method) == shown)
+        named = None
+        if str(method) == shown and opening is not None:
+            named = named_markers(xyz[int(np.searchsorted(frames, opening.frame)) % len(frames)])
+        _send_method_frames(rec, str(method), frames, session.fps, xyz, cov, edges, windows, named)
+        _send_points(rec, _path("world", str(method), "track_ends"), times, ends_xyz, ends_cov, TRACK_END_COLOR)
     if reprojection is None or not len(reprojection):
         return
     rp = reprojection
@@ -437,30 +523,34 @@ def log_results(rec, session, trajectories: pd.DataFrame, reprojection: pd.DataF
                            fi[sl], ids[sl], uv[sl], uv_hat[sl], outlier[sl])
 
 
-def default_blueprint(session, methods=(), *, live: bool = False):
+def default_blueprint(session, methods=(), *, live: bool = False, focus: Focus | None = None,
+                      camera: str | None = None):
     """How a recording opens: the 3D world on the left, one tab per camera image on the right.
 
     methods: the methods in the recording. Only :func:`shown_method` (the smoother when it ran) is
-    visible; the others are in the recording, hidden (tick them in the blueprint panel), in 3D and in
-    the camera views, where each camera shows its detections and the shown method's reprojections.
-    The time panel is on the ``frame`` timeline at the session's frame rate, paused, so a saved
-    recording opens on its first frame (the Rerun blueprint has no time-cursor field; a paused
-    viewer starts at the beginning of the timeline); live: following the newest frame instead.
+    visible, its track ends hidden; the others are in the recording, hidden (tick them in the blueprint
+    panel), in 3D and in the camera views, where each camera shows its detections and the shown method's
+    reprojections. focus: the 3D view's eye is aimed at the animal on the opening frame (:func:`focus`);
+    camera: the camera tab shown first (e.g. the one that sees the most there). The time panel is on the
+    ``frame`` timeline at the session's frame rate, paused; live: following the newest frame instead.
     """
     import rerun.blueprint as rrb
 
     shown = shown_method(methods)
     hidden = [str(m) for m in methods if str(m) != shown]
     world = {_path("world", m): rrb.EntityBehavior(visible=False) for m in hidden}
+    if shown is not None:
+        world[_path("world", shown, "track_ends")] = rrb.EntityBehavior(visible=False)
     cams = [rrb.Spatial2DView(
         origin=_path("world", "cameras", c.name, "image"), name=c.name,
         overrides={_path("world", "cameras", c.name, "image", "reproj", m): rrb.EntityBehavior(visible=False)
                    for m in hidden}) for c in session.rig]
     time_panel = rrb.TimePanel(timeline="frame", fps=float(session.fps), state="expanded",
                                play_state="following" if live else "paused")
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="3D", overrides=world),
-                                        rrb.Tabs(*cams), column_shares=[2, 1]),
-                         time_panel, collapse_panels=False)
+    view = rrb.Spatial3DView(origin="world", name="3D", overrides=world,
+                             **({"eye_controls": _eye(session, focus)} if focus is not None else {}))
+    tabs = rrb.Tabs(*cams, active_tab=session.rig.names.index(camera) if camera in session.rig.names else None)
+    return rrb.Blueprint(rrb.Horizontal(view, tabs, column_shares=[2, 1]), time_panel, collapse_panels=False)
 
 
 def write_recording(path: str | os.PathLike, session, dense, trajectories: pd.DataFrame,
@@ -475,10 +565,17 @@ def write_recording(path: str | os.PathLike, session, dense, trajectories: pd.Da
     path = Path(path)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
     methods = list(pd.unique(trajectories["method"].astype(str))) if len(trajectories) else []
+    opening = focus(session, trajectories)
+    camera = None
+    if opening is not None and dense is not None and opening.frame in dense.frames:
+        seen = dense.seen[:, int(np.searchsorted(dense.frames, opening.frame))].sum(axis=1)  # (C,)
+        camera = dense.cameras[int(np.argmax(seen))]
     with atomic_path(path) as tmp:
-        rec.save(tmp, default_blueprint=default_blueprint(session, methods))
+        rec.save(tmp, default_blueprint=default_blueprint(session, methods, focus=opening, camera=camera))
         try:
             rec.send_recording_name(session.name)
+            if opening is not None:  # shown in the viewer's recording properties; `batgraph view` goes there
+                rec.send_property("batgraph", rr.AnyValues(opening_frame=opening.frame))
             log_session(rec, session, dense)
             log_results(rec, session, trajectories, reprojection, trail_frames=trail_frames)
             rec.flush()
@@ -599,29 +696,70 @@ def open_recording(path: str | os.PathLike, *, wait: bool = True) -> subprocess.
         where = f"{path}: no {RECORDING_NAME} (run batgraph reconstruct with --viewer save)" if path.is_dir() else \
             f"{path}: file not found"
         raise InputError(where)
-    _require_display(f"open {rrd}", hint=f"copy {rrd} to a machine with a screen and open it there "
-                                         f"(batgraph view {rrd.name} or rerun {rrd.name})")
-    cmd = [_rerun_executable(), str(rrd)]
+    _require_display(f"open {rrd}", hint=f"show it in a browser with Rerun's web viewer: rerun --web-viewer {rrd} "
+                                         "(over ssh, forward ports 9090 and 9876), or open it on a machine with a "
+                                         "screen")
+    port = _free_port()
+    cmd = [_rerun_executable(), "--port", str(port), str(rrd)]
     env = {**os.environ, "RERUN_APP_ONLY": "true"}
+    frame = _opening_frame_beside(rrd)
     if not wait:
         return subprocess.Popen(cmd, env=env)
-    return run_child(cmd, env=env)
+    return run_child(cmd, env=env, on_start=None if frame is None else lambda: move_cursor(port, frame))
 
 
-def run_child(cmd: list[str], env: dict | None = None, grace_s: float = 5.0) -> int:
+def _free_port() -> int:
+    """A TCP port free on this machine now (for the viewer's server, which :func:`move_cursor` talks to)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _opening_frame_beside(rrd: Path) -> int | None:
+    """The opening frame of the result folder holding ``rrd`` (its summary.json), or None."""
+    try:
+        frame = json.loads((rrd.parent / "summary.json").read_text(encoding="utf-8")).get("opening_frame")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return frame if isinstance(frame, int) else None
+
+
+def move_cursor(port: int, frame: int, timeout_s: float = 30.0) -> bool:
+    """Move the time cursor of the viewer listening on ``port`` to ``frame`` (paused) once it shows a recording;
+    False when that cannot be done within ``timeout_s`` (a viewer without the control API, or gone)."""
+    try:
+        from rerun.experimental import ViewerClient
+    except ImportError:  # an older rerun: the recording opens on its first frame
+        return False
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            client = ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
+            if client.get_state().recordings:
+                client.set_time("frame", sequence=int(frame), play_state="paused")
+                return True
+        except Exception:  # noqa: BLE001 - the viewer is still starting or loading: ask again
+            pass
+        time.sleep(0.25)
+    return False
+
+
+def run_child(cmd: list[str], env: dict | None = None, grace_s: float = 5.0, on_start=None) -> int:
     """Run ``cmd`` to completion, passing SIGINT/SIGTERM on to it; it is always reaped, never orphaned.
 
     The child gets its own process group, so a Ctrl-C in the terminal reaches it once, through this
     process. On a signal the child has ``grace_s`` to exit, then it is killed; then the signal takes
     effect here (KeyboardInterrupt for SIGINT, SystemExit(128 + signum) otherwise). Returns the
     child's exit code when it ends by itself. (Signal handlers can only be set from the main thread;
-    elsewhere the child is still killed when the wait is interrupted.)
+    elsewhere the child is still killed when the wait is interrupted.) on_start: called once the child runs,
+    in a thread of its own (e.g. :func:`move_cursor`).
     """
     import signal
     import threading
-    import time
 
     proc = subprocess.Popen(cmd, env=env, start_new_session=True)
+    if on_start is not None:
+        threading.Thread(target=on_start, name="batgraph viewer control", daemon=True).start()
     received: list[int] = []
 
     def forward(signum, _frame):

@@ -20,7 +20,7 @@ from batgraph.camera import Camera, Rig
 from batgraph.motion import CHI2_3DOF_95
 from batgraph.report import render_report, write_report
 from batgraph.session import Session
-from batgraph.summary import summarize
+from batgraph.summary import Summary, summarize
 
 MARKERS = ["body2", "shoulder_r", "elbow_r", "wrist_r", "digit3_r", "tail"]
 
@@ -98,6 +98,11 @@ def make_scene(n_cams=3, n_frames=48, markers=MARKERS, fps=120.0, methods=("smoo
     rep = pd.concat(reps, ignore_index=True)
     summary = summarize(session, traj, rep, runtimes={m: 0.1 * (k + 1) for k, m in enumerate(methods)})
     return session, traj, rep, summary
+
+
+def typed(session, traj, rep, summary: dict | None = None) -> Summary:
+    """The Summary the report draws: ``summary`` (summary.json's dict) typed, or computed from the tables."""
+    return Summary.from_json(summary if summary is not None else summarize(session, traj, rep))
 
 
 class _Collector(HTMLParser):
@@ -203,20 +208,20 @@ def test_truth_metrics_on_a_known_offset():
 
 
 def test_full_report_has_every_section_and_is_self_contained(tmp_path):
-    """Truth and a reference present: 7 figures, the verdict first, per-camera rows, no external links; every
-    number in a table is summary.json's."""
+    """Truth and a reference present: 8 figures (the animal, the data map and 6 more), the verdict first,
+    per-camera rows, no external links; every number in a table is summary.json's."""
     session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"))
     session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)  # a DLTdv-like reference
     summary = summarize(session, traj, rep)
-    path = write_report(tmp_path / "out" / "report.html", session, traj, rep, summary)
+    path = write_report(tmp_path / "out" / "report.html", session, traj, rep, typed(session, traj, rep, summary))
     text = path.read_text(encoding="utf-8")
     assert list(tmp_path.joinpath("out").iterdir()) == [path]  # atomic: no temporary left behind
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table",
                           "truth", "reference"]
-    assert len(p.figures) == 7 and not p.imgs
+    assert len(p.figures) == 8 and not p.imgs
     svgs = figure_svgs(text)
-    assert len(svgs) == 7
+    assert len(svgs) == 8
     for fig in svgs:  # every figure draws something: paths (lines, points, bands) and texts (ticks, labels)
         assert len(fig.findall(".//path")) >= 5 and len(fig.findall(".//text")) >= 5
     clip_ids = re.findall(r'<clipPath id="([^"]+)"', text)
@@ -264,14 +269,16 @@ def figure_svgs(text: str) -> list:
 
 def test_figures_keep_their_texts_inside_their_canvas():
     """Every text of every figure (ticks, labels, titles, legends), at its estimated width, lies inside its
-    figure's canvas, also with 12 cameras and a long marker name: nothing is cut off at the figure's edge."""
+    figure's canvas, also with 12 cameras and a long marker name, and with one marker (a figure as narrow as its
+    one legend entry): nothing is cut off at the figure's edge."""
     from batgraph.svg import text_width
 
-    for kw in ({}, {"n_cams": 12, "markers": MARKERS[:-1] + ["a_rather_long_marker_name_on_the_tail"]}):
+    for kw in ({}, {"n_cams": 12, "markers": MARKERS[:-1] + ["a_rather_long_marker_name_on_the_tail"]},
+               {"markers": ["body2"]}):
         session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf", "triangulate"), **kw)
         session.reference = session.truth.assign(x=session.truth["x"] + 0.0005)
-        svgs = figure_svgs(render_report(session, traj, rep, None))
-        assert len(svgs) == 7
+        svgs = figure_svgs(render_report(session, traj, rep, typed(session, traj, rep)))
+        assert len(svgs) == 8
         for fig in svgs:
             w, h = float(fig.get("width")), float(fig.get("height"))
             for t in fig.iter("text"):
@@ -299,10 +306,10 @@ def test_paper_figures_only_for_a_declared_paper_scene(tmp_path):
     """A session named like the paper's ear experiment gets no paper column; one that declares
     ``[paper] experiment = "flight"`` gets the flight figures."""
     session, traj, rep, _ = make_scene(n_cams=2, methods=("smoother", "ekf"), name="ear_session")
-    p = parse(render_report(session, traj, rep, summarize(session, traj, rep)))
+    p = parse(render_report(session, traj, rep, typed(session, traj, rep)))
     assert "paper (published)" not in table(p, "cameras")[0]
     session.extra_toml = {"paper": {"experiment": "flight"}}
-    p = parse(render_report(session, traj, rep, summarize(session, traj, rep)))
+    p = parse(render_report(session, traj, rep, typed(session, traj, rep)))
     cams = [r for r in table(p, "cameras")[1:] if r[0] in session.rig.names]
     assert cams[0][-1] == "< 3 mm" and cams[1][-1] == "< 20 mm"
 
@@ -314,10 +321,11 @@ def test_report_without_truth_or_reference_omits_those_sections(tmp_path):
     session.truth = None
     traj.loc[traj["method"] == "triangulate", ["x", "y", "z"]] = np.nan
     rep = rep[rep["method"] == "filter"]
-    text = write_report(tmp_path / "report.html", session, traj, rep, None).read_text(encoding="utf-8")
+    text = write_report(tmp_path / "report.html", session, traj, rep, typed(session, traj, rep)).read_text(
+        encoding="utf-8")
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
-    assert len(p.figures) == 5
+    assert len(p.figures) == 6
     assert "Errors against truth" not in text and "reference reconstruction" not in text.split("</nav>")[0]
     cams = table(p, "cameras")[1:]
     assert [r[0] for r in cams] == ["cam1", "cam2"]
@@ -331,7 +339,7 @@ def test_report_shows_summary_numbers_as_given(tmp_path):
     summary["methods"]["smoother"]["reprojection"]["cam2"]["mean_px"] = 123.456
     summary["methods"]["ukf"]["truth"]["rmse_m"]["observed/inside"] = 0.04321
     summary["methods"]["ukf"]["truth"]["coverage95"]["observed/inside"] = 0.5
-    p = parse(render_report(session, traj, rep, summary))
+    p = parse(render_report(session, traj, rep, typed(session, traj, rep, summary)))
     cams = table(p, "cameras")[1:]
     row = next(i for i, r in enumerate(cams) if r[0] == "cam2")
     assert cams[row][1] == "smoother" and cams[row][5] == "123.46"
@@ -347,20 +355,20 @@ def test_report_says_when_the_track_ends_were_widened(tmp_path):
     info["track_ends"] = {"backtest_frames": 8, "markers": 14, "samples": 201, "median_ratio": 2.1887,
                           "p95_ratio": 3.0412, "growth_per_frame": 0.3678, "widened_points": 44, "ray_samples": 100,
                           "ray_p95_ratio": 2.7607, "ray_growth_per_frame": 0.3647, "widened_single_view_points": 67}
-    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, typed(session, traj, rep, summary)))
     assert ("checked its extrapolation on 14 tracks (their first and last 8 frames hidden) and widened the "
             "covariances of the 44 unseen points at the track ends by 1 + 0.368 h (the 95th percentile of the squared "
             "errors was 3.04x what its covariances said) and the variance along the ray of the 67 points seen by one "
             "camera there by 1 + 0.365 h (the errors along those cameras' rays: 2.76x), h the distance") in text
     info["track_ends"].update(depth_floored_points=12, ray_p95_ratio=None)  # floored; no backtest along the rays
-    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, typed(session, traj, rep, summary)))
     assert ("the variance along the ray of the 67 points seen by one camera there (12 of them first raised to the "
             "variance the solve gives them without that view) by 1 + 0.365 h, h the distance") in text
     info["track_ends"].update(widened_single_view_points=0)
-    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, summary))
+    text = re.sub(r"<[^>]+>", "", render_report(session, traj, rep, typed(session, traj, rep, summary)))
     assert "said), h the distance" in text and "along the ray" not in text
     info["track_ends"].update(growth_per_frame=0.0, widened_points=0, widened_single_view_points=0)
-    assert "checked its extrapolation" not in render_report(session, traj, rep, summary)
+    assert "checked its extrapolation" not in render_report(session, traj, rep, typed(session, traj, rep, summary))
 
 
 def test_degenerate_inputs_still_render(tmp_path):
@@ -368,11 +376,11 @@ def test_degenerate_inputs_still_render(tmp_path):
     and the truth section (nothing to compare) is left out."""
     session, traj, rep, _ = make_scene(n_cams=2, n_frames=12, methods=("smoother",))
     traj[["x", "y", "z"]] = np.nan
-    text = render_report(session, traj, rep.iloc[:0], None)
+    text = render_report(session, traj, rep.iloc[:0], typed(session, traj, rep.iloc[:0]))
     p = parse(text)
     assert p.sections == ["verdict", "overview", "trajectories", "ellipses", "features", "coordinates", "table"]
     assert len(p.figures) == 1  # the marker x frame map: where the data are, even without an estimate
-    assert text.count("No data to draw") == 4
+    assert text.count("No data to draw") == 5  # the animal too
     assert "No reprojection errors." in text
 
 
@@ -386,3 +394,50 @@ def test_per_camera_figures_draw_at_most_ten_panels_and_say_which():
     assert len(drawn) == MAX_CAMERA_PANELS == 10 and drawn[0] == "cam1" and drawn[-1] == "cam30"
     assert len(set(drawn)) == 10 and "10 of the 30 cameras" in note and "cam30" in note
     assert _panel_cameras(names[:10]) == (names[:10], "")
+
+
+def test_section_titles_are_unique_and_the_paper_is_cited_in_full():
+    """Each section has its own title (the figure of residual ellipses and the per-camera table were both
+    "Reprojection error per camera"), and the paper is cited by authors and title, never by a file name."""
+    import html
+
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf"))
+    session.extra_toml = {"paper": {"experiment": "flight"}}
+    text = render_report(session, traj, rep, typed(session, traj, rep))
+    titles = [re.sub(r"\s*\(.*\)$", "", t) for t in re.findall(r"<h2>(.*?)</h2>", text)]  # without remarks
+    assert len(titles) >= 7 and len(titles) == len(set(titles)), titles
+    plain = html.unescape(re.sub(r"<[^>]+>", "", text))
+    assert "M. J. Bender, H. G. McClelland, G. Bledt, A. Kurdila, T. Furukawa and R. Müller" in plain
+    assert "Trajectory Estimation of Bat Flight Using a Multi-View Camera System" in plain and "AIAA" in plain
+    assert not re.search(r"PAPER\.md|CONTRACT\.md", text)
+
+
+def test_3d_panels_are_readable_with_26_markers():
+    """26 markers: the 3D figure's panels are at least 500 px wide, its legend names every marker, and no two
+    markers are drawn alike (colour and dash)."""
+    from batgraph.report import _marker_styles
+
+    names = [f"marker_{i:02d}" for i in range(26)]
+    session, traj, rep, _ = make_scene(methods=("smoother", "ekf", "ukf"), markers=names)
+    (fig,) = [f for f in figure_svgs(render_report(session, traj, rep, typed(session, traj, rep)))
+              if f.get("aria-label") == "3D trajectories per method"]
+    texts = {t.text for t in fig.iter("text")}
+    assert set(names) <= texts
+    widths = [float(r.get("width")) for clip in fig.iter("clipPath") for r in clip.iter("rect")]  # the panels
+    assert len(widths) == 3 and min(widths) >= 500, widths
+    styles = _marker_styles(names)
+    assert len({(s["colour"], s["dash"]) for s in styles}) == 26
+
+
+def test_the_first_screen_shows_the_animal_with_names_on_hover():
+    """The verdict's section draws the verdict method's markers on the opening frame, each dot titled with its
+    marker's name (a browser shows it on hover), beside the headlines."""
+    session, traj, rep, summary = make_scene(methods=("smoother", "ekf"))
+    s = typed(session, traj, rep, summary)
+    assert s.opening_frame is not None
+    text = render_report(session, traj, rep, s)
+    verdict = text.split('<section id="overview">')[0]
+    (fig,) = [f for f in figure_svgs(verdict) if f.get("aria-label") == "the animal on its first well-seen frame"]
+    titles = [t.text for t in fig.iter("title")]
+    assert set(titles) <= set(MARKERS) and len(titles) >= 4
+    assert f"on frame {s.opening_frame} " in "".join(t.text or "" for t in fig.iter("text"))

@@ -51,32 +51,67 @@ def in_group(t, group: str) -> np.ndarray:
     return (t[column] == group).to_numpy()
 
 
-def test_comparison_is_on_the_points_every_method_estimates(flight):
-    """Each group's n and each method's RMSE equal a direct recomputation on the intersection of the
-    (frame, marker) pairs the group's methods estimate."""
+def _keys(traj, method: str, group: str) -> set:
+    t = traj[traj["method"] == method]
+    t = t[in_group(t, group) & np.isfinite(t["x"].to_numpy())]
+    return set(zip(t["frame"], t["marker"], strict=True))
+
+
+def _rmse(traj, truth, method: str, keys: set) -> float:
+    t = traj[traj["method"] == method].set_index(["frame", "marker"]).loc[sorted(keys)]
+    d = t[["x", "y", "z"]].to_numpy() - truth.loc[sorted(keys), ["x", "y", "z"]].to_numpy()
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+
+def test_comparison_is_on_the_points_of_the_verdicts_method(flight):
+    """Each group's n is the smoother's points there; a method that estimates all of them has its RMSE on exactly
+    those, one that estimates some has its count; and the common row is every method on the points they all
+    estimate. Each figure equals a direct recomputation from the trajectories' rows."""
     session, result = flight
     traj, truth = result.trajectories, session.truth.set_index(["frame", "marker"])
     comp = result.summary["comparison"]
-    assert comp["against"] == "truth"
-    checked = 0
+    assert comp["against"] == "truth" and comp["use"] == "smoother"
+    checked = partial = 0
     for group, gc in comp["groups"].items():
-        keys = None
-        for m in gc["values"]:
-            t = traj[traj["method"] == m]
-            t = t[in_group(t, group) & np.isfinite(t["x"].to_numpy())]
-            k = set(zip(t["frame"], t["marker"], strict=True))
-            keys = k if keys is None else keys & k
-        assert gc["n"] == len(keys), group
+        base = _keys(traj, "smoother", group)
+        assert gc["n"] == len(base), group
         for m, v in gc["values"].items():
-            t = traj[traj["method"] == m].set_index(["frame", "marker"]).loc[sorted(keys)]
-            d = t[["x", "y", "z"]].to_numpy() - truth.loc[sorted(keys), ["x", "y", "z"]].to_numpy()
-            assert v["rmse_m"] == pytest.approx(np.sqrt(np.mean(np.sum(d**2, axis=1))), rel=1e-9), (group, m)
+            mine = _keys(traj, m, group) & base
+            assert gc["estimated"][m] == len(mine) > 0, (group, m)
+            if v is None:
+                assert len(mine) < len(base)
+                partial += 1
+                continue
+            assert mine == base
+            assert v["rmse_m"] == pytest.approx(_rmse(traj, truth, m, base), rel=1e-9), (group, m)
             checked += 1
-    assert checked >= 10
+        if gc["common"] is not None:
+            both = set.intersection(*(_keys(traj, m, group) & base for m in gc["values"]))
+            assert gc["common"]["n"] == len(both) < len(base)
+            for m, v in gc["common"]["values"].items():
+                assert v["rmse_m"] == pytest.approx(_rmse(traj, truth, m, both), rel=1e-9), (group, m)
+    assert checked >= 10 and partial >= 1
     # triangulation estimates no point seen by one camera: it is left out of that group, not zeroed
     if "single_view/inside" in comp["groups"]:
         assert "triangulate" not in comp["groups"]["single_view/inside"]["values"]
     assert set(comp["groups"]["observed/inside"]["values"]) == {"smoother", "filter", "ekf", "triangulate"}
+
+
+def test_each_headline_is_the_tables_figure_on_the_same_points(flight):
+    """One headline per kind of point, seen by >= 2 cameras first, each with the n and the figure of the verdict
+    method's own truth statistics and of the comparison table (track ends: the smoother's n, not the points every
+    method estimates)."""
+    _, result = flight
+    s = Summary.from_json(result.summary)
+    truth = result.summary["methods"]["smoother"]["truth"]
+    lines = s.verdict.headlines
+    labels = [g for g in HEADLINE_GROUPS if truth["n_estimated"][g]]
+    assert len(lines) == len(labels) and lines[0].startswith("seen by >= 2 cameras")
+    for line, g in zip(lines, labels, strict=True):
+        n, rmse = truth["n_estimated"][g], truth["rmse_m"][g]
+        assert line.startswith(f"{HEADLINE_GROUPS[g]} (n={n}): RMSE {1000 * rmse:.2f} mm"), line
+        gc = s.comparison.groups[g]
+        assert gc.n == n and gc.values["smoother"]["rmse_m"] == pytest.approx(rmse, rel=1e-12)
 
 
 def test_summary_json_round_trip(flight):
@@ -120,34 +155,32 @@ def _ranking(values: dict[str, float]) -> list[str]:
     return sorted(values, key=values.get)
 
 
-def test_terminal_and_report_show_the_same_numbers_and_ranking(flight):
+def test_terminal_and_report_show_the_same_rows(flight):
+    """The terminal's comparison table and the report's are the same rows, cell for cell (one text for both,
+    batgraph.summary.comparison_rows), and the verdict's headlines appear in both."""
     session, result = flight
     lines = summary_lines(result.summary)
-    methods = list(result.summary["methods"])
-    header = next(i for i, line in enumerate(lines) if line.strip().startswith("n "))
-    terminal = {}
-    for line in lines[header + 1:]:
-        for label in HEADLINE_GROUPS.values():
-            if line.startswith(label):
-                cells = re.findall(r"(\d+\.\d+|not estimated)(?: \(\d+%\))?", line[27 + 6:])
-                terminal[label] = dict(zip(methods, cells, strict=False))
+    methods = result.summary["comparison"]["methods"]
+    header = next(i for i, line in enumerate(lines) if line.split()[:1] == ["n"])
+    assert lines[header].split() == ["n", *methods]
+    terminal = [re.split(r"\s{2,}", line.strip()) for line in lines[header + 1:] if not line.startswith("runtime")]
     p = _Tables()
-    p.feed(render_report(session, result.trajectories, result.reprojection, result.summary))
-    report = {r[0]: dict(zip(p.tables["compare"][0][2:], [c.split(" (")[0] for c in r[2:]], strict=True))
-              for r in p.tables["compare"][1:]}
-    assert terminal, lines
-    for label, vals in terminal.items():
-        assert vals == {m: report[label][m] for m in vals}, label
-        finite = {m: float(v) for m, v in vals.items() if v != "not estimated"}
-        assert _ranking(finite) == _ranking({m: float(report[label][m]) for m in finite})
-    # and on points seen twice the smoother ranks first on this scene (the point of comparing like for like)
-    assert _ranking({m: float(v) for m, v in terminal["seen by >= 2 cameras"].items()})[0] == "smoother"
+    p.feed(render_report(session, result.trajectories, result.reprojection, Summary.from_json(result.summary)))
+    report = [[c for c in row if c != ""] for row in p.tables["compare"][1:]]
+    assert terminal == report
+    assert any(r[0] == "track ends (extrapolated)" for r in terminal)
+    for h in result.summary["verdict"]["headlines"]:
+        assert f"  {h}" in lines
+    # on points seen twice the smoother ranks first on this scene (the point of comparing on the same points)
+    observed = dict(zip(methods, terminal[0][2:], strict=True))
+    assert min(observed, key=lambda m: float(observed[m].split()[0])) == "smoother"
 
 
 def test_outlier_warning_above_five_percent():
     ok = {"reprojection": {"a": {"n": 96, "n_outliers": 4}, "b": {"n": 90, "n_outliers": 10}}}
     w = outlier_warnings(ok, "smoother")
-    assert len(w) == 1 and w[0].startswith("camera b: the smoother flagged 10 of its 100 observations (10 %)")
+    assert len(w) == 1 and w[0].text.startswith("camera b: 10 % of its observations are outliers: check")
+    assert "flagged 10 of the 100 observations" in w[0].details
     assert 4 / 100 < OUTLIER_WARN_FRACTION < 10 / 100
 
 

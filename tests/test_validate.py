@@ -17,7 +17,8 @@ from batgraph.errors import InputError
 from batgraph.result import Options
 from batgraph.session import read_session, write_session
 from batgraph.simulate import simulate_flight
-from batgraph.validate import COLUMNS, POOLED, held_out_session, validate_session
+from batgraph.validate import held_out_session, validate_session
+from batgraph.validation_table import COLUMNS, POOLED
 
 REAL = Path(__file__).parents[2] / "shared/data/real/pose2sim_demo_4cam_human"
 REAL_TRIAL = REAL / "S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial"
@@ -97,11 +98,11 @@ def test_a_shifted_camera_has_by_far_the_largest_held_out_error():
 def test_folds_reuse_the_full_runs_pixel_noise_and_a_failing_fold_is_reported(monkeypatch):
     """Folds take the pixel noise from the full run's summary (a dict per camera, or a number) instead of
     re-estimating it; a fold whose run raises is reported as failed for its camera, the others go on."""
-    import batgraph.pipeline as pipeline
+    import batgraph.validate as validate
 
     s = _flight(seed=1, n_frames=20)
     seen = {}
-    real = pipeline.run_methods
+    real = validate.run_methods
 
     def fake(session, methods, options, live=None):
         missing = sorted(set(s.rig.names) - set(session.observations["camera"]))
@@ -111,7 +112,7 @@ def test_folds_reuse_the_full_runs_pixel_noise_and_a_failing_fold_is_reported(mo
             raise InputError("session x: a self-check failed")
         return real(session, methods, options)
 
-    monkeypatch.setattr(pipeline, "run_methods", fake)
+    monkeypatch.setattr(validate, "run_methods", fake)
     sigma = {c: 0.5 + i for i, c in enumerate(s.rig.names)}
     v = validate_session(s, ["triangulate"], QUIET, summary={"pixel_sigma_px": sigma}, workers=1)
     assert seen == {c: sigma for c in s.rig.names}

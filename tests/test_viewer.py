@@ -345,27 +345,102 @@ def _blueprint_rows(path) -> dict[str, list[dict]]:
 
 
 def test_recording_opens_on_the_smoother_with_the_others_hidden(written, scene):
-    """Blueprint: every method but the smoother hidden (3D and each camera's reprojections), the frame
-    timeline paused (so the viewer opens on the first frame), marker names drawn for one method only."""
+    """Blueprint: every method but the smoother hidden (3D and each camera's reprojections), and the smoother's
+    track ends; the frame timeline paused; the 3D eye aimed at the animal on the opening frame; marker names on
+    hover only, but for a few markers of one method; an image border in every camera's view."""
     from rerun.blueprint.components import PlayState
 
     _, path, ents = written
+    session, _, traj, _ = scene
     bp = _blueprint_rows(path)
     hidden = {p.split("/ViewContents/overrides", 1)[1].removesuffix("/visualizers")
               for p, rows in bp.items() if "/ViewContents/overrides/" in p
               and any(r.get("EntityBehavior:visible") == [False] for r in rows)}
-    cams = scene[0].rig.names
-    assert hidden == {"/world/triangulate"} | {f"/world/cameras/{c}/image/reproj/triangulate" for c in cams}
+    cams = session.rig.names
+    assert hidden == ({"/world/triangulate", "/world/smoother/track_ends"}
+                      | {f"/world/cameras/{c}/image/reproj/triangulate" for c in cams})
     panel = {k: v for r in bp["/time_panel"] for k, v in r.items() if v is not None}
     assert panel["TimePanelBlueprint:timeline"] == ["frame"]
     assert panel["TimePanelBlueprint:play_state"] == [PlayState.Paused.value]
     assert panel["TimePanelBlueprint:fps"] == [FPS]
     views = [p for p in bp if p.startswith("/view/") and p.count("/") == 2]
     assert len(views) == 1 + len(cams)  # 3D and one 2D view per camera (detections + reprojections)
+    eye = {k: v for p, rows in bp.items() if p.endswith("/EyeControls3D") for r in rows for k, v in r.items()
+           if v is not None}
+    f = viewer.focus(session, traj)
+    np.testing.assert_allclose(eye["EyeControls3D:look_target"][0], f.centre, atol=1e-5)
 
-    def labels(method):
-        return [r["Points3D:show_labels"] for r in ents[f"/world/{method}/markers"] if r.get("Points3D:show_labels")]
-    assert labels("smoother") == [[True]] and labels("triangulate") == [[False]]
+    def labels(entity):
+        return [r["Points3D:show_labels"] for r in ents[entity] if r.get("Points3D:show_labels")]
+    assert labels("/world/smoother/markers") == [[False]] and labels("/world/triangulate/markers") == [[False]]
+    assert labels("/world/smoother/names") == [[True]] and "/world/triangulate/names" not in ents
+    named = _by_frame(ents["/world/smoother/names"], "Points3D:class_ids")
+    assert all(1 <= len(ids) <= viewer.NAMED_MARKERS for ids in named.values())
+    for cam in cams:
+        (border,) = [r for r in ents[f"/world/cameras/{cam}/image/border"] if r.get("LineStrips2D:strips")]
+        w, h = session.rig[cam].size_wh
+        assert border["LineStrips2D:strips"][0][2] == [w - 0.5, h - 0.5]
+
+
+def test_track_ends_are_logged_apart_and_the_recording_names_its_opening_frame(scene, tmp_path):
+    """Points outside a marker's span (here 'tip' on frames 0-2, seen by one camera: extrapolated) go to
+    world/{method}/track_ends, not to the markers, skeleton or trails; the recording's properties and its eye
+    name the opening frame: the first where nearly every marker is seen by >= 2 cameras."""
+    session, dense, traj, reproj = scene
+    traj = traj.copy()
+    early_tip = (traj["marker"] == "tip") & (traj["frame"] <= 2)
+    traj.loc[early_tip, "n_views"] = 1
+    traj.loc[(traj["frame"] == 0), "n_views"] = 1  # frame 0: no marker seen twice
+    path = viewer.write_recording(tmp_path / "recording.rrd", session, dense, traj, reproj, trail_frames=3)
+    ents = _read(path)
+    tip = MARKERS.index("tip")
+    markers = _by_frame(ents["/world/smoother/markers"], "Points3D:class_ids")
+    ends = _by_frame(ents["/world/smoother/track_ends/markers"], "Points3D:class_ids")
+    assert all(tip not in markers.get(f, []) for f in range(3)) and all(tip in markers[f] for f in range(3, 10))
+    assert sorted(ends[0]) == list(range(len(MARKERS))) and [ends[f] for f in (1, 2)] == [[tip], [tip]]
+    assert not any(ends.get(f) for f in range(3, 10))
+    props = [r for p, rows in ents.items() if p.startswith("/__properties") for r in rows]
+    # frames 1-2 have 3 of the 4 markers seen twice, under 90 % of the most on any frame (4, from frame 3 on)
+    assert any(r.get("opening_frame") == [3] for r in props), props
+    assert viewer.focus(session, traj).frame == 3
+
+
+@pytest.mark.slow
+def test_a_headless_viewer_opens_the_recording_on_its_opening_frame(tmp_path):
+    """A real Rerun viewer (headless: a software rasterizer such as Mesa's lavapipe is enough) shown the bundled
+    sample's recording, its cursor moved as `batgraph view` moves it: it stands on summary.json's opening frame,
+    and its screenshot of the 3D view is not blank. Skipped where no viewer can start (no graphics driver)."""
+    from pathlib import Path
+
+    from batgraph.pipeline import reconstruct
+    from batgraph.result import Options
+
+    try:
+        from rerun.experimental import ViewerClient
+    except ImportError:
+        pytest.skip("this rerun-sdk has no viewer control API")
+    sample = Path(__file__).parents[1] / "data" / "samples" / "flight_5cam"
+    result = reconstruct(sample, tmp_path / "out", ["smoother"], Options(progress=False), viewer="save")
+    frame = result.summary["opening_frame"]
+    assert frame is not None and frame > 0  # the sample's first frames are seen by one camera only
+    port = viewer._free_port()
+    try:
+        client = ViewerClient.spawn(headless=True, port=port, executable_path=viewer._rerun_executable(),
+                                    hide_welcome_screen=True)
+    except Exception as e:  # noqa: BLE001 - no graphics adapter here
+        pytest.skip(f"no headless Rerun viewer here: {e}")
+    try:
+        client.open(str(tmp_path / "out" / "recording.rrd"))
+        assert viewer.move_cursor(port, frame, timeout_s=60)
+        (rec,) = client.get_state().recordings
+        assert rec.current_timeline == "frame" and rec.current_time == frame
+        time.sleep(1.0)
+        client.save_screenshot(str(tmp_path / "viewer.png"))
+    finally:
+        client.quit()
+    image = cv2.imread(str(tmp_path / "viewer.png"))
+    assert image is not None and image.shape[1] >= 1000
+    assert float(image.std()) > 10.0
 
 
 # ----- `batgraph view`: the rerun child process -------------------------------------------------------
@@ -416,7 +491,8 @@ def test_view_passes_signals_on_and_never_leaves_the_viewer_running(tmp_path, si
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="display detection is X11/Wayland specific")
 def test_view_without_display_names_no_option_it_does_not_have(tmp_path, monkeypatch, capsys):
-    """`batgraph view` has no --viewer option: its message must not suggest one."""
+    """`batgraph view` has no --viewer option: its message must not suggest one; it says how to use Rerun's web
+    viewer instead, with a flag the installed rerun has."""
     from batgraph.cli import main
 
     monkeypatch.delenv("DISPLAY", raising=False)
@@ -424,4 +500,8 @@ def test_view_without_display_names_no_option_it_does_not_have(tmp_path, monkeyp
     (tmp_path / "recording.rrd").write_bytes(b"")
     assert main(["view", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "no display" in err and "--" not in err.replace(str(tmp_path), "")
+    assert "no display" in err and "--viewer" not in err and len(err.strip().splitlines()) == 1
+    assert f"rerun --web-viewer {tmp_path / 'recording.rrd'}" in err
+    helped = subprocess.run([viewer._rerun_executable(), "--help"], capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "RERUN_APP_ONLY": "true"})
+    assert "--web-viewer" in helped.stdout
