@@ -31,9 +31,9 @@ from . import forked
 from . import methods as methods_registry
 from .errors import InputError
 from .formats.csv_text import write_csv
-from .solver import threads as kernels
 from .pipeline import DEFAULT_METHODS, reconstruct
 from .result import Options
+from .solver import threads as kernels
 
 STATUSES = ("ok", "input error", "failed")
 SUMMARY_FILE = "batch_summary.csv"

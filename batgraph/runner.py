@@ -20,12 +20,12 @@ from . import checks, evaluate, forked
 from . import summary as summary_mod
 from .filters.ekf import run_ekf
 from .filters.ukf import run_ukf
-from .solver.filter import run as run_filter
-from .solver.schedule import run_smoother
 from .measurement import IdealObservations
 from .methods import get as get_method
 from .result import Estimate, Options
 from .session import DenseObservations, Session, dense_observations
+from .solver.filter import run as run_filter
+from .solver.schedule import run_smoother
 from .triangulate import run as run_triangulate
 
 RunFunction = Callable[..., Estimate]

@@ -27,10 +27,10 @@ from tqdm.auto import tqdm
 
 from . import forked
 from .evaluate import status_of
-from .solver import threads as kernels
 from .result import Options
 from .runner import run_methods
 from .session import Session
+from .solver import threads as kernels
 from .validation_table import Validation, empty_points, mark_subsets, summarise
 
 
