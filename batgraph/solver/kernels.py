@@ -144,7 +144,7 @@ def rows_system(x, rows, P, behind, robust: int, k: float, exact, jacobian: bool
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, r, J, w, p, dp,
+def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, r, J, w, a, p, dp,
                inv):  # pragma: no cover
     """:func:`row_terms` for rows lo..hi-1."""
     F = x.shape[0]
@@ -157,20 +157,20 @@ def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, 
         r[i, 0], r[i, 1], inv[i] = _project(P, cam[i], p[i], uv[0, i], uv[1, i], Linv[0, i], Linv[1, i],
                                             Linv[2, i], behind[cam[i]], Jr)
         J[i] = Jr
-        w[i] = rho_w(r[i, 0] ** 2 + r[i, 1] ** 2, robust, k)[1]
+        _, w[i], a[i] = rho_w(r[i, 0] ** 2 + r[i, 1] ** 2, robust, k)
 
 
 def row_terms(x, rows, P, behind, robust: int, k: float) -> dict:
     """Per row (n rows): the whitened residual r (n, 2), its whitened Jacobian in the world point J (n, 2, 3)
-    [1/m], the IRLS weight w (n,), the point p (n, 3) [m], dp/ds (n, 3) [m per frame] along its time, and the
-    inverse depth inv (n,) [1/m] (0 behind the camera). Arguments as :func:`rows_system`'s (rows placed, with
-    ``dW``)."""
+    [1/m], the IRLS weight w (n,) and curvature factor a (n,) (:func:`rho_w`), the point p (n, 3) [m], dp/ds
+    (n, 3) [m per frame] along its time, and the inverse depth inv (n,) [1/m] (0 behind the camera). Arguments as
+    :func:`rows_system`'s (rows placed, with ``dW``)."""
     n = len(rows.k)
-    out = {"r": np.empty((n, 2)), "J": np.empty((n, 2, 3)), "w": np.empty(n), "p": np.empty((n, 3)),
+    out = {"r": np.empty((n, 2)), "J": np.empty((n, 2, 3)), "w": np.empty(n), "a": np.empty(n), "p": np.empty((n, 3)),
            "dp": np.empty((n, 3)), "inv": np.empty(n)}
     split(n, MIN_PART_ROWS, lambda lo, hi: _row_terms(lo, hi, x, rows.marker, rows.k, rows.W, rows.dW, rows.cam, P,
                                                        rows.uv, rows.Linv, behind, robust, k, out["r"], out["J"],
-                                                       out["w"], out["p"], out["dp"], out["inv"]))
+                                                       out["w"], out["a"], out["p"], out["dp"], out["inv"]))
     return out
 
 

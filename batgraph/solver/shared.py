@@ -38,7 +38,9 @@ from .problem import derivatives
 PRIOR_SD_S = 0.01  # [s]: the corrections' prior (weak: offsets of a synchronised-to-a-frame rig are < 5 ms)
 MAX_STEPS = 50
 TRACE = False
-STEP_TOL_S = 1e-7  # [s]: converged when every correction moves by less
+# Converged when the model's predicted decrease is below this [nats of the cost]: the variables then sit within a
+# small fraction of their posterior standard deviation of the minimum (a decrease of 0.5 per standard deviation).
+DECREMENT_TOL = 0.01
 
 
 KINDS = ("offset", "readout", "pose")
@@ -185,8 +187,10 @@ class Linear:
     Y: np.ndarray
 
 
-def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared) -> Linear:
-    """The shared variables' gradient, Hessian, Schur complement and Y at ``fit`` (IRLS weights)."""
+def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared, exact: bool = False) -> Linear:
+    """The shared variables' gradient, Hessian, Schur complement and Y at ``fit``: the rows' curvature the robust
+    loss's own with ``exact`` (the steps: IRLS's overstates it past Huber's k, and the steps then crawl), IRLS's
+    without (the covariances, as everywhere)."""
     F, M = setup.shape
     n = shared.n
     g, H, S = np.zeros(n), np.zeros((n, n)), np.zeros((n, n))
@@ -194,10 +198,10 @@ def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared) -> Linear:
     for name, ms, group in _units(setup, fit):
         prob = setup.problem(ms, name, np.ones(len(ms)))
         x = np.ascontiguousarray(fit.state[:, ms, :prob.d])
-        Hxt, gu, Hu = _row_terms(prob, x, shared, setup)
+        Hxt, gu, Hu = _row_terms(prob, x, shared, setup, exact)
         g += gu
         H += Hu
-        y = _solve_x(prob, x, group, Hxt, setup, fit)
+        y = _solve_x(prob, x, group, Hxt, setup, fit, exact)
         Y[:, ms, :prob.d] = y
         S -= np.einsum("fmin,fmio->no", Hxt, y)
     S += H
@@ -217,24 +221,29 @@ def _units(setup: fit_mod.Setup, fit: fit_mod.Fit):
         yield fit.models[members[0]], members, seg_ids
 
 
-def _row_terms(prob, x, shared: Shared, setup):
-    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (IRLS weights)."""
+def _row_terms(prob, x, shared: Shared, setup, exact: bool):
+    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature)."""
     rows = prob.rows
     t = kernels.row_terms(x, rows, prob.cams.P, prob.cams.behind, prob.loss.code, float(prob.loss.k))
     cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
     w, r, J = t["w"], t["r"], t["J"]
+    Wr = w[:, None, None] * np.eye(2)  # each row's curvature in its whitened residual (n_rows, 2, 2)
+    if exact:
+        d2 = np.einsum("ni,ni->n", r, r)
+        f = np.where(d2 > 0, w * t["a"] / np.where(d2 > 0, d2, 1.0), 0.0)
+        Wr = Wr - f[:, None, None] * r[:, :, None] * r[:, None, :]
     F, M, d = x.shape
     n = shared.n
     Hxt, g, H = np.zeros((F, M, d, n)), np.zeros(n), np.zeros((n, n))
-    jw = w[:, None, None] * np.einsum("nia,nib->nab", J, Jt)  # w J_x^T J_t per row, (n_rows, 3, p)
+    WJt = np.einsum("nij,njb->nib", Wr, Jt)
+    jw = np.einsum("nia,nib->nab", J, WJt)  # J_x^T W J_t per row, (n_rows, 3, p)
     for a in range(cols.shape[1]):
         on = cols[:, a] >= 0
         ca = cols[on, a]
         np.add.at(g, ca, w[on] * np.einsum("ni,ni->n", Jt[on, :, a], r[on]))
         for b in range(cols.shape[1]):
             both = on & (cols[:, b] >= 0)
-            np.add.at(H, (cols[both, a], cols[both, b]), w[both] * np.einsum("ni,ni->n", Jt[both, :, a],
-                                                                               Jt[both, :, b]))
+            np.add.at(H, (cols[both, a], cols[both, b]), np.einsum("ni,ni->n", Jt[both, :, a], WJt[both, :, b]))
         for e in range(2):
             frame = rows.k[on] + e
             ok = frame < F
@@ -268,15 +277,15 @@ def _theta_jacobians(rows, t: dict, shared: Shared, setup) -> tuple[np.ndarray, 
     return out_c, out_j
 
 
-def _solve_x(prob, x, seg_ids, Hxt, setup, fit):
-    """H_xx^-1 H_xt (F, M', d, n) at x (IRLS): the chains' block-tridiagonal solve, a group's bordered one."""
+def _solve_x(prob, x, seg_ids, Hxt, setup, fit, exact: bool):
+    """H_xx^-1 H_xt (F, M', d, n) at x: the chains' block-tridiagonal solve, a group's bordered one."""
     if seg_ids is None:
-        _, _, D, B, _ = prob.system(x, False)
+        _, _, D, B, _ = prob.system(x, exact)
         return tridiagonal(D, B[:, :, None], rhs=Hxt)["dx"]
     members = np.unique(fit.pairs[seg_ids])
     seg = segments.Segments(np.searchsorted(members, fit.pairs[seg_ids]), setup.rigid_sigma_m)
     L = fit.length_m[seg_ids]
-    _, _, T, BG, C, E, _, _ = segments.Group(prob, seg).blocks((x, L), False)
+    _, _, T, BG, C, E, _, _ = segments.Group(prob, seg).blocks((x, L), exact)
     F, gm, d = x.shape
     rhs = Hxt.reshape(F, gm * d, -1)
     return segments.bordered_solve(T, BG, C, E, rhs, np.zeros((len(L), rhs.shape[-1])))[0].reshape(F, gm, d, -1)
@@ -299,13 +308,17 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     cur = applied(setup, shared, theta)
     fit = backend.fit(cur, models, levels, start)
     total = _total(fit, theta, prior)
-    lin = linearise(cur, fit, shared)
+    lin = linearise(cur, fit, shared, exact=True)
     A, lam, steps = np.zeros((n, n)), 1e-3, 0
     g = lin.g + prior @ theta
     while steps < MAX_STEPS and lam < 1e8:
         steps += 1
         S = Z.T @ (lin.S + prior) @ Z
-        step = -Z @ np.linalg.solve(S + Z.T @ A @ Z + lam * np.diag(np.diag(S)), Z.T @ g)
+        newton = np.linalg.solve(S + Z.T @ A @ Z, Z.T @ g)
+        if 0.5 * float(Z.T @ g @ newton) < DECREMENT_TOL:
+            break
+        step = _limited(-Z @ np.linalg.solve(S + Z.T @ A @ Z + lam * np.diag(np.diag(S)), Z.T @ g), shared,
+                        setup.fps)
         new_theta = theta + step
         new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
@@ -316,18 +329,28 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         if not new_total <= total:
             lam *= 10
             continue
-        new_lin = linearise(new_setup, new_fit, shared)
+        new_lin = linearise(new_setup, new_fit, shared, exact=True)
         new_g = new_lin.g + prior @ new_theta
         A = _secant(A, step, new_g - g, new_lin.S + prior)
         theta, fit, total, cur, lin, g = new_theta, new_fit, new_total, new_setup, new_lin, new_g
         lam = max(lam / 10, 1e-9)
-        if np.abs(step).max() < STEP_TOL_S:
-            break
+    lin = linearise(cur, fit, shared)
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
     if fit.cov is not None:
         Yp = lin.Y[..., :3, :]
         fit.cov = fit.cov + np.einsum("fmin,no,fmjo->fmij", Yp, cov_t, Yp)
     return fit, theta, cov_t, cur, steps
+
+
+MAX_STEP_FRAMES = 0.25  # a step moves a capture time by at most this fraction of a frame (the model's reach)
+
+
+def _limited(step: np.ndarray, shared: Shared, fps: float) -> np.ndarray:
+    """``step`` scaled down so that no capture time moves by more than MAX_STEP_FRAMES: beyond that the rows'
+    linearisation no longer predicts them (a first step of 13 ms from 0 was rejected three times)."""
+    d_off, d_ro, _ = shared.split(step)
+    most = float(np.max(np.abs(d_off) + np.abs(d_ro), initial=0.0)) * fps
+    return step * min(1.0, MAX_STEP_FRAMES / most) if most > 0 else step
 
 
 def _complement(G: np.ndarray, n: int) -> np.ndarray:
