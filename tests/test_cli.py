@@ -121,7 +121,7 @@ def test_help_and_option_checks_import_no_table_or_solver_library():
 
 
 def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
-    """One stderr line before a run that compiles the kernels (the first after an install takes about a minute on
+    """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 minutes on
     2 cores), also with --quiet (a silent minute looks hung), none when they are cached. kernels.needs_compiling()
     is True against an empty numba
     cache (a fresh process with NUMBA_CACHE_DIR there: nothing is compiled by asking) and False once the
