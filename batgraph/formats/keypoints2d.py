@@ -96,7 +96,7 @@ def load_rig(calibration: str | Path, units: str | None = None) -> tuple[Path, R
 
 def observations_from_arrays(camera: str, frames: np.ndarray, markers: list[str], uv_px: np.ndarray,
                              confidence: np.ndarray, threshold: float) -> pd.DataFrame:
-    """One camera's keypoints -> long observation rows (CONTRACT.md observations.csv columns).
+    """One camera's keypoints -> long observation rows (the columns of observations.csv).
 
     frames: frame indices, shape (F,); markers: names along M.
     uv_px: raw pixels (OpenCV convention), shape (F, M, 2), NaN where not detected.
