@@ -59,10 +59,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     For writers that want a file name (ezc3d, rerun, matplotlib). The temporary keeps the
     final suffix so that libraries choosing a format by extension still work. The file gets the
-    permissions of an ordinary new file (0666 less the umask), not mkstemp's 0600.
+    permissions of an ordinary new file (0666 less the umask), not mkstemp's 0600. On a full file
+    system (:func:`disk_full`) it raises ENOSPC before any writer starts, and a writer's failure there
+    becomes ENOSPC naming ``path``.
     """
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
+    if disk_full(final.parent):  # not started at all: a writer that meets a full disk may hang (Rerun's file sink)
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(final))
     fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=final.suffix, dir=final.parent)
     os.close(fd)
     tmp_path = Path(tmp)
