@@ -32,7 +32,7 @@ bench: install
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
 	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib/points.npz bench_out/aniposelib/calibration.toml
 
-## study: the accuracy study (see BENCHMARKS.md / README.md)
+## study: the accuracy study (writes docs/accuracy.md)
 study: install
 	$(BIN)/python scripts/accuracy_study.py
 

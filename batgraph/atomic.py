@@ -59,10 +59,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     For writers that want a file name (ezc3d, rerun, matplotlib). The temporary keeps the
     final suffix so that libraries choosing a format by extension still work. The file gets the
-    permissions of an ordinary new file (0666 less the umask), not mkstemp's 0600.
+    permissions of an ordinary new file (0666 less the umask), not mkstemp's 0600. On a full file
+    system (:func:`disk_full`) it raises ENOSPC before any writer starts, and a writer's failure there
+    becomes ENOSPC naming ``path``.
     """
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
+    if disk_full(final.parent):  # not started at all: a writer that meets a full disk may hang (Rerun's file sink)
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(final))
     fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=final.suffix, dir=final.parent)
     os.close(fd)
     tmp_path = Path(tmp)
@@ -75,9 +79,29 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         if e.filename in (None, tmp, str(tmp_path)) and e.errno is not None:
             raise OSError(e.errno, e.strerror, str(final)) from e
         raise
+    except Exception as e:  # a library's own words for a full disk (Rerun: "File-writer thread shut down")
+        if disk_full(final.parent):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(final)) from e
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+FULL_BYTES = 1 << 20
+"""Free space [bytes] under which a file system counts as full when a writer fails without saying why."""
+
+
+def disk_full(folder: str | os.PathLike) -> bool:
+    """Whether the file system holding ``folder`` is full: less than :data:`FULL_BYTES` free for this process
+    (the root-reserved blocks count for root only), or no file entry (inode) left. For writers that report a
+    full disk in their own words, or not at all (Rerun's file sink raises RuntimeError)."""
+    try:
+        st = os.statvfs(folder)
+    except (OSError, AttributeError):  # gone, or no statvfs (Windows): cannot tell
+        return False
+    blocks = st.f_bfree if hasattr(os, "geteuid") and os.geteuid() == 0 else st.f_bavail
+    return blocks * st.f_frsize < FULL_BYTES or (st.f_files > 0 and st.f_favail == 0)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
@@ -243,16 +267,40 @@ def result_folder(target: str | os.PathLike, owned: Iterable[str], in_place: boo
         stage = final / tag
     else:
         stage = final.parent / f".{final.name}{tag}"
+    existed = final.is_dir()
     stage.mkdir()
     try:
-        yield stage
+        try:
+            yield stage
+            if not in_place:
+                _commit_swap(stage, final, owned)  # restores the previous folder where its last rename fails
+        except Exception as e:  # noqa: BLE001 - re-raised; an OS error names the folder the user gave
+            told = _left_as_it_was(e, stage, final, existed)
+            if told is e:
+                raise
+            raise told from e
         if in_place:
             _commit_in_place(stage, final, owned)
-        else:
-            _commit_swap(stage, final, owned)
     finally:
         if stage.exists():
             _remove(stage)
+
+
+def _left_as_it_was(e: Exception, stage: Path, final: Path, existed: bool) -> Exception:
+    """``e``, raised while ``final`` was being staged (and so left as it was), told in the user's words: an OS
+    error naming the file under ``final`` (not under the staging folder), and any error at a full disk as
+    ENOSPC (writers in child processes and libraries report it their own way). The OSError returned carries
+    ``unchanged = (final, existed)`` for :func:`batgraph.inputs.os_error_message`; other errors pass as they are."""
+    if not isinstance(e, OSError):
+        if not disk_full(final.parent if not final.is_dir() else final):
+            return e
+        e = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(final))
+    name = e.filename if isinstance(e.filename, str) else None
+    if name is not None and (name == str(stage) or name.startswith(str(stage) + os.sep)):
+        name = str(final) + name[len(str(stage)):]
+    out = OSError(e.errno, e.strerror, name) if e.errno is not None else OSError(*e.args)
+    out.unchanged = (str(final), existed)
+    return out
 
 
 def _commit_swap(stage: Path, final: Path, owned: set[str]) -> None:

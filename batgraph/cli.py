@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import gc
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -99,15 +100,32 @@ def summary_lines(summary: dict) -> list[str]:
 
 
 def _compile_note(args) -> None:
-    """One line before a run that will first compile batgraph's inner loops (batgraph.solver.kernels), so that
-    a minute of silence after an install is explained; not with --quiet."""
-    if args.quiet or args.solver != "fast":
+    """One line on stderr before a run that will first compile batgraph's inner loops (batgraph.solver.kernels),
+    so that a minute of silence after an install is explained; also with --quiet (a silent minute looks hung)."""
+    if args.solver != "fast":
         return
     from .solver import kernels
 
     if kernels.needs_compiling():
-        print("batgraph: compiling its inner loops for this machine (once after an install or update; 1-2 min on "
-              "2 cores, cached on disk after)", file=sys.stderr)
+        print("batgraph: compiling its inner loops for this machine, once after an install or update "
+              "(1-2 minutes on 2 cores; cached on disk after)", file=sys.stderr)
+
+
+def _check_not_a_result(session: str | Path) -> None:
+    """InputError when ``session`` is a reconstruct result folder (trajectories.csv or summary.json, no
+    session.toml), a common slip: say so and what to do, as ``export`` does for the reverse one."""
+    folder = Path(session)
+    try:
+        if not folder.is_dir() or (folder / "session.toml").exists():
+            return
+        found = [n for n in ("trajectories.csv", "summary.json") if (folder / n).is_file()]
+    except OSError:
+        return  # reading the session reports it
+    if found:
+        raise InputError(f"{folder}: a reconstruct result folder ({', '.join(found)}; no session.toml), not a "
+                         f"session: give the session folder it was made from (session.toml, calibration.toml, "
+                         f"observations.csv), or use this result: batgraph export c3d|trc|csv|dltdv {folder}, "
+                         f"batgraph view {folder}, {folder / 'report.html'}")
 
 
 def _cmd_reconstruct(args) -> int:
@@ -115,6 +133,8 @@ def _cmd_reconstruct(args) -> int:
     from .pipeline import parse_methods, reconstruct
     from .result import Options
 
+    for session in args.sessions:
+        _check_not_a_result(session)
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
                       accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", refine_rig=args.refine_rig,
@@ -207,6 +227,7 @@ def _cmd_validate(args) -> int:
     from .pipeline import DEFAULT_METHODS, parse_methods, reconstruct
     from .result import Options
 
+    _check_not_a_result(args.session)
     if args.out is not None or Path(args.session).is_dir():
         check_output_dir(args.out if args.out is not None else Path(args.session) / "out")
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
@@ -214,6 +235,7 @@ def _cmd_validate(args) -> int:
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
                       accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", progress=_progress_bars(args),
                       solver=args.solver)
+    _compile_note(args)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)
     for w in result.session.warnings:  # even with --quiet: a warning may mean the numbers are wrong
@@ -518,6 +540,7 @@ def _cmd_calibrate(args) -> int:
     from .calibrate import calibrate_session, write_calibration
     from .session import read_session
 
+    _check_not_a_result(args.session)
     if args.out is not None or Path(args.session).is_dir():
         check_output_file(args.out if args.out is not None else Path(args.session) / "out" / "calibration.toml",
                           "calibration file (--out)")
@@ -643,9 +666,9 @@ def _add_export(sub):
                    help="dltdv: world units of xyzpts (default: those of the imported DLTdv project, else m); "
                         "trc/csv/parquet: default m; c3d is always mm")
     p.add_argument("--range", dest="range_", choices=["span", "observed", "all"],
-                   help="c3d/trc/csv/parquet: which estimates to write, the others written as missing: span "
-                        "(default) = from each marker's first to its last frame seen by >= 2 cameras; observed = "
-                        "only frames where it is seen by >= 2 cameras; all = every estimate (incl. the track ends)")
+                   help="which estimates to write, the others written as missing (NaN): span (default) = from each "
+                        "marker's first to its last frame seen by >= 2 cameras; observed = only frames where it is "
+                        "seen by >= 2 cameras; all = every estimate, the extrapolated track ends included")
     p.add_argument("--take", type=positive_int,
                    help="c3d/trc: which take of a result with several (1 = the first; default the longest): "
                         "a C3D or TRC file is one contiguous run of frames")
@@ -665,22 +688,24 @@ def _cmd_export(args) -> int:
     if args.take is not None and args.format not in ("c3d", "trc"):
         raise InputError(f"export {args.format}: --take applies to c3d and trc only (the tables hold every take)")
     take = None if args.take is None else args.take - 1
-    if args.format == "dltdv" and args.range_:
-        raise InputError("export dltdv: --range applies to c3d, trc, csv and parquet only")
     if args.format == "c3d" and args.units not in (None, "mm"):
         raise InputError("export c3d: C3D files are always written in mm (POINT:UNITS); drop --units")
     summary = out / "summary.json"
     facts = read_json_object(summary) if summary.is_file() else {}
     keep = args.range_ or "span"
     if args.format == "dltdv":
-        from .formats.dltdv import export_dltdv
+        from .formats.dltdv import export_dltdv, point_names
 
         imported = facts.get("import", {})
         units = args.units or (imported.get("units", "m") if isinstance(imported, dict) else "m")
         if units not in ("m", "cm", "mm"):
             raise InputError(f"{summary} import units: {units!r} is not one of m, cm, mm (give --units)")
         check_output_file(f"{args.to or out / f'{method}_'}xyzpts.csv")
-        paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method, units=units)
+        paths = export_dltdv(args.to or out / f"{method}_", traj, reproj, method, units=units, keep=keep)
+        why = point_names(list(dict.fromkeys(traj.loc[traj["method"] == method, "marker"])))[1]
+        if why:
+            print(f"note: points numbered pt1..ptN in the order of trajectories.csv, not named: {why}",
+                  file=sys.stderr)
     elif args.format in ("csv", "parquet"):
         from .formats.c3d_trc import write_table
 
@@ -705,8 +730,16 @@ def _cmd_export(args) -> int:
             paths = [write_c3d(dest, one, fps, keep=keep, reprojection=reproj, cameras=cameras, take=take)]
         else:
             paths = [write_trc(dest, one, fps, units=args.units or "m", keep=keep, take=take)]
-    print("wrote " + ", ".join(str(p) for p in paths))
+    print("wrote " + ", ".join(str(p) for p in paths) + f" ({_RANGE_NOTE[keep]})")
     return 0
+
+
+_RANGE_NOTE = {
+    "span": "each marker from its first to its last frame seen by >= 2 cameras; the extrapolated track ends are "
+            "left out, --range all writes them",
+    "observed": "only points seen by >= 2 cameras",
+    "all": "every estimate, the extrapolated track ends included",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -732,6 +765,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     except SystemExit as e:  # --help (0) or a usage error, already printed on one line (2)
         return e.code if isinstance(e.code, int) else 2
     try:
+        _library_noise_off(args.command)
         return args.func(args)
     except InputError as e:
         print(f"batgraph: error: {_one_line(str(e))}", file=sys.stderr)
@@ -746,6 +780,26 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     except KeyboardInterrupt:
         print("batgraph: interrupted", file=sys.stderr)
         return 130
+
+
+_COMPUTING = ("reconstruct", "validate", "calibrate")
+"""The commands that run the estimators (and so may compile numba kernels and write a Rerun recording)."""
+
+
+def _library_noise_off(command: str) -> None:
+    """Switch off what batgraph's libraries would print to a user who can do nothing about it, for the commands
+    that compute: numba's compiler warnings (a NumbaPerformanceWarning on the first run after an install is
+    advice to batgraph's authors) and Rerun's Rust log lines (a failed write of recording.rrd logs three lines
+    before the error that batgraph reports in one). A RUST_LOG the user set is kept. Child processes forked
+    later inherit both."""
+    if command not in _COMPUTING:
+        return
+    import warnings
+
+    os.environ.setdefault("RUST_LOG", "off")  # read once, when Rerun's bindings load (lazily, later)
+    from numba.core.errors import NumbaWarning
+
+    warnings.simplefilter("ignore", NumbaWarning)
 
 
 def entry() -> int:

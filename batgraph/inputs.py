@@ -272,6 +272,25 @@ def _arrow_cells(data: bytes) -> pd.DataFrame | None:
     return table.to_pandas()
 
 
+def _is_number_text(text: str) -> bool:
+    if text.lower() in {m.lower() for m in MISSING}:
+        return True
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _check_header_names(names: list[str], path, what: str) -> None:
+    """InputError when line 1 holds numbers (or NaN) only: a file saved without its header line, whose first data
+    row would otherwise be read as column names (and be refused for a name it repeats, such as NaN)."""
+    if names and all(_is_number_text(n) for n in names):
+        shown = ",".join(names[:4]) + (",..." if len(names) > 4 else "")
+        raise InputError(f"{path} line 1: {shown!r} holds numbers, not column names: the header line is missing "
+                         f"(expected: {what}; the file has {len(names)} columns)")
+
+
 def read_csv(path: str | os.PathLike, header: bool = True, what: str = "a table") -> pd.DataFrame:
     """A comma-separated UTF-8 file as a DataFrame of str cells (header = line 1 unless ``header`` is False).
 
@@ -289,6 +308,7 @@ def read_csv(path: str | os.PathLike, header: bool = True, what: str = "a table"
     _check_separator(first, path)
     if header:
         names = [c.strip() for c in next(csv.reader([first]))]
+        _check_header_names(names, path, what)
         dup = sorted({c for c in names if names.count(c) > 1})
         if dup:
             raise InputError(f"{path} line 1: column {dup[0]!r} appears more than once")
@@ -538,6 +558,13 @@ def os_error_message(e: OSError) -> str:
     where = e.filename if e.filename is not None else "writing"
     if e.filename2 is not None:
         where = f"{e.filename} -> {e.filename2}"
+    unchanged = getattr(e, "unchanged", None)  # (folder, existed): set by batgraph.atomic.result_folder
+    if unchanged is not None:
+        folder, existed = unchanged
+        problem += (f"; {folder} still holds the previous result, unchanged" if existed else
+                    f"; nothing was written to {folder}")
+        if e.errno in (28, 122):
+            problem += " (free some space and run again)"
     return f"{where}: {problem}"
 
 

@@ -407,6 +407,23 @@ def test_empty_and_header_only_xypts(trial, tmp_path):
     assert "no digitised points" in _import_error(trial, tmp_path)
 
 
+
+@pytest.mark.parametrize("first_row", ["NaN", "number"])
+def test_xypts_without_its_header_line_says_so(trial, tmp_path, first_row):
+    """An xypts file saved without its header line (its first row NaN everywhere, as DLTdv writes an undigitised
+    frame, or clicks): one line saying the header is missing and what it should be, not a complaint about a
+    column named NaN twice."""
+    lines = trial["xypts"].read_text().splitlines()
+    rows = lines[1:]
+    if first_row == "NaN":
+        rows[0] = ",".join(["NaN"] * len(lines[0].split(",")))
+    else:  # a digitised frame: numbers (and NaN)
+        rows[0] = ",".join("12.5" if c == "NaN" else c for c in rows[0].split(","))
+    trial["xypts"].write_text("\n".join(rows) + "\n")
+    msg = _import_error(trial, tmp_path)
+    assert "xypts.csv line 1" in msg and "header line is missing" in msg and "pt{p}_cam{c}_X" in msg, msg
+    assert "more than once" not in msg
+
 def test_export_writes_the_projects_own_units(tmp_path):
     """A millimetre project imported with --units mm, reconstructed and exported: the exported xyzpts are
     in millimetres again and equal DLTdv's own reconstruction of the same clicks (measured 2e-7 mm, from

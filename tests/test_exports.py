@@ -492,3 +492,47 @@ def test_export_ranges_and_tables(recon, tmp_path, capsys):
     # the default range: only the span, and a table from the function equals the CLI's
     span = analysis_table(traj, units="m", method="smoother")
     assert span["x_m"].notna().sum() == (traj.loc[traj["method"] == "smoother", "span"] == "inside").sum()
+
+
+def test_export_dltdv_range_names_and_residuals(recon, tmp_path, capsys):
+    """`export dltdv`: by default m2's extrapolated track ends (frames 0-3, 26-29, estimated by the smoother) are
+    NaN and the terminal says how to include them; --range observed / all as for C3D; positions equal
+    trajectories.csv's where written, residuals only there; columns named after the markers (m0_X, m0_dltres)."""
+    out, traj, reproj = recon
+    sm = traj[traj["method"] == "smoother"].sort_values(["frame", "marker"])
+    got = {}
+    for rng in ("span", "observed", "all"):
+        argv = ["export", "dltdv", str(out), "--to", str(tmp_path / f"{rng}_")]
+        assert main(argv + ([] if rng == "span" else ["--range", rng])) == 0
+        said = capsys.readouterr()
+        if rng == "span":
+            assert "--range all" in said.out and "track ends" in said.out
+        xyz = pd.read_csv(tmp_path / f"{rng}_xyzpts.csv")
+        res = pd.read_csv(tmp_path / f"{rng}_xyzres.csv")
+        assert list(xyz.columns) == [f"{m}_{a}" for m in SESSION_MARKERS for a in "XYZ"]
+        assert list(res.columns) == [f"{m}_dltres" for m in SESSION_MARKERS]
+        assert len(xyz) == len(res) == 30
+        got[rng] = xyz.to_numpy().reshape(30, 3, 3)
+        written = np.isfinite(got[rng]).all(axis=-1)
+        assert np.array_equal(np.isfinite(got[rng]).any(axis=-1), written)
+        assert not (np.isfinite(res.to_numpy()) & ~written).any()  # no residual without its position
+        assert np.isfinite(res.to_numpy()[written & (sm["n_views"] >= 1).to_numpy().reshape(30, 3)]).all()
+        want = {"span": sm["span"] == "inside", "observed": sm["status"] == "observed",
+                "all": sm["x"].notna()}[rng].to_numpy().reshape(30, 3)
+        assert np.array_equal(written, want), rng
+        assert np.allclose(got[rng][written], sm[["x", "y", "z"]].to_numpy().reshape(30, 3, 3)[written], atol=1e-9)
+    assert not np.isfinite(got["span"][:4, 2]).any() and np.isfinite(got["all"][:4, 2]).all()
+
+
+def test_dltdv_point_names_where_dltdv_can_read_them():
+    """Marker names become DLTdv column stems when every one is a MATLAB identifier that fits, they differ
+    regardless of case and none is another point's ptK; otherwise every point is numbered, with the reason."""
+    from batgraph.formats.dltdv import point_names
+
+    assert point_names(["body1", "wrist_r", "Digit3"]) == (["body1", "wrist_r", "Digit3"], None)
+    assert point_names(["pt1", "pt2"]) == (["pt1", "pt2"], None)  # a DLTdv project's own points
+    for markers, why in ((["body 1", "b"], "MATLAB identifier"), (["1st", "b"], "MATLAB identifier"),
+                         (["a" * 57, "b"], "at most 56"), (["wing", "Wing"], "case"), (["pt2", "pt1"], "point 1")):
+        stems, reason = point_names(markers)
+        assert stems == ["pt1", "pt2"] and why in reason, (markers, reason)
+    assert point_names(["a" * 56])[1] is None

@@ -5,6 +5,7 @@ Synthetic files are written exactly as the tools write them (DeepLabCut: pandas 
 (../shared/data/real/pose2sim_demo_4cam_human) is imported and triangulated against Pose2Sim's own 3D.
 """
 
+import dataclasses
 import itertools
 import json
 from pathlib import Path
@@ -142,6 +143,22 @@ def test_deeplabcut_csv(tmp_path):
     assert back.observations[cols].equals(s.observations[cols])
     assert np.allclose(back.observations[["u", "v", "weight"]], s.observations[["u", "v", "weight"]], atol=1e-6)
 
+
+
+def test_deeplabcut_files_named_as_deeplabcut_names_them(tmp_path):
+    """analyze_videos names its output after the video with the scorer right behind it (cam_01.mp4 ->
+    cam_01DLC_resnet50_...csv): matched to calibration camera cam_01 without --camera-names."""
+    rig, xyz, uv, lik = _scene()
+    named = Rig([dataclasses.replace(c, name=f"cam_0{i + 1}") for i, c in enumerate(rig)])
+    calib = _write_calibration(tmp_path / "calibration.toml", named)
+    files = _write_dlc(tmp_path / "dlc", uv, lik, stem="{cam}" + SCORER)
+    for i, f in enumerate(files):
+        f.rename(f.with_name(f"cam_0{i + 1}{SCORER}.csv"))
+    files = sorted((tmp_path / "dlc").iterdir())
+    s = import_deeplabcut(files[::-1], calib, fps=200, out=tmp_path / "sess", threshold=0.6)
+    assert s.rig.names == ["cam_01", "cam_02", "cam_03"]
+    assert (s.observations.groupby("camera").size() == [int(_expected(uv[c], lik[c], 0.6).sum()) for c in
+                                                       range(3)]).all()
 
 @pytest.mark.skipif(not HAVE_TABLES, reason="reading DeepLabCut .h5 needs the 'tables' package")
 def test_deeplabcut_h5_equals_csv(tmp_path):

@@ -304,3 +304,113 @@ def test_redirected_output_has_no_progress_bars_and_quiet_says_where(small_sessi
     quiet = subprocess.run([*exe, "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
     assert quiet.returncode == 0 and "\r" not in quiet.stderr
     assert len(quiet.stdout.splitlines()) == 1 and str(out) in quiet.stdout
+
+
+# ----- a full disk ------------------------------------------------------------------------------
+STEPS = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
+         "trajectories.trc", "recording.rrd", "validation.csv")
+
+
+def test_a_full_disk_at_each_output_step_is_one_line_and_keeps_the_previous_result(small_session, tmp_path,
+                                                                                   monkeypatch, capsys):
+    """Each output file's write fails with ENOSPC in turn (the rename of its finished temporary, in this process
+    or in the child that writes it): exit 2, one line naming that file in the output folder (not the staging
+    folder) and saying the previous result is unchanged; the folder is byte for byte the previous result."""
+    import errno
+
+    from batgraph.cli import main
+    from batgraph.pipeline import OUTPUT_FILES
+
+    assert set(STEPS) == set(OUTPUT_FILES)
+    base = tmp_path / "base"
+    argv = ["reconstruct", str(small_session), "--methods", "triangulate", "--validate", "--viewer", "save",
+            "--quiet"]
+    assert main([*argv, "--out", str(base)]) == 0
+    (base / "notes.txt").write_text("the user's notes")
+    old = _snapshot(base)
+    real_replace = os.replace
+    for step in STEPS:
+        def full(src, dst, *a, step=step, **kw):
+            if Path(dst).name == step and Path(src).name.startswith("."):  # a finished temporary of that file
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src))
+            return real_replace(src, dst, *a, **kw)
+
+        out = tmp_path / f"out_{step}"
+        subprocess.run(["cp", "-a", str(base), str(out)], check=True)
+        capsys.readouterr()
+        monkeypatch.setattr(os, "replace", full)
+        code = main([*argv, "--out", str(out)])
+        monkeypatch.setattr(os, "replace", real_replace)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, (step, err)
+        assert err[0] == (f"batgraph: error: {out / step}: no space left on the device; {out} still holds the "
+                          "previous result, unchanged (free some space and run again)"), err
+        assert _snapshot(out) == old, step
+        assert _hidden_siblings(out) == [] and _hidden_inside(out) == []
+
+
+def _mount_tmpfs(folder: Path, kib: int) -> bool:
+    folder.mkdir(exist_ok=True)
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={kib}k", "tmpfs", str(folder)],
+                          capture_output=True).returncode == 0
+
+
+def test_a_really_full_disk_at_any_point_of_writing(tmp_path):
+    """A small tmpfs holding the previous result of the bundled sample and room for 5 % .. 80 % of a new one: the
+    run fails wherever the disk fills up (the report, the tables in their child processes, the recording, whose
+    writer, Rerun, says only "File-writer thread shut down prematurely"): exit 2, one line on stderr naming the
+    folder, no traceback, no Rust log lines, the previous result unchanged, no temporary left. With room enough
+    it succeeds. Needs permission to mount a tmpfs (root); skipped otherwise."""
+    sample = Path(__file__).resolve().parents[1] / "data" / "samples" / "flight_5cam"
+    exe = [sys.executable, "-m", "batgraph", "reconstruct", str(sample), "--methods", "triangulate", "--quiet"]
+    base = tmp_path / "base"
+    assert subprocess.run([*exe, "--out", str(base)], capture_output=True, timeout=300).returncode == 0
+    size_kib = sum(p.stat().st_size for p in base.iterdir()) // 1024 + 64
+    disk = tmp_path / "disk"
+    if not _mount_tmpfs(disk, 4 * size_kib):
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    subprocess.run(["umount", str(disk)], check=True)
+    env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
+    for room in (0.05, 0.2, 0.4, 0.6, 0.8, 2.0):
+        assert _mount_tmpfs(disk, int(size_kib * (1 + room)))
+        try:
+            out = disk / "out"
+            subprocess.run(["cp", "-a", str(base), str(out)], check=True)
+            old = _snapshot(out)
+            r = subprocess.run([*exe, "--out", str(out)], capture_output=True, text=True, timeout=300, env=env)
+            if room == 2.0:
+                assert r.returncode == 0, r.stderr
+                continue
+            assert r.returncode == 2, (room, r.stderr)
+            lines = r.stderr.splitlines()
+            assert len(lines) == 1 and "no space left on the device" in lines[0], (room, r.stderr)
+            assert f"{out} still holds the previous result, unchanged" in lines[0]
+            assert _snapshot(out) == old, room
+            assert sorted(p.name for p in disk.iterdir()) == ["out"] and _hidden_inside(out) == []
+        finally:
+            subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_no_writer_starts_on_a_full_disk(tmp_path):
+    """On a file system with less than atomic.FULL_BYTES free, atomic_path raises ENOSPC naming the file before
+    the writer runs: Rerun's file sink, started on a full disk, could wait for ever for its dead writer thread
+    (the bundled sample's reconstruct hung so in 1 of 10 runs with 5 % room). Needs a tmpfs mount (root)."""
+    import errno
+
+    disk = tmp_path / "disk"
+    if not _mount_tmpfs(disk, 2048):
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    try:
+        (disk / "filler").write_bytes(b"x" * (2048 * 1024 - atomic.FULL_BYTES // 2))
+        assert atomic.disk_full(disk)
+        ran = []
+        with pytest.raises(OSError) as e, atomic.atomic_path(disk / "recording.rrd") as tmp:
+            ran.append(tmp)
+        assert e.value.errno == errno.ENOSPC and e.value.filename == str(disk / "recording.rrd")
+        assert ran == [] and sorted(p.name for p in disk.iterdir()) == ["filler"]
+        (disk / "filler").unlink()
+        assert not atomic.disk_full(disk)
+        atomic.write_text(disk / "small.txt", "fits")
+        assert (disk / "small.txt").read_text() == "fits"
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)

@@ -1,6 +1,6 @@
 """One method's trajectories table -> C3D (biomechanics readers), TRC (OpenSim) and analysis tables; a TRC reader.
 
-Input is the ``trajectories`` table of CONTRACT.md section 3 (metres, world frame, NaN xyz where a
+Input is a table with the columns of trajectories.csv (docs/formats.md; metres, world frame, NaN xyz where a
 method has no estimate). The world frame is written as it is: no axis swap (OpenSim's Y-up is the
 user's business, as it is for Pose2Sim's files, see :func:`read_trc`). Frame ``k`` of a session is at
 time ``k / fps``; C3D and TRC count frames from 1, so session frame ``k`` is file frame ``k + 1``.
@@ -155,7 +155,7 @@ def dense_trajectories(trajectories: pd.DataFrame, markers: list[str] | None = N
                        method: str | None = None, take: int | None = None) -> DenseTrajectories:
     """Scatter one method's rows of a trajectories table into (F, M) arrays.
 
-    trajectories: CONTRACT.md section 3 columns (``method`` optional; ``cov_*`` optional).
+    trajectories: trajectories.csv columns (``method`` optional; ``cov_*`` optional).
     markers: output order; None = order of first appearance. Markers not in the table stay NaN.
     method: which method to keep; None requires the table to hold a single method.
     take: which take of a table with several (:func:`one_take`; None = the longest).
@@ -262,7 +262,7 @@ def write_c3d(path: str | Path, trajectories: pd.DataFrame, fps: float, markers:
               cameras: list[str] | None = None, take: int | None = None) -> Path:
     """Write one method's trajectories to a C3D file (mm, see the module docstring). Atomic.
 
-    path: output ``.c3d``; trajectories: CONTRACT.md section 3 table [m]; fps: frame rate [Hz];
+    path: output ``.c3d``; trajectories: a trajectories.csv table [m]; fps: frame rate [Hz];
     markers: label order (None = order in the table); method: see :func:`dense_trajectories`;
     keep: range, see :func:`keep_range`; reprojection: the reprojection table, for the camera masks;
     cameras: the rig's camera order (bit k of the mask = cameras[k]); see :func:`c3d_camera_masks`.

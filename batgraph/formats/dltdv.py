@@ -36,6 +36,7 @@ from ..errors import InputError
 from ..geometry import dlt
 from ..inputs import read_csv
 from ..session import Session, read_session, write_session
+from .c3d_trc import keep_range
 
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
 _XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XYUV])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
@@ -252,20 +253,53 @@ def write_xypts(path: str | Path, table: pd.DataFrame, n_cams: int | None = None
     _write_wide(path, cols, uv.reshape(F, -1), "%.6f")
 
 
+def point_names(markers: list[str]) -> tuple[list[str], str | None]:
+    """Column-name stems of DLTdv 3D files for ``markers``: the marker names themselves where DLTdv can read
+    them, else pt1..ptN; returns (stems, why the names were not kept, or None).
+
+    DLTdv (8.4 and later) names its columns after its points (``{name}_X``, ``{name}_dltres``) and reads the
+    names back through MATLAB's table variable names, so a name is kept when every marker's is a MATLAB
+    identifier (a letter, then letters, digits, _) whose longest column (``{name}_dltres``) fits MATLAB's 63
+    characters, the names differ regardless of case, and none is ``pt{k}`` for another point than the k-th
+    (older DLTdv versions and Argus number the points by those columns).
+    """
+    bad = [m for m in markers if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", m) or len(m) + len("_dltres") > 63]
+    if bad:
+        return [f"pt{p}" for p in range(1, len(markers) + 1)], (
+            f"marker name {bad[0]!r} is not a MATLAB identifier of at most 56 characters")
+    lower = [m.lower() for m in markers]
+    twice = sorted({m for m in lower if lower.count(m) > 1})
+    if twice:
+        return [f"pt{p}" for p in range(1, len(markers) + 1)], f"marker names differ only by case ({twice[0]!r})"
+    for k, m in enumerate(lower, start=1):
+        if re.fullmatch(r"pt\d+", m) and m != f"pt{k}":
+            return [f"pt{p}" for p in range(1, len(markers) + 1)], (
+                f"marker {markers[k - 1]!r} is point {k}: its name would read as another point's number")
+    return list(markers), None
+
+
 def write_xyzpts(path: str | Path, table: pd.DataFrame, n_points: int | None = None,
-                 n_frames: int | None = None) -> None:
-    """Write a DLTdv ``*xyzpts.csv``. table: frame, point_index (0-based), x, y, z; NaN where missing."""
-    P, F = _size(table, "point_index", n_points), _size(table, "frame", n_frames)
+                 n_frames: int | None = None, names: list[str] | None = None) -> None:
+    """Write a DLTdv ``*xyzpts.csv``. table: frame, point_index (0-based), x, y, z; NaN where missing.
+
+    names: the column stems of the points (:func:`point_names`); None numbers them pt1..ptN.
+    """
+    P, F = _size(table, "point_index", n_points if names is None else len(names)), _size(table, "frame", n_frames)
+    stems = names or [f"pt{p}" for p in range(1, P + 1)]
     xyz = _scatter(table, ["frame", "point_index"], ["x", "y", "z"], (F, P))
-    _write_wide(path, [f"pt{p}_{a}" for p in range(1, P + 1) for a in "XYZ"], xyz.reshape(F, -1), "%.9f")
+    _write_wide(path, [f"{n}_{a}" for n in stems for a in "XYZ"], xyz.reshape(F, -1), "%.9f")
 
 
 def write_xyzres(path: str | Path, table: pd.DataFrame, n_points: int | None = None,
-                 n_frames: int | None = None) -> None:
-    """Write a DLTdv ``*xyzres.csv``. table: frame, point_index (0-based), residual [px]; NaN = missing."""
-    P, F = _size(table, "point_index", n_points), _size(table, "frame", n_frames)
+                 n_frames: int | None = None, names: list[str] | None = None) -> None:
+    """Write a DLTdv ``*xyzres.csv``. table: frame, point_index (0-based), residual [px]; NaN = missing.
+
+    names: as for :func:`write_xyzpts`.
+    """
+    P, F = _size(table, "point_index", n_points if names is None else len(names)), _size(table, "frame", n_frames)
+    stems = names or [f"pt{p}" for p in range(1, P + 1)]
     res = _scatter(table, ["frame", "point_index"], ["residual"], (F, P))
-    _write_wide(path, [f"pt{p}_dltres" for p in range(1, P + 1)], res.reshape(F, -1), "%.6f")
+    _write_wide(path, [f"{n}_dltres" for n in stems], res.reshape(F, -1), "%.6f")
 
 
 def rig_to_dlt_coefs(rig: Rig, origin: str = "lower-left", image_size: tuple[int, int] | None = None,
@@ -503,14 +537,17 @@ def _apply_offsets(paths, row: np.ndarray, cam: np.ndarray, n_cams: int, n_rows:
 
 
 def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: pd.DataFrame,
-                 method: str, units: str = "m") -> list[Path]:
+                 method: str, units: str = "m", keep: str = "span") -> list[Path]:
     """Write one method's result as DLTdv ``{prefix}xyzpts.csv`` and ``{prefix}xyzres.csv``.
 
-    Points are numbered in the table's marker order (pt1 = first marker); file row k is frame k
-    (rows before the first frame are NaN). The residual of a point is the RMS over cameras of its
-    reprojection error [px] (DLTdv's xyzres is its DLT residual, also in pixels). trajectories are in
-    metres in the user's frame (trajectories.csv); units: those the xyzpts file is written in, the
-    imported project's own ("m", "cm", "mm").
+    Points are in the table's marker order, their columns named after the markers where DLTdv can read
+    the names (:func:`point_names`), else pt1..ptN; file row k is frame k (rows before the first frame
+    are NaN). keep: which estimates to write, the others NaN (batgraph.formats.c3d_trc.keep_range):
+    "span" (default) leaves out the track ends, where every method extrapolates. The residual of a point
+    is the RMS over cameras of its reprojection error [px] (DLTdv's xyzres is its DLT residual, also in
+    pixels), NaN where its position is. trajectories are in metres in the user's frame
+    (trajectories.csv); units: those the xyzpts file is written in, the imported project's own ("m",
+    "cm", "mm").
     """
     traj = trajectories[trajectories["method"] == method]
     if traj.empty:
@@ -518,13 +555,17 @@ def export_dltdv(prefix: str | Path, trajectories: pd.DataFrame, reprojection: p
                          f"(methods: {', '.join(dict.fromkeys(trajectories['method']))})")
     markers = list(dict.fromkeys(traj["marker"]))
     index = {m: i for i, m in enumerate(markers)}
+    n_frames = int(traj["frame"].max()) + 1
+    traj = keep_range(traj, keep)
     xyz = traj.assign(point_index=traj["marker"].map(index))
     xyz[["x", "y", "z"]] = xyz[["x", "y", "z"]].to_numpy(float) / dlt.UNITS_M[units]  # back to the project's units
     rep = reprojection[reprojection["method"] == method]
+    written = xyz.loc[np.isfinite(xyz["x"].to_numpy(float)), ["frame", "marker"]]
+    rep = rep.merge(written, on=["frame", "marker"])  # a residual only where a position is written
     res = (rep.assign(e2=rep["err_px"] ** 2).groupby(["frame", "marker"], as_index=False)["e2"].mean()
            .assign(residual=lambda d: np.sqrt(d["e2"]), point_index=lambda d: d["marker"].map(index)))
-    n_frames = int(traj["frame"].max()) + 1
+    names = point_names(markers)[0]
     paths = [Path(f"{prefix}xyzpts.csv"), Path(f"{prefix}xyzres.csv")]
-    write_xyzpts(paths[0], xyz, n_points=len(markers), n_frames=n_frames)
-    write_xyzres(paths[1], res, n_points=len(markers), n_frames=n_frames)
+    write_xyzpts(paths[0], xyz, n_frames=n_frames, names=names)
+    write_xyzres(paths[1], res, n_frames=n_frames, names=names)
     return paths

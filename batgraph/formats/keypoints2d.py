@@ -6,8 +6,9 @@ calibration camera ``name`` when, after splitting the name (without extension) i
 tokens (separators: anything else, e.g. ``-``, ``_``, ``.``, space) and lower-casing, a run of
 consecutive tokens joined together equals ``name`` with its separators removed, or equals ``"cam"``
 followed by it. So ``cam01_json`` matches ``cam_01``, ``trial3-camA.h5`` matches ``A`` and ``camA``,
-``left_video.csv`` matches ``left``. Exactly one camera must match each file, and each camera at
-most one file.
+``left_video.csv`` matches ``left``. DeepLabCut's scorer suffix (``DLC_`` and what follows, written right
+after the video's name: ``cam1DLC_resnet50_....h5``) is left out first. Exactly one camera must match each
+file, and each camera at most one file.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ def match_cameras(paths: list[Path], rig: Rig, camera_names: list[str] | None, c
         names = []
         for p in paths:
             label = p.name if p.is_dir() else p.stem
+            label = label.split("DLC_")[0] or label  # DeepLabCut appends its scorer: cam1DLC_resnet50_...
             hits = [c for c in rig.names if _matches(label, c)]
             if len(hits) != 1:
                 why = "matches no" if not hits else f"matches several ({', '.join(hits)}) of the"
@@ -94,7 +96,7 @@ def load_rig(calibration: str | Path, units: str | None = None) -> tuple[Path, R
 
 def observations_from_arrays(camera: str, frames: np.ndarray, markers: list[str], uv_px: np.ndarray,
                              confidence: np.ndarray, threshold: float) -> pd.DataFrame:
-    """One camera's keypoints -> long observation rows (CONTRACT.md observations.csv columns).
+    """One camera's keypoints -> long observation rows (the columns of observations.csv).
 
     frames: frame indices, shape (F,); markers: names along M.
     uv_px: raw pixels (OpenCV convention), shape (F, M, 2), NaN where not detected.
