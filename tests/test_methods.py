@@ -18,13 +18,12 @@ ROOT = Path(__file__).parents[1]
 
 
 def test_every_method_has_a_run_function_held_as_a_function():
-    """Each registered method runs through a function (not a name looked up at run time); GTSAM's own solvers
-    for the two that have them."""
+    """Each registered method runs through a function (not a name looked up at run time); the smoother and filter
+    take Options.solver themselves (batgraph.solver: their own solver, or GTSAM's graph)."""
     assert set(runner.RUN) == set(methods.ALL_METHODS)
-    assert all(callable(f) for f in (*runner.RUN.values(), *runner.RUN_GTSAM.values()))
-    assert set(runner.RUN_GTSAM) == {"smoother", "filter"}
+    assert all(callable(f) for f in runner.RUN.values())
     assert runner.run_function("ekf", "gtsam") is runner.RUN["ekf"]
-    assert runner.run_function("smoother", "gtsam") is runner.RUN_GTSAM["smoother"]
+    assert runner.run_function("smoother", "gtsam") is runner.RUN["smoother"]
 
 
 @pytest.mark.parametrize("typed, meant", [("smootherr", "smoother"), ("Filter", "filter"), ("triangulation",
