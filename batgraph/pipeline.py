@@ -27,7 +27,7 @@ from .formats.c3d_trc import write_c3d, write_trc
 from .formats.csv_text import write_csv
 from .result import Options
 from .runner import Run, run_methods
-from .session import dense_observations, read_session
+from .session import calibration_toml, dense_observations, read_session
 from .validate import validate_session
 from .viewer import RECORDING_NAME, LiveViewer, write_recording
 
@@ -64,7 +64,7 @@ def export_method(result: Run) -> str:
 #: The files of one result folder: a folder holds one result,
 #: so one of these that a run does not write is not carried over from the previous result.
 OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
-                "trajectories.trc", "recording.rrd", "validation.csv")
+                "trajectories.trc", "recording.rrd", "validation.csv", "rig.toml")
 
 
 def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
@@ -128,6 +128,9 @@ def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | Non
         steps = [("trajectories.c3d", lambda p: write_c3d(p, one, s.fps, result.dense.markers, keep="span",
                                                           reprojection=result.reprojection, cameras=s.rig.names)),
                  ("trajectories.trc", lambda p: write_trc(p, one, s.fps, result.dense.markers, keep="span"))]
+        rig = next((e.rig for e in result.estimates.values() if e.rig is not None), None)
+        if rig is not None:  # the rig as a method estimated it (timing, poses): reusable with --calibration
+            steps.append(("rig.toml", lambda p: atomic.write_text(p, calibration_toml(rig))))
         if viewer != "none":
             steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
                                                                     result.reprojection)))

@@ -26,6 +26,8 @@ from .result import Estimate, Options
 from .session import DenseObservations, Session, dense_observations
 from .solver.filter import run as run_filter
 from .solver.schedule import run_smoother
+from .timing import timing_check
+from .triangulate import dlt_points
 from .triangulate import run as run_triangulate
 
 RunFunction = Callable[..., Estimate]
@@ -91,13 +93,31 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     estimates = dict(zip(methods, ests, strict=True))
     traj_all = pd.concat([evaluate.trajectories_table(session, dense, est) for est in ests], ignore_index=True)
     reproj_all = evaluate.reprojection_tables(session, dense, ests)  # the observations' columns gathered once
+    figures, warned = dict(pre.figures), take_warnings(session, dense)
+    if not sync:
+        figures["timing"], timing_warnings = timing_self_check(session, ideal, estimates)
+        warned = warned + timing_warnings
     summary = summary_mod.summarize(
         session, traj_all, reproj_all, runtimes={m: e.runtime_s for m, e in estimates.items()},
         infos={m: e.info for m, e in estimates.items()},
         pixel_sigma_px=dict(zip(session.rig.names, pre.sigma_px.tolist(), strict=True)),
-        pixel_noise=pre.noise, checks=pre.figures, warnings=take_warnings(session, dense))
+        pixel_noise=pre.noise, checks=figures, warnings=warned)
     session.warnings[:] = summary["warnings"]  # the run's warnings join the self-checks'
     return Run(session, traj_all, reproj_all, summary, estimates, dense=dense)
+
+
+def timing_self_check(session: Session, ideal: IdealObservations, estimates: dict[str, Estimate]) -> tuple:
+    """Each camera's residuals tested for a time offset or a rolling shutter (batgraph.timing.timing_check) at
+    the smoother's estimate (else the triangulation's), with velocities by np.gradient: (the table's records,
+    the warnings: one line per camera out of step, naming --sync estimate)."""
+    est = estimates.get("smoother")
+    xyz = est.xyz_m if est is not None else dlt_points(session.rig, ideal)
+    vel = np.gradient(xyz, axis=0) * session.fps if len(xyz) > 1 else np.zeros_like(xyz)
+    check = timing_check(session.rig, ideal, xyz, vel, session.fps)
+    lines = [summary_mod.WarningLine(w, "the residuals of that camera's observations move with its markers' "
+                                     "image velocity (batgraph.timing): see summary.json checks.timing")
+             for w in check.warnings]
+    return check.table.to_dict("records"), lines
 
 
 def take_warnings(session: Session, dense: DenseObservations) -> list[summary_mod.WarningLine]:
