@@ -26,7 +26,6 @@ from .problem import Problem, derivatives, log_det_units, start_state
 from .segments import Segments, groups, initial_lengths
 
 _BITS = 32
-MAX_ITERATIONS = 200
 
 
 def state_key(block: int, m: int, k: int) -> int:
@@ -147,7 +146,7 @@ class Graph:
         params = gtsam.LevenbergMarquardtParams()
         params.setRelativeErrorTol(1e-12)
         params.setAbsoluteErrorTol(1e-15)
-        params.setMaxIterations(MAX_ITERATIONS)
+        params.setMaxIterations(lm.TIGHT.max_iterations)
         params.setLinearSolverType("MULTIFRONTAL_QR")
         opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
         return opt.optimize(), int(opt.iterations())
@@ -254,7 +253,7 @@ def _fit_unit(setup, models, levels, start, members, seg_ids, covariances, out) 
     out.cost[members] = g.graph.error(values) / len(members)
     out.logdet[members] = 0.0
     out.logdet[members[0]] = g.logdet(values) + log_det_units(name, setup.fps, F) * len(members)
-    out.iterations[members], out.converged[members] = iters, iters < MAX_ITERATIONS
+    out.iterations[members], out.converged[members] = iters, iters < lm.TIGHT.max_iterations
     if seg is not None:
         lengths = np.array([values.atVector(length_key(s))[0] for s in range(len(seg.local))])
         sd = np.sqrt(g.marginals(values, [length_key(s) for s in range(len(seg.local))])[:, 0, 0])
@@ -265,8 +264,6 @@ def _fit_unit(setup, models, levels, start, members, seg_ids, covariances, out) 
 
 
 RELINEARIZE_THRESHOLD = 1e-5  # [m]: iSAM2 relinearises a variable when its delta exceeds it
-EXTRA_UPDATES = 2  # further iSAM2 steps per frame while the newest points still move by more than SETTLED_M
-SETTLED_M = 1e-7
 
 
 def run_filter(session, dense, ideal, options, on_frame=None):
@@ -326,13 +323,8 @@ def run_filter(session, dense, ideal, options, on_frame=None):
             else:
                 graph.push_back(gtsam.TriangulationFactorCal3_S2(cams[c], rows.uv[:, i], noise, key))
         isam.update(graph, values)
+        isam.update()  # one relinearising step more: the newest points' first linearisation is at the prediction
         ms = np.flatnonzero((join >= 0) & (join <= k))
-        for _ in range(EXTRA_UPDATES):
-            before = np.array([isam.calculateEstimatePoint3(state_key(0, int(m), k)) for m in ms]).reshape(-1, 3)
-            isam.update()
-            after = np.array([isam.calculateEstimatePoint3(state_key(0, int(m), k)) for m in ms]).reshape(-1, 3)
-            if not len(ms) or np.abs(after - before).max() <= SETTLED_M:
-                break
         for m in ms:
             for j in range(nb):
                 last[m, 3 * j:3 * j + 3] = isam.calculateEstimatePoint3(state_key(j, int(m), k))

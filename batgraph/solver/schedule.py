@@ -1,24 +1,15 @@
-"""The smoother's schedule, written once over a backend (batgraph.solver.backends: the fast solver, or GTSAM's
-graph as the reference): clean -> exclude -> choose model and noise -> final solves until the rejected set is
-stable -> the steps after the solve.
+"""The smoother's schedule, written once over a backend (batgraph.solver.backends):
 
-1. Cleaning (with a robust loss and outlier rejection): minimise with the Cauchy loss from the initial track,
-   constant velocity at the causal q (the random walk at its sigma). The initial track interpolates >= 2-view
-   triangulations only, so a mislabel that is a frame's only view does not attract it, and Cauchy's
-   redescending influence leaves it unfitted (Huber's bounded one fits it wherever bending the motion is cheaper).
-2. Exclude the observations with |r|^2 > 25 (|r| > 5 sigma) at the cleaning solution, by :func:`to_exclude`.
-3. Each marker's model (for "auto") and noise level by the marginal likelihood (batgraph.solver.search) on the
-   observations left, from the cleaning solution, without the segments (each marker's evidence alone).
-4. Final solves with the chosen loss and the segments, from the search's solutions; the rejection of step 2
-   again at each solution over all observations, until the excluded set is stable (at most REJECTION_ROUNDS;
-   a later round solves only the markers whose exclusions changed, with their segment groups).
-5. The marginal covariances of the last solve; outlier flags |r|^2 > 13.8155 (chi-square 2 DOF, 99.9 %).
-
-With variables shared by every marker (each camera's time offset and readout, ``--sync estimate``; poses of cameras
-with a pose covariance, or all with ``--refine-rig``; batgraph.solver.shared) they are first estimated with the
-cleaning solve's model and loss (so that an unsynchronised rig's residuals are not taken for outliers nor for motion
-noise), the observations excluded at that solution, steps 3-4 run with them, and the final solve estimates them
-jointly with the trajectories, their uncertainty in the points' covariances.
+1. Cleaning (with a robust loss and outlier rejection): the Cauchy loss from the initial track, constant velocity
+   at the causal q (the random walk at its sigma); Cauchy's redescending influence leaves a mislabel unfitted.
+2. Exclude the observations with |r|^2 > 25 at that solution (:func:`to_exclude`).
+3. Each marker's model ("auto") and noise level by the marginal likelihood (batgraph.solver.search) on the rest,
+   without the segments; a constant-velocity q at least :func:`flapping_floor`.
+4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds solve only
+   the markers whose exclusions changed, with their segment groups).
+5. The covariances where the data do not pin a point (batgraph.solver.ends); flags |r|^2 > 13.8155.
+Variables shared by every marker (``--sync estimate``, ``--refine-rig``, pose covariances; batgraph.solver.shared)
+are first estimated at the cleaning solve, steps 2-4 run with them, and the last solve estimates them jointly.
 """
 
 from __future__ import annotations

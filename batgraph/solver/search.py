@@ -28,10 +28,6 @@ TOL = 0.05  # decades: a search stops when the maximum is located this closely (
 MAX_STEPS = 24
 WARM_LOOSER = 0.2  # decades: a solve starts from the marker's last solution unless that was stiffer by more
 NEAR_FIRST_STEP = 0.1  # decades: the true search's first step from the surrogate's maximum
-# The lower end is solved only where the surrogate puts it less than this below its maximum [nats]: it scores
-# levels far from its linearisation too low (1-3x the true gap on the study's scenes), and the markers it left
-# out were 495-6100 nats worse there.
-LO_SCREEN = 1000.0
 
 
 @dataclass
@@ -72,9 +68,8 @@ def choose_level(problem: Problem, start: tuple, progress=None) -> tuple:
     the solution there (F, M, d), number of solves). A marker whose every solve ran into a camera scores -inf.
 
     Where to begin comes from the evidence's :class:`Surrogate` at the start (the whole search on it costs no
-    projection): each marker's first level, and whether the range's lower end is worth a solve (the surrogate
-    puts it less than LO_SCREEN nats below its maximum). The surrogate alone does not decide: it leaves out how
-    the rows move with the solution; the search on true solves then starts there with short first steps."""
+    projection). The surrogate alone does not decide: it leaves out how the rows move with the solution; the
+    search on true solves then starts at its maximum with short first steps, beside the range's lower end."""
     name, M = problem.model, problem.n_markers
     lo, hi = LOG10_RANGE[name]
     x_start = start_state(name, problem.fps, *start)
@@ -93,13 +88,10 @@ def choose_level(problem: Problem, start: tuple, progress=None) -> tuple:
         return f, g, x
 
     sur = Surrogate(problem, x_start)
-    u0, below = _search(sur.evaluate, np.full(M, START[name]), lo, hi)
+    u0 = _search(sur.evaluate, np.full(M, START[name]), lo, hi)
     search = SlopeSearch(u0, lo, hi, first_step=NEAR_FIRST_STEP)
-    near_lo = below < LO_SCREEN
-    x_lo, kept = x_start, None
-    if near_lo.any():
-        f_lo, g_lo, x_lo = solve(np.full(M, lo), near_lo, sur.minimiser(np.full(M, 10.0**lo)))
-        search.lower_end(f_lo, g_lo)
+    f_lo, g_lo, x_lo = solve(np.full(M, lo), np.ones(M, bool), sur.minimiser(np.full(M, 10.0**lo)))
+    search.lower_end(f_lo, g_lo)
     f, g, last = solve(u0, np.ones(M, bool), x_start)
     search.update(u0, f, g)
     u_last = u0
@@ -120,9 +112,9 @@ def choose_level(problem: Problem, start: tuple, progress=None) -> tuple:
     return 10.0 ** x, f, kept, n_solves
 
 
-def _search(evaluate, u0: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """SlopeSearch on a cheap ``evaluate(level) -> (evidence, slope per ln level)`` from u0: (each marker's answer
-    (log10 level), how far the lower end scores below it [nats], 0 where either has no score)."""
+def _search(evaluate, u0: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """SlopeSearch on a cheap ``evaluate(level) -> (evidence, slope per ln level)`` from u0: each marker's answer
+    (log10 level)."""
     per_decade = math.log(10.0)
     f_lo, g_lo = evaluate(np.full(len(u0), 10.0**lo))
     search = SlopeSearch(u0.astype(float), lo, hi)
@@ -134,9 +126,7 @@ def _search(evaluate, u0: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray,
         if search.done().all():
             break
         u = search.next()
-    x, f = search.answer
-    both = np.isfinite(f) & np.isfinite(f_lo)
-    return x, np.where(both, f - np.where(both, f_lo, 0.0), 0.0)
+    return search.answer[0]
 
 
 class Surrogate:

@@ -1,24 +1,15 @@
 """Variables shared by every marker: each camera's time offset, rolling-shutter readout and pose, solved jointly
-with the trajectories.
+with the trajectories (the structure bundle adjustment uses).
 
-Camera c's row v (raw pixels) of its frame j is captured at j / fps_c + offset_c + readout_c v / height on the
-session clock (batgraph.measurement's time_frac holds it with the rig's known timing); the timing variables are
-each camera's offset correction and one readout correction per sensor mode (cameras of one image size and frame
-rate read out alike) [s], under weak priors (PRIOR_SD_S). A readout per camera is told from its offset only by the
-spread of the rows the animal crosses, which the wings' own up-and-down motion confounds: on a simulated 5-camera
-flight (offsets to 4 ms, 6 ms readouts) the offsets came out up to 0.46 ms off with a readout per camera and within
-0.05 ms with one per mode. The reference camera's offset is not one: only differences of offsets show.
-A pose variable is a perturbation
-(d_omega, d_t) of cam_from_world on the left, R' = exp(d_omega) R, t' = exp(d_omega) t + d_t [rad, m], under the
-prior N(0, pose_cov) (the calibration's covariance; its sign convention is GTSAM's Pose3 tangent of
-world_from_cam, whose covariance it equals); the priors also fix the gauge.
-
-The joint minimiser by variable projection: for the current corrections, the markers' minimiser x*(theta) (any
-backend's fit); then, with the rows' Jacobians at x*, the Schur complement on theta of the joint Gauss-Newton
-system, S = H_tt - sum_m H_tx H_xx^-1 H_xt (each marker's block-tridiagonal H_xx, the structure bundle adjustment
-uses), a damped step of theta, and the markers re-solved from x* - H_xx^-1 H_xt d_theta (their first-order move);
-a step is kept when the total cost decreases. At the minimiser theta's covariance is S^-1, and each point's covariance
-gains Y_k S^-1 Y_k^T (Y = H_xx^-1 H_xt): the rig's uncertainty reaches the 3D.
+Timing: camera c's raw row v of its frame j is read at j / fps_c + offset_c + readout_c v / height on the session
+clock; the variables are the offsets' corrections (the reference camera's is fixed: only differences show) and one
+readout per sensor mode (same image size and rate: a readout per camera is confounded with the wings' own
+vertical motion; docs/timing.md). Poses: a left perturbation of cam_from_world, R' = exp(w) R, t' = exp(w) t + d,
+under the calibration's pose covariance; the similarity directions the images cannot see are projected out.
+The solve is variable projection: the markers' minimiser x*(theta) from any backend, then a damped step on the
+Schur complement S = H_tt - H_tx H_xx^-1 H_xt (each marker's block-tridiagonal H_xx) with a structured secant
+correction, the markers re-solved from their first-order move. theta's covariance is S^-1; each point's covariance
+gains Y S^-1 Y^T (Y = H_xx^-1 H_xt), so the rig's uncertainty reaches the 3D.
 """
 
 from __future__ import annotations
@@ -30,14 +21,12 @@ import numpy as np
 from ..camera import Camera, Rig
 from ..geometry.pose import R_from_rvec, rvec_from_R, skew
 from . import fit as fit_mod
-from . import kernels, segments
+from . import kernels, lm, segments
 from . import model as mm
 from .kernels import tridiagonal
 from .problem import derivatives
 
 PRIOR_SD_S = 0.01  # [s]: the corrections' prior (weak: offsets of a synchronised-to-a-frame rig are < 5 ms)
-MAX_STEPS = 50
-TRACE = False
 # Converged when the model's predicted decrease is below this [nats of the cost]: the variables then sit within a
 # small fraction of their posterior standard deviation of the minimum (a decrease of 0.5 per standard deviation).
 DECREMENT_TOL = 0.01
@@ -309,9 +298,10 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     fit = backend.fit(cur, models, levels, start)
     total = _total(fit, theta, prior)
     lin = linearise(cur, fit, shared, exact=True)
-    A, lam, steps = np.zeros((n, n)), 1e-3, 0
+    first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
+    A, lam, steps = np.zeros((n, n)), 0.0, 0
     g = lin.g + prior @ theta
-    while steps < MAX_STEPS and lam < 1e8:
+    while steps < lm.TIGHT.max_iterations and lam <= stuck:
         steps += 1
         S = Z.T @ (lin.S + prior) @ Z
         newton = np.linalg.solve(S + Z.T @ A @ Z, Z.T @ g)
@@ -324,16 +314,14 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
         new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps))
         new_total = _total(new_fit, new_theta, prior)
-        if TRACE:
-            print(f"step {steps}: lam {lam:.0e} total {total:.4f} -> {new_total:.4f} |step| {np.abs(step).max():.1e}")
         if not new_total <= total:
-            lam *= 10
+            lam = max(lam * factor, first)
             continue
         new_lin = linearise(new_setup, new_fit, shared, exact=True)
         new_g = new_lin.g + prior @ new_theta
         A = _secant(A, step, new_g - g, new_lin.S + prior)
         theta, fit, total, cur, lin, g = new_theta, new_fit, new_total, new_setup, new_lin, new_g
-        lam = max(lam / 10, 1e-9)
+        lam = lam / factor if lam > floor else 0.0
     lin = linearise(cur, fit, shared)
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
     if fit.cov is not None:
