@@ -6,6 +6,7 @@ The one place that knows which files a result folder holds; the CLI only parses 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -29,7 +30,7 @@ from .result import Options
 from .runner import Run, run_methods
 from .session import calibration_toml, dense_observations, read_session
 from .validate import validate_session
-from .viewer import RECORDING_NAME, LiveViewer, write_recording
+from .viewer import RECORDING_NAME, LiveViewer, preload_rerun, write_recording
 
 DEFAULT_METHODS = methods_registry.DEFAULT_METHODS
 ALL_METHODS = methods_registry.ALL_METHODS
@@ -94,13 +95,22 @@ def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", option
 
 
 def _report_writer():
-    """The report child's preparation: returns the report's writer (looked up when the child starts)."""
-    return report_mod.write_report
+    """The report child's preparation: imports Rerun (1.4 s, while the estimators run; a missing rerun-sdk says so
+    when the recording is written) and returns the writer of report.html and, when given a path, recording.rrd."""
+    with contextlib.suppress(InputError):
+        preload_rerun()
+
+    def write(report_path, session, trajectories, reprojection, summary, recording_path=None, dense=None):
+        report_mod.write_report(report_path, session, trajectories, reprojection, summary)
+        if recording_path is not None:
+            write_recording(recording_path, session, dense, trajectories, reprojection)
+
+    return write
 
 
 def report_standby() -> forked.Standby:
-    """A child process that imports the report's modules now and draws report.html when
-    :func:`write_outputs` hands it the result (batgraph.forked.Standby). Cancel it if it is not used."""
+    """A child process that imports the report's and the viewer's modules now and draws report.html (and writes
+    recording.rrd) when :func:`write_outputs` hands it the result (batgraph.forked.Standby). Cancel it if unused."""
     return forked.Standby(_report_writer, "report")
 
 
@@ -119,9 +129,10 @@ def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | Non
         write_csv(files[1], result.reprojection, "%.6f")
 
     tables = forked.Standby(lambda: write_tables, "CSV tables").run()  # a child forked now: nothing is pickled
+    recording = out_dir / RECORDING_NAME if viewer != "none" else None
     try:
         pending = report.run(report_path, s, result.trajectories, result.reprojection,
-                             summary_mod.Summary.from_json(result.summary))
+                             summary_mod.Summary.from_json(result.summary), recording, result.dense)
         atomic.write_text(files[2], json.dumps(result.summary, indent=2, default=_json_default, allow_nan=False))
         method = export_method(result)
         one = result.trajectories[result.trajectories["method"] == method]
@@ -131,9 +142,6 @@ def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | Non
         rig = next((e.rig for e in result.estimates.values() if e.rig is not None), None)
         if rig is not None:  # the rig as a method estimated it (timing, poses): reusable with --calibration
             steps.append(("rig.toml", lambda p: atomic.write_text(p, calibration_toml(rig))))
-        if viewer != "none":
-            steps.append((RECORDING_NAME, lambda p: write_recording(p, s, result.dense, result.trajectories,
-                                                                    result.reprojection)))
         progress = options.progress if options else False
         for name, write in tqdm(steps, desc=f"{s.name}: writing", disable=not progress, leave=False):
             write(out_dir / name)
@@ -144,7 +152,7 @@ def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | Non
         tables.cancel()
         report.cancel()
     files.insert(3, report_path)
-    return files
+    return files + ([recording] if recording is not None else [])
 
 
 def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,

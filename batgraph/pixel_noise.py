@@ -132,10 +132,11 @@ def estimate_pixel_sigma(rig: Rig, ideal_unit: IdealObservations, xyz_start: np.
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     det = a * c - b * b
     Wu[seen] = np.stack([np.stack([c, -b], axis=-1), np.stack([-b, a], axis=-1)], axis=-2) / det[:, None, None]
-    sigma2 = np.ones(C)
+    sigma2, start = np.ones(C), xyz0
     for _ in range(max_rounds):
         # leverage h = tr(W J Sigma J^T) = sum(J^T W J * Sigma) (Sigma symmetric), W = Wu / sigma_c^2
-        xyz, r, h, Sigma = _gauss_newton(rig, ideal_unit, 1.0 / sigma2, xyz0, seen)
+        xyz, r, h, Sigma = _gauss_newton(rig, ideal_unit, 1.0 / sigma2, start, seen)
+        start = np.where(np.isfinite(xyz), xyz, xyz0)  # the next round's weights move the points little
         seen_now = seen & np.isfinite(xyz).all(axis=-1)[None]
         e = np.einsum("...i,...ij,...j->...", r, Wu, r)  # (C, F, M) unit-noise squared residuals
         dof = np.clip(2.0 - h, 1e-6, 2.0)
