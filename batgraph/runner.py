@@ -23,10 +23,10 @@ from .filters.ukf import run_ukf
 from .measurement import IdealObservations
 from .methods import get as get_method
 from .result import Estimate, Options
-from .session import DenseObservations, Session, dense_observations
+from .session import DenseObservations, Session, dense_observations, retime
 from .solver.filter import run as run_filter
 from .solver.schedule import run_smoother
-from .timing import timing_check
+from .timing import scan_lags, timing_check
 from .triangulate import dlt_points
 from .triangulate import run as run_triangulate
 
@@ -73,6 +73,8 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
     dense = dense_observations(session, timing=True if sync else None)  # the timing's estimate needs the rows
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
+    if sync:  # whole-frame lags first: the smoother estimates offsets within a frame or so
+        session, dense, pre = with_whole_frame_lags(session, dense, pre)
     session = dataclasses.replace(pre.session, warnings=list(session.warnings) + pre.warnings)
     ideal = pre.ideal
 
@@ -104,6 +106,21 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
         pixel_noise=pre.noise, checks=figures, warnings=warned)
     session.warnings[:] = summary["warnings"]  # the run's warnings join the self-checks'
     return Run(session, traj_all, reproj_all, summary, estimates, dense=dense)
+
+
+def with_whole_frame_lags(session: Session, dense: DenseObservations, pre: checks.Preflight) -> tuple:
+    """(session, dense, preflight) with each camera's whole-frame lag (batgraph.timing.scan_lags, relative to the
+    first camera) added to its time offset and the observations put on that clock; as given when none is found."""
+    scan = scan_lags(session.rig, pre.ideal, dense.frames, session.fps)
+    lags = scan.table["lag_frames"].to_numpy(float)
+    lags = np.where(np.isfinite(lags), lags - (lags[0] if np.isfinite(lags[0]) else 0.0), 0.0)
+    if not lags.any():
+        return session, dense, pre
+    rig = type(session.rig)([dataclasses.replace(c, time_offset_s=c.time_offset_s + lag / c.frame_rate(session.fps))
+                             for c, lag in zip(session.rig, lags, strict=True)], world_mirror=session.rig.world_mirror)
+    session = retime(session, rig)
+    dense = dense_observations(session, timing=True)
+    return session, dense, checks.preflight(session, dense)
 
 
 def timing_self_check(session: Session, ideal: IdealObservations, estimates: dict[str, Estimate]) -> tuple:
