@@ -61,7 +61,7 @@ def _gauss_newton(rig: Rig, ideal_unit: IdealObservations, w_scale: np.ndarray, 
     _, _, D, _, _ = prob.system(res.state, False)
     with np.errstate(all="ignore"):
         S = np.linalg.inv(D[0])
-    t = kernels.row_terms(res.state, prob.rows, prob.cams.P, prob.cams.behind, 0, 1.0)
+    t = kernels.row_terms(res.state, prob.rows, prob.cams, Loss("none"))
     rows = prob.rows
     Linv = rows.Linv
     L = np.stack([np.stack([1 / Linv[0], np.zeros_like(Linv[0])], -1),

@@ -80,7 +80,9 @@ def _mcsc(tmp_path):
 @pytest.mark.parametrize("name", ["flight_5cam", "ear_2cam", "pose2sim", "mcsc"])
 def test_the_samples_and_real_datasets_run_without_a_warning(name, tmp_path):
     """The bundled samples (a flapping bat is the normal case) and two real rigs (Pose2Sim's demo person, the
-    MCSC LED waved by hand): the default methods give no warning, because nothing is wrong with them."""
+    MCSC LED waved by hand): the default methods give no warning, because nothing is wrong with them; except the
+    timing self-check on the Pose2Sim demo, whose cameras are not synchronised as far as its data tell (its
+    cam_03 scans 2.4 frames early, and its leave-one-camera-out error is lowest shifted so: docs/timing.md)."""
     if name in ("pose2sim", "mcsc") and not (REAL / ("pose2sim_demo_4cam_human" if name == "pose2sim" else
                                                      "mcsc_led_selfcal_4cam")).is_dir():
         pytest.skip(f"real data absent: {REAL}")
@@ -91,4 +93,9 @@ def test_the_samples_and_real_datasets_run_without_a_warning(name, tmp_path):
     else:
         session = read_session(ROOT / "data" / "samples" / name)
     run = run_methods(dataclasses.replace(session, warnings=list(session.warnings)), ["smoother", "filter"], QUIET)
-    assert run.summary["warnings"] == [], run.summary["warnings"]
+    warnings = run.summary["warnings"]
+    if name == "pose2sim":
+        assert warnings and all("out of step" in w and "--sync estimate" in w for w in warnings), warnings
+        assert any(w.startswith("cam_03") for w in warnings), warnings
+    else:
+        assert warnings == [], warnings

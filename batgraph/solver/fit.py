@@ -16,6 +16,8 @@ from . import model as mm
 from .problem import Cameras, Loss, Problem, Rows, derivatives, log_det_units, start_state
 from .threads import one_blas_thread
 
+PLAIN = Loss("none")  # plain Gaussian whitening
+
 
 @dataclass
 class Setup:
@@ -192,7 +194,8 @@ def sq_residuals(setup: Setup, fit: Fit) -> np.ndarray:
         ms = np.flatnonzero(fit.models == name)
         prob = setup.problem(ms, name, np.ones(len(ms)))
         x = np.ascontiguousarray(fit.state[:, ms, :prob.d])
-        terms = kernels.row_terms(x, prob.rows, prob.cams.P, prob.cams.behind, 0, 1.0)
+        terms = kernels.row_terms(x, prob.rows, prob.cams, PLAIN)
         rows = prob.rows
         out[rows.cam, rows.frame, ms[rows.marker]] = np.where(terms["inv"] > 0, (terms["r"] ** 2).sum(axis=1), np.nan)
     return out
+

@@ -128,19 +128,24 @@ def _rows(m0, m1, starts, x, kf_, W, cam, P, uv, Linv, behind, robust, k, exact,
                                         B[kf, mk, 3 * ja + q, 3 * jb + s] += f * H[q, s]
 
 
-def rows_system(x, rows, P, behind, robust: int, k: float, exact, jacobian: bool, cost, near, D, B, g) -> None:
+def rows_system(x, rows, cams, loss, exact, cost, near, system=None) -> None:
     """Add every projection row's robust cost and Gauss-Newton terms into its marker's system, in place.
 
     x (F, M, d) states [m]; rows: batgraph.solver.problem.Rows (sorted by marker, ``starts`` (M + 1,) their
     ranges, ``k`` (n,) the interval's first frame, ``W`` (n, 2, 3) the weights of the position on the states of
-    frames k and k + 1); P (12, C) projection matrices to ideal pixels, behind (C,) the residual [px] behind a
-    camera; robust ROBUST_CODE, k its threshold [sigmas]; exact (M,) 1.0 where the Hessian takes the robust
-    loss's own curvature, 0.0 for IRLS's. Adds to cost (M,) and sets near (M,) to each marker's largest inverse
-    depth; with ``jacobian`` adds to D (F, M, d, d), B (F - 1, M, d, d) (H[k + 1, k]) and g (F, M, d).
+    frames k and k + 1); cams: problem.Cameras (P (12, C), behind (C,)); loss: problem.Loss; exact (M,) 1.0 where
+    the Hessian takes the robust loss's own curvature, 0.0 for IRLS's. Adds to cost (M,) and sets near (M,) to
+    each marker's largest inverse depth; with system = (D (F, M, d, d), B (F - 1, M, d, d) (H[k + 1, k]),
+    g (F, M, d)) adds the Gauss-Newton terms to them.
     """
+    jacobian = system is not None
+    D, B, g = system if jacobian else (_NONE4, _NONE4, _NONE3)
     split(len(rows.starts) - 1, max(1, MIN_PART_ROWS * (len(rows.starts) - 1) // max(len(rows.k), 1)),
-          lambda m0, m1: _rows(m0, m1, rows.starts, x, rows.k, rows.W, rows.cam, P, rows.uv, rows.Linv, behind,
-                               robust, k, exact, jacobian, cost, near, D, B, g))
+          lambda m0, m1: _rows(m0, m1, rows.starts, x, rows.k, rows.W, rows.cam, cams.P, rows.uv, rows.Linv,
+                               cams.behind, loss.code, float(loss.k), exact, jacobian, cost, near, D, B, g))
+
+
+_NONE3, _NONE4 = np.zeros((1, 1, 1)), np.zeros((1, 1, 1, 1))  # unused when no system is asked for
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -160,17 +165,17 @@ def _row_terms(lo, hi, x, mrk, kf_, W, dW, cam, P, uv, Linv, behind, robust, k, 
         _, w[i], a[i] = rho_w(r[i, 0] ** 2 + r[i, 1] ** 2, robust, k)
 
 
-def row_terms(x, rows, P, behind, robust: int, k: float) -> dict:
+def row_terms(x, rows, cams, loss) -> dict:
     """Per row (n rows): the whitened residual r (n, 2), its whitened Jacobian in the world point J (n, 2, 3)
-    [1/m], the IRLS weight w (n,) and curvature factor a (n,) (:func:`rho_w`), the point p (n, 3) [m], dp/ds
-    (n, 3) [m per frame] along its time, and the inverse depth inv (n,) [1/m] (0 behind the camera). Arguments as
-    :func:`rows_system`'s (rows placed, with ``dW``)."""
+    [1/m], the IRLS weight w (n,) and curvature factor a (n,) (:func:`rho_w`) of ``loss``, the point p (n, 3) [m],
+    dp/ds (n, 3) [m per frame] along its time, and the inverse depth inv (n,) [1/m] (0 behind the camera).
+    Arguments as :func:`rows_system`'s (rows placed, with ``dW``)."""
     n = len(rows.k)
     out = {"r": np.empty((n, 2)), "J": np.empty((n, 2, 3)), "w": np.empty(n), "a": np.empty(n), "p": np.empty((n, 3)),
            "dp": np.empty((n, 3)), "inv": np.empty(n)}
-    split(n, MIN_PART_ROWS, lambda lo, hi: _row_terms(lo, hi, x, rows.marker, rows.k, rows.W, rows.dW, rows.cam, P,
-                                                       rows.uv, rows.Linv, behind, robust, k, out["r"], out["J"],
-                                                       out["w"], out["a"], out["p"], out["dp"], out["inv"]))
+    split(n, MIN_PART_ROWS, lambda lo, hi: _row_terms(
+        lo, hi, x, rows.marker, rows.k, rows.W, rows.dW, rows.cam, cams.P, rows.uv, rows.Linv, cams.behind, loss.code,
+        float(loss.k), out["r"], out["J"], out["w"], out["a"], out["p"], out["dp"], out["inv"]))
     return out
 
 
@@ -384,7 +389,7 @@ def compile_all() -> None:
     for name in ("random_walk", "constant_velocity", "constant_acceleration"):
         prob = Problem(Rows.of(ideal), Cameras.of(rig), 100.0, 3, name, np.ones(1), Loss("huber"), np.zeros((1, 3)))
         chains.solve(prob, np.zeros((3, 1, prob.d)), lm.LOOSE, covariances=True, slope=True)
-        row_terms(np.zeros((3, 1, prob.d)), prob.rows, prob.cams.P, prob.cams.behind, 1, 2.0)
+        row_terms(np.zeros((3, 1, prob.d)), prob.rows, prob.cams, Loss("huber"))
     mirror_lower(np.eye(3))
     robust_loss(np.ones(2), 1, 2.0)
 

@@ -207,8 +207,7 @@ class Problem:
     def cost(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(total cost per marker (M,), inf where not finite; each marker's largest inverse depth (M,) [1/m])."""
         cost, near = np.zeros(self.n_markers), np.zeros(self.n_markers)
-        kernels.rows_system(np.ascontiguousarray(x), self.rows, self.cams.P, self.cams.behind, self.loss.code,
-                            float(self.loss.k), _NONE, False, cost, near, _NONE4, _NONE4, _NONE3)
+        kernels.rows_system(np.ascontiguousarray(x), self.rows, self.cams, self.loss, _NONE, cost, near)
         total = cost + self.motion_cost(x) + self.prior_cost(x)
         return np.where(np.isnan(total), np.inf, total), near
 
@@ -226,8 +225,7 @@ class Problem:
         cost, near = np.zeros(M), np.zeros(M)
         D, B, g = np.zeros((F, M, d, d)), np.zeros((max(F - 1, 0), M, d, d)), np.zeros((F, M, d))
         ex = np.ascontiguousarray(np.broadcast_to(np.asarray(exact, float), (M,)))
-        kernels.rows_system(np.ascontiguousarray(x), self.rows, self.cams.P, self.cams.behind, self.loss.code,
-                            float(self.loss.k), ex, True, cost, near, D, B, g)
+        kernels.rows_system(np.ascontiguousarray(x), self.rows, self.cams, self.loss, ex, cost, near, (D, B, g))
         return cost, near, D, B, g
 
     def add_motion(self, x: np.ndarray, D: np.ndarray, B: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -252,8 +250,6 @@ class Problem:
 
 
 _NONE = np.zeros(1)
-_NONE3 = np.zeros((1, 1, 1))
-_NONE4 = np.zeros((1, 1, 1, 1))
 
 
 def start_state(name: str, fps: float, p: np.ndarray, v: np.ndarray | None = None,

@@ -6,7 +6,10 @@
 3. Each marker's model ("auto") and noise level by the marginal likelihood (batgraph.solver.search) on the rest,
    without the segments; a constant-velocity q at least :func:`flapping_floor`.
 4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds solve only
-   the markers whose exclusions changed, with their segment groups).
+   the markers whose exclusions changed, with their segment groups). The first starts from a solve with the
+   segments SEGMENT_RELAX times softer: from the segment-free solution a single-view track end can lie nearer
+   the far one of the two depths a segment allows, and stiff segments hold it there (flight seed 2: 24 mm off
+   on frames seen twice, their views rejected as outliers).
 5. The covariances where the data do not pin a point (batgraph.solver.ends); flags |r|^2 > 13.8155.
 Variables shared by every marker (``--sync estimate``, ``--refine-rig``, pose covariances; batgraph.solver.shared)
 are first estimated at the cleaning solve, steps 2-4 run with them, and the last solve estimates them jointly.
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,6 +40,7 @@ CLEANING_LOSS = Loss("cauchy")
 REJECT_SQ_RESIDUAL = 25.0  # |r| > 5 sigma: at 13.8 an excluded inlier drifts off the solution and stays out
 OUTLIER_SQ_RESIDUAL = 13.8155  # chi-square 2 DOF, 99.9 %: the flags reported
 REJECTION_ROUNDS = 3
+SEGMENT_RELAX = 10.0  # the first solve with the segments has them this many times softer (step 4)
 
 
 def initial_track(xyz_tri_m: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -61,16 +66,25 @@ def to_exclude(rejected: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return rejected & ((seen.sum(axis=0) == 1) | (n_ok >= 1))[None]
 
 
-def motion_choice(session: Session, options: Options) -> tuple[str, float, float | None]:
-    """(model, the random walk's sigma_m [m], a given constant-velocity q [m^2/s^3] or None): options first, then
-    session.toml. A given q makes "auto" constant velocity, the model q belongs to."""
+class Motion(NamedTuple):
+    """The motion model asked for: its name (or "auto"), the random walk's sigma_m [m], a given constant-velocity
+    q [m^2/s^3] or None (then chosen from the data)."""
+
+    name: str
+    sigma_m: float
+    q: float | None
+
+
+def motion_choice(session: Session, options: Options) -> Motion:
+    """The Motion asked for: options first, then session.toml. A given q makes "auto" constant velocity, the model
+    q belongs to."""
     name = options.motion_model or session.motion.model
     if name not in (*mm.MODELS, mm.AUTO):
         raise InputError(f"motion model must be one of {', '.join((*mm.MODELS, mm.AUTO))}, got {name!r}")
     q = options.accel_psd_m2_s3 if options.accel_psd_m2_s3 is not None else session.motion.accel_psd_m2_s3
     if name == mm.AUTO and q is not None:
         name = "constant_velocity"
-    return name, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q)
+    return Motion(name, random_walk_sigma_m(session.motion, session.fps), None if q is None else float(q))
 
 
 def run_smoother(session: Session, dense: DenseObservations, ideal: IdealObservations, options: Options) -> Estimate:
@@ -92,12 +106,12 @@ def run(session: Session, dense: DenseObservations, ideal: IdealObservations, op
 
 def _run(session, dense, ideal, options, backend) -> Estimate:
     t0 = time.perf_counter()
-    name, sigma_m, q = motion_choice(session, options)
+    motion = motion_choice(session, options)
     fps, rig = session.fps, session.rig
     p_init, v_init, estimated = initial_track(dlt_points(rig, ideal), fps)
     C, F, M = ideal.seen.shape
     reject = options.outlier_rejection and options.robust != "none"
-    info = {"solver": backend.name, "motion_model": name, "robust": options.robust, "robust_k": options.robust_k,
+    info = {"solver": backend.name, "motion_model": motion.name, "robust": options.robust, "robust_k": options.robust_k,
             "outlier_rejection": reject}
     if not estimated.any():
         return Estimate("smoother", np.full((F, M, 3), np.nan), np.full((F, M, 3, 3), np.nan),
@@ -108,11 +122,12 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     excluded, start = np.zeros((C, F, M), bool), (p_init, v_init, None)
     theta, setup = np.zeros(spec.n), base
     if reject or spec.n:
-        excluded, start, theta, spec, info["cleaning"] = _clean(base, backend, name, sigma_m, q, session, spec,
-                                                                reject)
+        cleaning_q = causal_accel_psd(session.motion, fps)
+        excluded, start, theta, spec, info["cleaning"] = _clean(base, backend, motion, cleaning_q, spec, reject)
         setup = shared.applied(base, spec, theta)
-    models, levels, start = _choose(setup.without(excluded), backend, name, sigma_m, q, start, estimated, options,
-                                    info, dense.markers)
+    models, levels, start, figures = _choose(setup.without(excluded), backend, motion, start, options.progress,
+                                             dense.markers)
+    info.update(figures)
     fit, excluded, rounds, stable = _final(setup, backend, models, levels, start, excluded, reject)
     if spec.n:
         fit, theta, cov_theta, setup, info["shared_steps"] = shared.solve(
@@ -208,12 +223,14 @@ def _rig_figures(spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, rig) -
     return out
 
 
-def _clean(setup, backend, name, sigma_m, q, session, spec, reject) -> tuple:
-    """Steps 1-2 (and the shared variables' first estimate): (excluded (C, F, M), the next solves' start, theta,
-    figures)."""
+def _clean(setup, backend, motion, cleaning_q, spec, reject) -> tuple:
+    """Steps 1-2 (and the shared variables' first estimate) at constant velocity with a given q, else
+    ``cleaning_q`` [m^2/s^3] (the random walk at its sigma): (excluded (C, F, M), the next solves' start, theta,
+    spec (readouts the data do not show dropped), figures)."""
     est = setup.estimated
+    name, sigma_m, q = motion
     clean_name, level = ("random_walk", sigma_m) if name == "random_walk" else (
-        "constant_velocity", q if q is not None else causal_accel_psd(session.motion, session.fps))
+        "constant_velocity", q if q is not None else cleaning_q)
     models, levels = np.where(est, clean_name, None), np.full(len(est), level)
     loss = Loss(CLEANING_LOSS.name, setup.loss.k) if reject else setup.loss
     cleaning = replace(setup, loss=loss)
@@ -262,25 +279,26 @@ class _NoCovariances:
         return self.backend.fit(setup, models, levels, start, lm.LOOSE, False, False)
 
 
-def _choose(setup, backend, name, sigma_m, q, start, estimated, options, info, names) -> tuple:
-    """Step 3: (models (M,), levels (M,), the final solves' start)."""
+def _choose(setup, backend, motion, start, progress, names) -> tuple:
+    """Step 3: (models (M,), levels (M,), the final solves' start, figures for summary.json)."""
+    name, sigma_m, q = motion
+    estimated = setup.estimated
     M = len(estimated)
     if name == "random_walk" or q is not None:
         level = sigma_m if name == "random_walk" else q
-        info[mm.LEVEL_NAME[name]] = level
-        info["noise_source"] = "given"
-        info["motion_model_per_marker"] = {names[m]: name for m in np.flatnonzero(estimated)}
-        return np.where(estimated, name, None), np.full(M, level), start
+        figures = {mm.LEVEL_NAME[name]: level, "noise_source": "given",
+                   "motion_model_per_marker": {names[m]: name for m in np.flatnonzero(estimated)}}
+        return np.where(estimated, name, None), np.full(M, level), start, figures
     candidates = mm.AUTO_CANDIDATES if name == mm.AUTO else (name,)
     groups = [members for members, _ in segments.groups(setup.pairs, estimated)]
-    choice = backend.choose(setup, start, candidates, groups, options.progress)
+    choice = backend.choose(setup, start, candidates, groups, progress)
     models = np.where(estimated, choice.model, None)
-    info.update(_choice_figures(choice, models, names, candidates))
+    figures = _choice_figures(choice, models, names, candidates)
     floor = flapping_floor(start[0], setup.fps)
     raised = (models == "constant_velocity") & (choice.level < floor)
     if raised.any():
         choice.level[raised] = floor
-        info["accel_psd_floor"] = {"accel_psd_m2_s3": floor, "markers": [names[m] for m in np.flatnonzero(raised)]}
+        figures["accel_psd_floor"] = {"accel_psd_m2_s3": floor, "markers": [names[m] for m in np.flatnonzero(raised)]}
     x = np.full(start[0].shape[:2] + (9,), np.nan)
     for n in candidates:  # the search's solutions at the chosen models and levels: the final solves' start
         sol = choice.solution[n]
@@ -290,13 +308,17 @@ def _choose(setup, backend, name, sigma_m, q, start, estimated, options, info, n
     p = np.where(have, p, start[0])
     v = np.where(have & np.isfinite(v).all(axis=(0, 2))[None, :, None], v,
                  start[1] if start[1] is not None else gradient(p, setup.fps))
-    return models, choice.level, (p, v, np.where(np.isfinite(a), a, gradient(v, setup.fps)))
+    return models, choice.level, (p, v, np.where(np.isfinite(a), a, gradient(v, setup.fps))), figures
 
 
 def _final(setup, backend, models, levels, start, excluded, reject) -> tuple:
     """Step 4: (the last fit, the excluded set, iterations per round, whether the excluded set was stable)."""
     rounds, fit, stable = [], None, True
     redo = models != None  # noqa: E711  (an object array)
+    if len(setup.pairs):  # the segments' continuation (module docstring, step 4)
+        soft = replace(setup.without(excluded), rigid_sigma_m=setup.rigid_sigma_m * SEGMENT_RELAX)
+        fit = backend.fit(soft, models, levels, start, covariances=False)
+        start, fit = (fit.xyz, fit.velocity, fit.acceleration), None
     for r in range(REJECTION_ROUNDS if reject else 1):
         solved = backend.fit(setup.without(excluded), np.where(redo, models, None), levels, start)
         fit = solved if fit is None else fit.merge(solved, redo)

@@ -213,7 +213,7 @@ def _units(setup: fit_mod.Setup, fit: fit_mod.Fit):
 def _row_terms(prob, x, shared: Shared, setup, exact: bool):
     """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature)."""
     rows = prob.rows
-    t = kernels.row_terms(x, rows, prob.cams.P, prob.cams.behind, prob.loss.code, float(prob.loss.k))
+    t = kernels.row_terms(x, rows, prob.cams, prob.loss)
     cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
     w, r, J = t["w"], t["r"], t["J"]
     Wr = w[:, None, None] * np.eye(2)  # each row's curvature in its whitened residual (n_rows, 2, 2)
