@@ -34,6 +34,7 @@ from .. import atomic
 from ..camera import Camera, Rig
 from ..errors import InputError
 from ..geometry import dlt
+from ..geometry.triangulation import linear_points
 from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 from .c3d_trc import keep_range
@@ -372,7 +373,7 @@ def resolve_conventions(P_file: np.ndarray, uv_file_px: np.ndarray, pixel_origin
     A given origin that disagrees with the sign means a mirrored world: z is negated internally.
     Returns (origin, world_mirror (3,), note). Raises InputError naming the camera that disagrees.
     """
-    xyz = dlt.triangulate_linear(P_file, uv_file_px)
+    xyz = linear_points(P_file, uv_file_px)  # each view's rows at unit norm: the file's own 3D
     if xyz_file is not None:
         xyz = np.where(np.isfinite(xyz), xyz, xyz_file)
     seen = np.isfinite(uv_file_px[..., 0])

@@ -98,30 +98,6 @@ def principal_point(P: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", M[..., :2, :], m3) / np.sum(m3 * m3, axis=-1)[..., None]
 
 
-def triangulate_linear(P: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
-    """Linear (homogeneous DLT) triangulation with raw projection matrices, in their own conventions.
-
-    P: (C, 3, 4); uv_px: (C, N, 2), NaN where a camera does not see a point. Rows are normalised so
-    each camera weighs the same. Returns xyz (N, 3) in P's world frame; NaN where < 2 views. Needs no
-    pixel origin, handedness or units: it is how the file's own coefficients define the 3D.
-    """
-    P = np.asarray(P, dtype=float)
-    seen = np.isfinite(uv_px[..., 0])  # (C, N)
-    u = np.where(seen, uv_px[..., 0], 0.0)[..., None]
-    v = np.where(seen, uv_px[..., 1], 0.0)[..., None]
-    rows = np.concatenate([u * P[:, None, 2] - P[:, None, 0], v * P[:, None, 2] - P[:, None, 1]])  # (2C, N, 4)
-    norm = np.linalg.norm(rows, axis=-1, keepdims=True)
-    rows = np.where(np.concatenate([seen, seen])[..., None], rows / np.where(norm > 0, norm, 1.0), 0.0)
-    ok = seen.sum(axis=0) >= 2
-    xyz = np.full((uv_px.shape[1], 3), np.nan)
-    if ok.any():
-        A = np.moveaxis(rows[:, ok], 1, 0)  # (n, 2C, 4)
-        X = np.linalg.svd(A)[2][:, -1]  # right singular vector of the smallest singular value
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xyz[ok] = X[:, :3] / X[:, 3:4]
-    return xyz
-
-
 def orientation_sign(P: np.ndarray, xyz: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """Per camera, the fraction of the points it sees with det(P[:, :3]) * w > 0 (module docstring).
 
