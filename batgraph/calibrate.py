@@ -50,6 +50,7 @@ import pycolmap
 from . import atomic
 from .camera import Camera, Rig
 from .errors import InputError
+from .evaluate import rms
 from .geometry import gauge as rig_gauge
 from .geometry import pose
 from .geometry.pose import pose_cov_gtsam_from_colmap as pose_cov_gtsam_from_colmap  # re-exported
@@ -708,7 +709,7 @@ def _held_out_check(rig0: Rig, dense: DenseObservations, ref: int, sigma: float,
         return {}
     ok = fin & (b <= math.sqrt(CHI2_2DOF_999) * float(np.median(b[fin])) / RAYLEIGH_MEDIAN)
     return {"folds": len(e_in), "fraction": 1.0 / n_folds, "n_frames": F, "n_observations": int(ok.sum()),
-            "prediction": how, "rms_input_px": _rms(a[ok]), "rms_refined_px": _rms(b[ok])}
+            "prediction": how, "rms_input_px": rms(a[ok], math.nan), "rms_refined_px": rms(b[ok], math.nan)}
 
 
 def _r95(cov: np.ndarray | None) -> tuple[float, float]:
@@ -902,7 +903,7 @@ def _report(session: Session, rig_in: Rig, rig_out: Rig, fit: _Fit, dense: Dense
         u = sel & used
         row = {
             "n_obs": int(sel.sum()), "n_used": int(u.sum()), "n_rejected": int((sel & ~used).sum()),
-            "rms_before_px": _rms(err_before[u]), "rms_after_px": _rms(fit.err[u]),
+            "rms_before_px": rms(err_before[u], math.nan), "rms_after_px": rms(fit.err[u], math.nan),
             "median_after_px": float(np.median(fit.err[u])) if u.any() else float("nan"),
             "moved_mm": 1000 * float(np.linalg.norm(co.center_world - ci.center_world)),
             "turned_deg": _angle_deg(co.R, ci.R),
@@ -916,11 +917,6 @@ def _report(session: Session, rig_in: Rig, rig_out: Rig, fit: _Fit, dense: Dense
             row["input_error_mm"], row["input_error_deg"] = err_in[c]
         cams[co.name] = row
     return {"cameras": cams}
-
-
-def _rms(e: np.ndarray) -> float:
-    e = e[np.isfinite(e)]
-    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:

@@ -26,14 +26,15 @@ from .evaluate import (
     SPANS,
     STATUSES,
     add_span,
+    coverage95,
     errors_by_method,
     group_masks,
     method_rows,
     method_summary,
     opening_frame,
     point_errors,
+    rms,
 )
-from .motion import CHI2_3DOF_95
 
 OUTLIER_WARN_FRACTION = 0.05
 """A camera with more than this fraction of its observations flagged as outliers (by the recommended
@@ -203,13 +204,10 @@ def _group(methods: list[str], use: str, index: dict[str, pd.Index], figures) ->
 
 
 def _point_figures(e: pd.DataFrame, with_truth: bool) -> dict:
-    err = e["err_m"].to_numpy(float)
-    rms = _finite(np.sqrt(np.mean(err**2)))
+    err = rms(e["err_m"].to_numpy(float))
     if not with_truth:
-        return {"rms_m": rms}
-    d2 = e["mahal2"].to_numpy(float)
-    has = np.isfinite(d2)
-    return {"rmse_m": rms, "coverage95": float(np.mean(d2[has] <= CHI2_3DOF_95)) if has.any() else None}
+        return {"rms_m": err}
+    return {"rmse_m": err, "coverage95": coverage95(e["mahal2"].to_numpy(float))}
 
 
 def _pixel_figures(e: np.ndarray) -> dict:

@@ -26,7 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_study as study  # noqa: E402
 
 from batgraph import atomic, evaluate  # noqa: E402
-from batgraph.motion import CHI2_3DOF_95  # noqa: E402
 from batgraph.pipeline import run_methods  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 
@@ -45,8 +44,9 @@ def seed_record(scene: study.StudyScene, seed: int) -> dict:
         status, span = group.split("/")
         sel = (e["status"] == status) & (e["span"] == span)
         d2 = e.loc[sel, "mahal2"].to_numpy(float)
-        rec[f"n_{group}"] = len(d2)
-        rec[f"cov_{group}"] = float(np.mean(d2 <= CHI2_3DOF_95)) if len(d2) else np.nan
+        rec[f"n_{group}"] = int(np.isfinite(d2).sum())  # the points with an ellipsoid
+        cov = evaluate.coverage95(d2)
+        rec[f"cov_{group}"] = np.nan if cov is None else cov
     return rec
 
 
