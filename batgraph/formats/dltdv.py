@@ -1,24 +1,17 @@
 """DLTdv8 / DLTdv7 (and Argus) files <-> batgraph: 2D clicks, 11-parameter DLT coefficients, 3D points.
 
-DLTdv's files (Hedrick lab; Argus writes the same layout):
-
 * ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1; DLTdv 8.4 writes
-  ``_U, _V``),
-  ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's own GUI
-  counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
+  ``_U, _V``), ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's
+  GUI counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
 * ``*dltCoefs.csv``: 11 rows (L1..L11) x one column per camera, no header;
-  ``u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)``, v likewise with L5..L8, in the
-  pixel convention of the xypts file.
+  ``u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)``, v likewise with L5..L8.
 * ``*xyzpts.csv``: ``pt{p}_X, pt{p}_Y, pt{p}_Z`` per frame; ``*xyzres.csv``: ``pt{p}_dltres``.
 
-Conventions (pixel origin, handedness, units) are read from the coefficients, not from a version
-number: every DLTdv version (DLTdv8 included), Argus and easyWand store pixels with the origin at the
-lower left, y up, 1-based, and a DLT world may be mirrored or in millimetres. The rules and the
-arithmetic are in :mod:`batgraph.geometry.dlt`; :func:`resolve_conventions` applies them to a trial.
-
-This module reads and writes files and builds a session. Camera offsets (DLTdv's ``*offsets.csv``, Argus's) are
-read by :mod:`batgraph.formats.offsets`: the clicks keep each camera's own video frame and calibration.toml gets
-each camera's ``time_offset_s``. DLTdv8's "sparse" xypts layout is not read.
+Pixel origin, handedness and units are read from the coefficients, not from a version number (every DLTdv
+version, Argus and easyWand put the origin at the lower left, y up, 1-based; a DLT world may be mirrored or in
+millimetres): the arithmetic is in :mod:`batgraph.geometry.dlt`, :func:`resolve_conventions` applies it.
+Camera offsets (``*offsets.csv``) are read by :mod:`batgraph.formats.offsets`: the clicks keep each camera's
+own video frame and calibration.toml gets its ``time_offset_s``. DLTdv8's "sparse" xypts layout is not read.
 """
 
 from __future__ import annotations
