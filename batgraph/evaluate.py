@@ -1,4 +1,4 @@
-"""Estimates -> the contract's tables (trajectories, reprojection) and summary.json figures.
+"""Estimates -> the output tables (trajectories, reprojection; docs/formats.md) and summary.json figures.
 
 Errors against truth, per-camera reprojection statistics, 95 % ellipsoid coverage and differences to
 a reference reconstruction. Knows nothing about how an estimate was made, nor about files.
@@ -88,7 +88,7 @@ def add_span(traj: pd.DataFrame) -> pd.DataFrame:
 
 
 def trajectories_table(session: Session, dense: DenseObservations, est: Estimate) -> pd.DataFrame:
-    """The contract's trajectories table for one method: every frame x marker, NaN where no estimate.
+    """The trajectories table (trajectories.csv) for one method: every frame x marker, NaN where no estimate.
 
     Positions and covariances are in the user's frame (the rig's world with ``world_mirror`` applied), as
     truth.csv and reference_xyz.csv are.
@@ -320,7 +320,7 @@ def focal_px(cam) -> float:
 def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, rig) -> pd.DataFrame:
     """Reprojection errors in millimetres at the marker's depth.
 
-    reprojection: the contract's columns (method, frame, camera, marker, u, v, u_hat, v_hat, err_px, outlier).
+    reprojection: reprojection.csv's columns (method, frame, camera, marker, u, v, u_hat, v_hat, err_px, outlier).
     trajectories: method, frame, marker, x, y, z [m, user frame]: the estimate whose reprojection it is.
     Returns a copy with ``depth_m`` (z of the estimated point in the camera [m]; NaN behind the camera),
     ``err_mm = err_px * depth_m / f_px * 1000`` and the signed components ``du_mm, dv_mm`` of

@@ -1,6 +1,6 @@
 """Session folders <-> validated tables and a camera rig; the only module that knows file layouts.
 
-A session folder (see CONTRACT.md and README.md) holds ``session.toml``, ``calibration.toml``
+A session folder (docs/formats.md) holds ``session.toml``, ``calibration.toml``
 (aniposelib format), ``observations.csv`` or ``.parquet``, and optionally ``truth.csv`` (simulated
 sessions), ``reference_xyz.csv`` (another tool's 3D, e.g. DLTdv's xyzpts, for comparison),
 ``calibration_true.toml`` (simulated sessions with a calibration error: the rig used to render),
@@ -548,7 +548,7 @@ def read_observations(path: Path, rig: Rig,
     if len(rows) == 0:
         raise InputError(f"{path}: no observations (every u, v is empty)")
     inputs.check_frame_gaps(frame[rows], path, is_csv, rows=rows)
-    # the contract's order: frame, then camera and marker names as text sort (stable: file order within a key)
+    # observations.csv's order: frame, then camera and marker names as text sort (stable: file order within a key)
     rows = rows[np.lexsort((marker.sort_keys()[rows], camera.sort_keys()[rows], frame[rows]))]
     _check_duplicates(rows, frame, camera, marker, path, is_csv)
     warnings = []

@@ -144,7 +144,7 @@ def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: lis
             joined: dict[str, pd.DataFrame] | None = None) -> Comparison | None:
     """Each method's figure on the points of each group that ``use`` (the verdict's method) estimates.
 
-    trajectories, reprojection: the contract's tables (every method stacked). Against truth: RMSE [m] and
+    trajectories, reprojection: the output tables (every method stacked). Against truth: RMSE [m] and
     95 % coverage; else against a reference: RMS difference [m]; else the reprojection error [px] of the
     observations of those points that no compared method flags as an outlier. None when ``use`` did not run.
     joined: per method, the trajectories joined with the truth (else the reference) where the caller has
@@ -437,7 +437,7 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
     and the smoother's (:func:`smoother_warnings`), with their details in ``warning_details``.
 
     session: batgraph.session.Session (rig, truth, reference, warnings, extra_toml); trajectories, reprojection:
-    the contract's tables, every method stacked (trajectories with status and span); runtimes, infos: per
+    the output tables, every method stacked (trajectories with status and span); runtimes, infos: per
     method, from the estimators; pixel_sigma_px, pixel_noise, checks: from the self-checks (batgraph.checks).
     """
     if "span" not in trajectories.columns:

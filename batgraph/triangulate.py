@@ -5,8 +5,8 @@ observations from >= 2 cameras; no motion model, no robust loss. Its covariance 
 first-order one (:func:`_first_order_cov`): the DLT weighs each view by its depth squared, not by its
 pixel noise, so its error is larger than the maximum-likelihood point's ``(sum_c J_c^T S_c^-1 J_c)^-1``
 (J_c the projection Jacobian at the solution, S_c the ideal-pixel noise covariance, see
-batgraph.measurement). That bound, the covariance given here before the eighteenth session, held the truth in
-67-91 % of the 95 % ellipsoids on the simulated and hold-out scenes (the DLT's own: 93-96 %).
+batgraph.measurement). That bound held the truth in only 67-91 % of the 95 % ellipsoids on the simulated and
+hold-out scenes; the DLT's own covariance, in 93-96 %.
 """
 
 from __future__ import annotations
