@@ -137,7 +137,7 @@ def _cluster_cov(scores: np.ndarray, Ninv: np.ndarray, block: int, s2: float) ->
     MIN_CLUSTERS clusters. scores (F, M, P): each point's score per parameter, x^T W r."""
     F, M, P = scores.shape
     edges = np.arange(0, F, block)
-    per = np.add.reduceat(scores, edges, axis=0).reshape(-1, P) if F else np.zeros((0, P))
+    per = np.add.reduceat(scores, edges, axis=0).reshape(-1, P) if F and P else np.zeros((0, P))
     per = per[np.abs(per).sum(axis=1) > 0]
     model = s2 * Ninv
     G = len(per)
