@@ -3,31 +3,14 @@
 Files: :func:`atomic_path`, :func:`write_text`, :func:`write_bytes` write a temporary beside the file and
 rename it over the final name.
 
-Folders: :func:`result_folder` stages a whole set of files (one ``reconstruct`` result) in a temporary folder
-beside the target, on the same file system, and swaps it in at the end. The hidden siblings of a folder
-``NAME`` are
-
-=====================================  ===========================================================
-``.NAME.batgraph-tmp-<pid>-<random>``  being written by process ``<pid>``; incomplete
-``.NAME.batgraph-new``                 complete, about to replace ``NAME``
-``.NAME.batgraph-old``                 the previous ``NAME``, about to be removed
-=====================================  ===========================================================
-
-and the swap is: rename tmp -> new (the new set is complete), NAME -> old, new -> NAME, remove old.
-A kill at any point leaves ``NAME`` holding the previous complete result or the new complete one (between
-the two renames, for a moment, only ``.NAME.batgraph-new`` and ``.NAME.batgraph-old``); the next
-:func:`result_folder` (or :func:`recover_folder`) on ``NAME`` first removes the temporaries of dead
-processes and finishes a half-done swap (the complete new result wins; the previous one is restored only
-when no complete new one exists).
-
-Files in the folder that are not in the set (the user's notes, ``calibrate``'s calibration.toml, exports)
-are carried over into the new folder as hard links (copies where the file system has none), so they are
-never lost; a file of the set that this run does not write (e.g. recording.rrd of an earlier run, now run
-with ``--viewer none``) is not carried over: the folder then holds one result, not a mix of two.
-
-Where a folder cannot be renamed (it is the working directory or one of its parents, a mount point, or its
-parent is not writable) the set is staged inside the folder and its files are renamed in one at a time:
-each file is still whole, but a kill can leave a mix of two results.
+Folders: :func:`result_folder` stages one result's files in a hidden folder beside the target (same file
+system) and swaps it in by renames (tmp -> ``.NAME.batgraph-new``, NAME -> ``.NAME.batgraph-old``, new ->
+NAME, remove old), so a kill leaves NAME holding the previous complete result or the new one; the next
+:func:`result_folder` (or :func:`recover_folder`) removes dead processes' temporaries and finishes a half-done
+swap. Files of the folder outside the set (the user's notes, exports) are carried over as hard links; a file
+of the set this run does not write is not, so the folder never mixes two results. Where the folder cannot be
+renamed (the working directory, a mount point, a read-only parent), its files are renamed in one at a time:
+each stays whole, but a kill can leave a mix. docs/formats.md tells users the same.
 """
 
 from __future__ import annotations

@@ -1,40 +1,17 @@
 """Rig calibration by bundle adjustment of all cameras at once (pycolmap), judged by what the images determine.
 
-What it does: builds a pycolmap reconstruction from a session (one camera + one image per rig
-camera, one 3D point per (frame, marker) seen by >= 2 cameras), refines every camera pose (and on
-request focal length, principal point, distortion) jointly with the points, rejects outliers
-iteratively, fixes the gauge as documented below, and estimates the joint covariance of the camera
-poses with pycolmap's BA covariance. It can also start from scratch (essential matrix + PnP), with
-the scale from a wand of known length, as easyWand / Argus do. It does not estimate trajectories.
-
-Camera model: pycolmap ``FULL_OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6) with
-k4 = k5 = k6 = 0 is exactly OpenCV's 5-parameter model that calibration.toml stores; ``OPENCV``
-has no k3, which GoPro-like lenses need (|k3| r^6 is several px at the image corners). COLMAP
-cannot hold skew: observations are de-skewed with the input K before the adjustment
-(``u' = u - s (v - cy) / fy``, exact) and the skew is written back unchanged. When distortion is
-refined, COLMAP frees k4..k6 too; the refined lens is then re-fitted to the 5-parameter model by
-linear least squares on a grid over the image (the fit residual is reported).
-
-Pose conventions: COLMAP stores cam_from_world (like calibration.toml), so :func:`rigid_from_camera`
-and :func:`camera_pose_from_rigid` only repackage the arrays; GTSAM's Pose3 of a camera is
-world_from_cam with another tangent, and COLMAP's pose covariances are converted to it by
-:func:`batgraph.geometry.pose.pose_cov_gtsam_from_colmap` (importable from here too).
-
-Gauge: images fix a rig only up to a similarity of the world (7 degrees of freedom,
-:mod:`batgraph.geometry.gauge`). ``gauge="input"`` (the default without a wand, starting from the
-input rig) fits the refined rig onto the input one by a similarity over every camera's centre and
-orientation, so the user's world frame and scale are kept as well as the input rig states them;
-the pose covariances are those of the fitted poses (the fit's 7 degrees of freedom removed).
-``gauge="camera0"`` (the default with a wand or from scratch) holds the reference camera at its input
-pose (it gets no covariance) and takes the scale from the wand (median triangulated length = its
-length), else from the input centres (least squares about the reference camera), else (centres
-that coincide) arbitrarily (reference-to-nearest camera = 1). Covariances are scaled by the
-a-posteriori pixel variance and do not include the uncertainty of the wand length or input scale.
-
-The judgement (:func:`calibrate_session`): refuse (InputError) when the observations cannot
-determine the rig; otherwise refine, and without a wand write the refinement only when it is
-significantly different from the input (gauge-free chi-square of the input under the refined
-covariance) and predicts held-out frames better (every camera from the others).
+Builds a pycolmap reconstruction from a session (one camera and image per rig camera, one 3D point per
+(frame, marker) seen by >= 2 cameras), refines every pose (on request focal length, principal point and
+lens) jointly with the points, rejects outliers iteratively, fixes the gauge and estimates the poses' joint
+covariance (pycolmap's, scaled by the a-posteriori pixel variance). It can also start from scratch
+(essential matrix + PnP) with the scale from a wand of known length, as easyWand / Argus do.
+Lens: ``FULL_OPENCV`` with k4 = k5 = k6 = 0 is OpenCV's 5-parameter model; skew is taken out of the
+detections before and put back after. Poses: COLMAP's cam_from_world is calibration.toml's; covariances go
+to GTSAM's Pose3 tangent (:func:`batgraph.geometry.pose.pose_cov_gtsam_from_colmap`, re-exported here).
+Gauge (:mod:`batgraph.geometry.gauge`): "input" fits the refined rig onto the input one by a similarity;
+"camera0" holds the reference camera and takes the scale from the wand, else from the input centres.
+:func:`calibrate_session` refuses (InputError) a rig the observations cannot determine and, without a wand,
+writes the refinement only when it differs significantly from the input and predicts held-out frames better.
 """
 
 from __future__ import annotations
@@ -50,6 +27,7 @@ import pycolmap
 from . import atomic
 from .camera import Camera, Rig
 from .errors import InputError
+from .evaluate import rms
 from .geometry import gauge as rig_gauge
 from .geometry import pose
 from .geometry.pose import pose_cov_gtsam_from_colmap as pose_cov_gtsam_from_colmap  # re-exported
@@ -708,7 +686,7 @@ def _held_out_check(rig0: Rig, dense: DenseObservations, ref: int, sigma: float,
         return {}
     ok = fin & (b <= math.sqrt(CHI2_2DOF_999) * float(np.median(b[fin])) / RAYLEIGH_MEDIAN)
     return {"folds": len(e_in), "fraction": 1.0 / n_folds, "n_frames": F, "n_observations": int(ok.sum()),
-            "prediction": how, "rms_input_px": _rms(a[ok]), "rms_refined_px": _rms(b[ok])}
+            "prediction": how, "rms_input_px": rms(a[ok], math.nan), "rms_refined_px": rms(b[ok], math.nan)}
 
 
 def _r95(cov: np.ndarray | None) -> tuple[float, float]:
@@ -798,26 +776,18 @@ def calibrate_session(
 ) -> tuple[Rig, dict]:
     """Refine the session's rig by bundle adjustment of all cameras at once, and judge the refinement.
 
-    refine_intrinsics: also refine focal lengths and principal points (per camera).
-    refine_distortion: also refine distortion (refitted to the 5-parameter model, see module doc).
-    gauge: "auto", "input" or "camera0" (module docstring); ref_camera: index of the reference camera
-        (held fixed by the adjustment; with "camera0" it keeps its input pose).
-    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present.
-    initial: "input" starts from the session's calibration, "scratch" from the essential matrix
-        and PnP (intrinsics from the session), "auto" = "scratch" when a wand is given, else "input".
-    max_iterations: outlier-rejection rounds; max_points: at most this many (frame, marker) points.
-    hold_out: 1 / the number of folds of the held-out check (blocks of frames); 0 skips it.
-    keep_input_if_undetermined: False returns the refinement even when the verdict keeps the input.
-
-    Raises InputError (one line) when the observations cannot determine the rig (undetermined_reason).
-    The verdict (``report["assessment"]``): with a wand, the refinement is written when it predicts the
-    held-out frames at least as well as the starting rig. Without one, starting from the input rig, it is
-    written when both (a) the input rig is outside the refinement's noise: its gauge-free chi-square under
-    the refined poses' covariance exceeds the SIGNIFICANCE quantile (6C - 7 degrees of freedom), and
-    (b) the refined rigs predict held-out frames (each camera from the others) better than the input rig;
-    otherwise the input rig is returned unchanged (``report["kept_input"]``). From scratch without a wand
-    and input poses the scale is arbitrary: "determined" is False.
-    Returns (rig, report): the rig with pose_cov (6, 6) per camera (see the gauge), or the input rig.
+    refine_intrinsics / refine_distortion: also refine focal lengths and principal points / the lens (refitted
+        to the 5-parameter model). gauge: "auto", "input" or "camera0" (module docstring); ref_camera: index of
+        the reference camera (held by the adjustment; with "camera0" it keeps its input pose).
+    wand: (end_a, end_b, length_m) or a :class:`Wand`; None = session.toml's [wand] if present. initial: "input"
+        (the session's calibration), "scratch" (essential matrix and PnP) or "auto" ("scratch" with a wand).
+    max_iterations: outlier-rejection rounds; max_points: at most this many (frame, marker) points; hold_out:
+        1 / the number of folds of the held-out check (0 skips it); keep_input_if_undetermined: False returns
+        the refinement even when the verdict keeps the input.
+    Returns (rig, report): the rig with pose_cov (6, 6) per camera, or the input rig (``report["kept_input"]``)
+    when the verdict (``report["assessment"]``, docs/calibration.md) keeps it; from scratch without a wand or
+    input poses the scale is arbitrary (``determined`` False). Raises InputError when the observations cannot
+    determine the rig (:func:`undetermined_reason`).
     """
     wand, initial, gauge_name = _check_arguments(session, gauge, ref_camera, wand, initial, hold_out)
     rig_in = session.rig
@@ -902,7 +872,7 @@ def _report(session: Session, rig_in: Rig, rig_out: Rig, fit: _Fit, dense: Dense
         u = sel & used
         row = {
             "n_obs": int(sel.sum()), "n_used": int(u.sum()), "n_rejected": int((sel & ~used).sum()),
-            "rms_before_px": _rms(err_before[u]), "rms_after_px": _rms(fit.err[u]),
+            "rms_before_px": rms(err_before[u], math.nan), "rms_after_px": rms(fit.err[u], math.nan),
             "median_after_px": float(np.median(fit.err[u])) if u.any() else float("nan"),
             "moved_mm": 1000 * float(np.linalg.norm(co.center_world - ci.center_world)),
             "turned_deg": _angle_deg(co.R, ci.R),
@@ -916,11 +886,6 @@ def _report(session: Session, rig_in: Rig, rig_out: Rig, fit: _Fit, dense: Dense
             row["input_error_mm"], row["input_error_deg"] = err_in[c]
         cams[co.name] = row
     return {"cameras": cams}
-
-
-def _rms(e: np.ndarray) -> float:
-    e = e[np.isfinite(e)]
-    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:

@@ -6,12 +6,10 @@
 * **points behind a camera**: more than half of the triangulated points a camera sees behind it is an
   input error (exit 2) naming the camera and the likely causes (pixel origin, mirrored world, poses
   written world_from_camera); more than 5 % is a warning.
-* **scale**: a camera whose median distance to the points it sees is > 50 m or < 5 cm (bats, birds,
-  insects and rodents are filmed from 0.1-30 m): units? (a calibration in millimetres read as metres).
-* **residuals**: a camera whose measured noise is > 5x the session's stated ``pixel_sigma_px``, or
-  > 5x the median of the other cameras' when it is measured: a wrong calibration or mislabels.
-* **guessed image size** (an import that had to infer it).
-
+* **scale**: a camera whose median distance to its points is > 50 m or < 5 cm (animals are filmed from
+  0.1-30 m): units? (a calibration in millimetres read as metres).
+* **residuals**: a camera whose measured noise is > 5x the stated ``pixel_sigma_px``, or > 5x the median of
+  the other cameras' when measured: a wrong calibration or mislabels. **guessed image size** (an import).
 It also measures the motion noise from the triangulated track when session.toml states no physics
 (batgraph.motion.noise_from_track). Warnings go to the terminal, summary.json and the report.
 """

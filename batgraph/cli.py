@@ -386,7 +386,7 @@ def _add_import(sub):
                         "writes lower-left); one the coefficients contradict means a mirrored world")
     d.add_argument("--units", choices=["m", "cm", "mm"], default="m",
                    help="world units of the coefficients and xyzpts (default m); the session is in metres")
-    d.add_argument("--dltdv-version", type=int, help=argparse.SUPPRESS)  # old flag: the origin is detected now
+    d.add_argument("--dltdv-version", type=int, help=argparse.SUPPRESS)  # accepted and ignored: the origin is detected
     d.add_argument("--image-size", type=image_side, nargs=2, metavar=("W", "H"), help="image size [px]")
     d.add_argument("--xyzpts", help="DLTdv's own *xyzpts.csv, kept as a reference for reports")
     d.add_argument("--pixel-sigma", type=positive_float,

@@ -1,11 +1,12 @@
-"""Estimates -> the contract's tables (trajectories, reprojection) and summary.json figures.
+"""Estimates -> the output tables (trajectories, reprojection; docs/formats.md) and summary.json figures.
 
 Errors against truth, per-camera reprojection statistics, 95 % ellipsoid coverage and differences to
 a reference reconstruction. Knows nothing about how an estimate was made, nor about files.
 
 Definitions used throughout:
-* RMSE = sqrt(mean ||xyz - truth||^2) over (frame, marker) pairs, 3D Euclidean, in metres.
-* coverage95 = fraction of truth points with (x - t)^T Sigma^-1 (x - t) <= 7.8147 (chi-square, 3 DOF, 95 %).
+* RMSE = sqrt(mean ||xyz - truth||^2) over (frame, marker) pairs, 3D Euclidean, in metres (:func:`rms`).
+* coverage95 = fraction of truth points with (x - t)^T Sigma^-1 (x - t) <= 7.8147 (chi-square, 3 DOF, 95 %;
+  :func:`coverage95`).
 * status: ``observed`` (>= 2 views), ``single_view`` (1), ``unobserved`` (0), from the input observations.
 * span: ``inside`` (from a marker's first to its last frame with >= 2 views, both included) or ``outside``
   (before or after: the track's ends, where every method extrapolates).
@@ -87,7 +88,7 @@ def add_span(traj: pd.DataFrame) -> pd.DataFrame:
 
 
 def trajectories_table(session: Session, dense: DenseObservations, est: Estimate) -> pd.DataFrame:
-    """The contract's trajectories table for one method: every frame x marker, NaN where no estimate.
+    """The trajectories table (trajectories.csv) for one method: every frame x marker, NaN where no estimate.
 
     Positions and covariances are in the user's frame (the rig's world with ``world_mirror`` applied), as
     truth.csv and reference_xyz.csv are.
@@ -260,9 +261,20 @@ def point_errors(traj: pd.DataFrame, points: pd.DataFrame, joined: pd.DataFrame 
     return j[["method", "frame", "marker", "status", "span", "err_m", "mahal2"]].reset_index(drop=True)
 
 
-def _rmse(err: np.ndarray) -> float | None:
-    err = err[np.isfinite(err)]
-    return float(np.sqrt(np.mean(err**2))) if len(err) else None
+def rms(errors: np.ndarray, empty: float | None = None) -> float | None:
+    """Root mean square of the finite entries of ``errors`` (any shape, any unit: the RMSE of 3D errors [m], a
+    reprojection RMS [px]); ``empty`` (default None) when there are none."""
+    e = np.asarray(errors, dtype=float)
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if len(e) else empty
+
+
+def coverage95(mahal2: np.ndarray) -> float | None:
+    """Fraction of the points inside their 95 % ellipsoid: squared Mahalanobis distances (n,) <= CHI2_3DOF_95,
+    over the finite ones (NaN: no valid covariance, no ellipsoid); None when there are none."""
+    d2 = np.asarray(mahal2, dtype=float)
+    d2 = d2[np.isfinite(d2)]
+    return float(np.mean(d2 <= CHI2_3DOF_95)) if len(d2) else None
 
 
 def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame, joined: pd.DataFrame | None = None) -> dict:
@@ -278,11 +290,10 @@ def truth_stats(traj: pd.DataFrame, truth: pd.DataFrame, joined: pd.DataFrame | 
     for name in GROUPS:
         err, m2 = err_all[masks[name]], m2_all[masks[name]]
         est = np.isfinite(err)
-        has_cov = np.isfinite(m2)
-        out["rmse_m"][name] = _rmse(err)
+        out["rmse_m"][name] = rms(err)
         out["mean_m"][name] = float(err[est].mean()) if est.any() else None
         out["p95_m"][name] = float(np.percentile(err[est], 95)) if est.any() else None
-        out["coverage95"][name] = float(np.mean(m2[has_cov] <= CHI2_3DOF_95)) if has_cov.any() else None
+        out["coverage95"][name] = coverage95(m2)
         out["n"][name] = int(len(err))
         out["n_estimated"][name] = int(est.sum())
     return out
@@ -296,8 +307,8 @@ def reference_stats(traj: pd.DataFrame, reference: pd.DataFrame, joined: pd.Data
         return {"n": 0}
     e = d["err_m"].to_numpy()
     groups = {g: e[mask] for g, mask in group_masks(d).items()}
-    return {"n": int(len(e)), "rms_m": float(np.sqrt(np.mean(e**2))), "median_m": float(np.median(e)),
-            "max_m": float(e.max()), "rms_by_group_m": {g: _rmse(v) for g, v in groups.items()},
+    return {"n": int(len(e)), "rms_m": rms(e), "median_m": float(np.median(e)),
+            "max_m": float(e.max()), "rms_by_group_m": {g: rms(v) for g, v in groups.items()},
             "n_by_group": {g: int(len(v)) for g, v in groups.items()}}
 
 
@@ -309,7 +320,7 @@ def focal_px(cam) -> float:
 def reprojection_in_mm(reprojection: pd.DataFrame, trajectories: pd.DataFrame, rig) -> pd.DataFrame:
     """Reprojection errors in millimetres at the marker's depth.
 
-    reprojection: the contract's columns (method, frame, camera, marker, u, v, u_hat, v_hat, err_px, outlier).
+    reprojection: reprojection.csv's columns (method, frame, camera, marker, u, v, u_hat, v_hat, err_px, outlier).
     trajectories: method, frame, marker, x, y, z [m, user frame]: the estimate whose reprojection it is.
     Returns a copy with ``depth_m`` (z of the estimated point in the camera [m]; NaN behind the camera),
     ``err_mm = err_px * depth_m / f_px * 1000`` and the signed components ``du_mm, dv_mm`` of
@@ -365,7 +376,7 @@ def reprojection_stats(session: Session, rep_mm: pd.DataFrame) -> dict:
         out[cam.name] = {
             "n": int(ok.sum()), "n_outliers": n_out, "outlier_fraction": n_out / (int(ok.sum()) + n_out),
             "mean_px": float(e[ok].mean()), "median_px": float(np.median(e[ok])),
-            "rms_px": float(np.sqrt(np.mean(e[ok] ** 2))), "p95_px": float(np.percentile(e[ok], 95)),
+            "rms_px": rms(e[ok]), "p95_px": float(np.percentile(e[ok], 95)),
             "mean_mm_at_depth": float(mm.mean()) if len(mm) else None,
             "median_mm_at_depth": float(np.median(mm)) if len(mm) else None,
             "p95_mm_at_depth": float(np.percentile(mm, 95)) if len(mm) else None,

@@ -1,26 +1,17 @@
 """Work in forked child processes: one call beside this process's own work (the report, while the other outputs
-are written), or a list of jobs shared over the cores (the methods).
+are written), or a list of jobs shared over the cores (the methods, a batch's sessions).
 
-:class:`Standby` forks a child at once that prepares (imports the report's modules) while this process goes
-on, then waits for the arguments of its one call; :meth:`Standby.run` pickles them straight into a pipe and
-returns a :class:`Pending`, whose :meth:`Pending.wait` waits for the call and raises what it raised. A child
-leaves with ``os._exit`` (as multiprocessing's fork children do): its garbage is never collected.
-
-:func:`map_jobs` computes ``fn(0) .. fn(n - 1)`` in this process and up to cores - 1 forked children,
-each taking the next undone index (the costly jobs first, where the caller orders them so): the methods
-(processes, not threads: most of their work holds the GIL). A child sees this process's memory as it
-was at the fork, so nothing is pickled on the way in; results come back pickled.
-
-:func:`stream_jobs` hands jobs to forked children only and yields each result as it comes, a dead child's job
-reported and the child replaced: a batch's sessions (batgraph.batch), which must not stop each other.
-
-The work runs in this process instead where a child would not help or cannot be made: not Linux (no
-``fork`` on Windows; on macOS it is unsafe), a daemonic process (a Dask worker: it may not have children,
-and a batch already uses the cores), one usable core, or ``BATGRAPH_FORK=0`` (validation's fold workers
-set it).
-
-Why not concurrent.futures.ProcessPoolExecutor: it pickles the function and its arguments and keeps a pool
-alive; one fork per call is all this needs.
+:class:`Standby` forks a child at once that imports the report's modules while this process goes on, then
+waits for its one call's arguments (:meth:`Standby.run` pickles them into a pipe; :meth:`Pending.wait` returns
+the result or raises what the call raised). :func:`map_jobs` computes ``fn(0) .. fn(n - 1)`` here and in up to
+cores - 1 forked children, each taking the next undone index: processes, not threads, since most of the
+methods' work holds the GIL; a child sees this process's memory as at the fork, so only results are pickled.
+:func:`stream_jobs` hands jobs to children only and yields each result as it comes, a dead child's job
+reported and the child replaced (batgraph.batch). Children leave with ``os._exit``, as multiprocessing's do.
+The work runs in this process instead where a child would not help or cannot be made: not Linux (no fork on
+Windows, unsafe on macOS), a daemonic process (a Dask worker), one usable core, or ``BATGRAPH_FORK=0``.
+concurrent.futures.ProcessPoolExecutor would pickle the function and its arguments and keep a pool alive;
+one fork per call is all this needs.
 """
 
 from __future__ import annotations

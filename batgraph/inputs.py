@@ -2,19 +2,16 @@
 checked here first, and every problem becomes one :class:`batgraph.errors.InputError` naming the file,
 the line or key, and the problem. This module knows no file layout (session.py and formats/* do).
 
-* Text files (TOML, CSV, JSON) are UTF-8; a UTF-8 byte-order mark is accepted. UTF-16 (what some
-  Windows editors save), Latin-1 / Windows-1252 and binary files are refused with a hint.
-* CSV is comma-separated with a header row (unless a reader says otherwise); a file separated by
-  semicolons or tabs (a spreadsheet's locale export) is refused with a hint, so is a header that
-  names a column twice. Line numbers in messages are the file's own (header = line 1).
-* Frames: an integer ``0 <= frame <= MAX_FRAME``. Estimators hold every frame from the first to
-  the last one observed in memory (the dense layout of :class:`batgraph.session.DenseObservations`),
-  so a jump of more than ``MAX_FRAME_GAP`` frames between consecutive observed frames is refused (a
-  typo such as one row at frame 2,000,000 would make reconstruct allocate gigabytes), and so is a
-  session whose dense arrays would not fit in the machine's memory (:func:`check_dense_memory`).
-* Output places are checked before any work starts (:func:`check_output_dir`,
-  :func:`check_output_file`): nothing is created here.
-* Command-line option types (:func:`positive_float` ...) for argparse: one set for every command.
+* Text files (TOML, CSV, JSON) are UTF-8, a byte-order mark accepted; UTF-16, Latin-1 / Windows-1252 and
+  binary files are refused with a hint.
+* CSV is comma-separated with a header row (unless a reader says otherwise); semicolons or tabs (a
+  spreadsheet's locale export) and a header naming a column twice are refused. Line numbers are the file's.
+* Frames: integers ``0 <= frame <= MAX_FRAME``. Estimators hold every frame from the first to the last
+  observed one in memory (:class:`batgraph.session.DenseObservations`), so a jump of more than
+  ``MAX_FRAME_GAP`` frames (a typo such as one row at frame 2,000,000) is refused, and so is a session
+  whose dense arrays would not fit in memory (:func:`check_dense_memory`).
+* Output places are checked before any work starts (:func:`check_output_dir`, :func:`check_output_file`);
+  nothing is created here. Command-line option types (:func:`positive_float` ...): one set for every command.
 """
 
 from __future__ import annotations

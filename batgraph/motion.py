@@ -142,9 +142,10 @@ WINGBEAT_BAND_HZ = (2.0, 40.0)  # the bats' (and birds') wingbeat frequencies ba
 WINGBEAT_MIN_CYCLES = 2.0  # a frequency is measured only if the take holds this many of its cycles
 WINGBEAT_OVERSAMPLE = 16  # the spectrum is sampled this many times finer than 1 / (take length)
 WINGBEAT_MIN_FRAMES = 8  # a track with fewer triangulated frames is left out
-
-
-WINGBEAT_PROMINENCE = 10.0  # a periodogram peak this many times its median is a periodic motion (wingbeat_peak)
+# a periodogram peak this many times its median is a periodic motion (wingbeat_peak): the prominence is 23-2000
+# on every flapping simulated scene (both generators, 4-15 Hz, 60-1000 fps, 1-8 px), 1.8 on a glide with an
+# interior maximum, 69 on a real LED wand waved at 3.1 Hz
+WINGBEAT_PROMINENCE = 10.0
 
 
 def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
@@ -155,25 +156,19 @@ def wingbeat_frequency(xyz_m: np.ndarray, fps: float) -> float | None:
 
 
 def wingbeat_peak(xyz_m: np.ndarray, fps: float) -> tuple[float, float] | None:
-    """The peak of the tracks' summed periodogram: (frequency [Hz], prominence = its power / the band's
-    median power), or None.
+    """The peak of the tracks' summed periodogram: (frequency [Hz], prominence = its power / the band's median
+    power), or None when the band is empty, no track is long enough, or the maximum is at an end of the band.
 
-    xyz_m: positions (F, M, 3) [m], NaN where not triangulated (a marker hidden behind a wing for half of
-    every stroke leaves gaps, so the spectrum is the Lomb-Scargle periodogram, which takes the triangulated
-    frames as they are: interpolating across the gaps put the peak at the band's edge on one hold-out scene).
-    It is scipy.signal.lombscargle's (tested against it), written here as four matrix products over every
-    track at once because scipy's takes one track at a time: 2.1 s at 30 x 180 x 160, every smoother run.
-    Each marker's axis with at least WINGBEAT_MIN_FRAMES frames is detrended by a quadratic in time (a
-    flight's path and its turn are not the wingbeat); the periodograms, summed over markers and axes (the
-    wing markers, which move most, dominate), are maximised over WINGBEAT_BAND_HZ cut to frequencies below
-    fps / 4 and of at least WINGBEAT_MIN_CYCLES cycles in the take, sampled WINGBEAT_OVERSAMPLE times finer
-    than 1 / (take length). Returns None when that band is empty or no track is long enough.
-    It is the frequency of the largest periodic motion, whether or not the animal flaps: the smoother's
-    per-marker model choice (evidence) decides whether an oscillation at it helps. A maximum at either end of
-    the band is no peak (the spectrum still rising toward a slower or faster motion, e.g. a walking human's
-    stride below 2 Hz): None then too, rather than a frequency of nothing. Prominence, measured: 23-2000 on
-    every flapping simulated scene (both generators, 4-15 Hz, 60-1000 fps, 1-8 px), 1.8 on a glide with an
-    interior maximum, 69 on the real MCSC LED wand's 3.1 Hz waving; WINGBEAT_PROMINENCE tells them apart.
+    xyz_m: positions (F, M, 3) [m], NaN where not triangulated. A marker hidden behind a wing for half of every
+    stroke leaves gaps, so the spectrum is the Lomb-Scargle periodogram of the triangulated frames as they are
+    (interpolating across the gaps put the peak at the band's edge on a hold-out scene): scipy.signal.lombscargle's,
+    written as four matrix products over every track at once (scipy's takes one track at a time: 2.1 s at
+    30 x 180 x 160). Each marker's axis with >= WINGBEAT_MIN_FRAMES frames is detrended by a quadratic in time (a
+    flight's path is not the wingbeat); the periodograms, summed over markers and axes, are maximised over
+    WINGBEAT_BAND_HZ below fps / 4 and of >= WINGBEAT_MIN_CYCLES cycles in the take, sampled WINGBEAT_OVERSAMPLE
+    times finer than 1 / (take length). It is the largest periodic motion, flapping or not: the smoother's
+    per-marker model choice decides whether an oscillation at it helps. A maximum at an end of the band is the
+    spectrum still rising toward a slower or faster motion (e.g. a walking human's stride), not a peak.
     """
     spectrum = periodogram(xyz_m, fps)
     if spectrum is None:

@@ -1,22 +1,15 @@
 """Pixel noise per camera, measured from the session's own observations (no ground truth needed).
 
 Every (frame, marker) seen by >= 2 cameras is triangulated by weighted least squares (linear DLT, then
-Gauss-Newton on the ideal-pixel reprojection error with each camera's current noise). At that
-solution an observation's unit-noise squared residual ``e = r^T S1^-1 r`` (S1 its 2x2 ideal-pixel
-covariance for a 1 px raw-pixel noise, batgraph.measurement) has expectation ``sigma_c^2 (2 - h)``,
-h the trace of its 2x2 block of the weighted hat matrix (its leverage: the degrees of freedom the 3D
-point took from it). Per camera, ``sigma_c^2 = sum e / sum (2 - h)`` over its inliers
-(``e / sigma_c^2 < 13.82``, chi-square 2 DOF 99.9 %: mislabels do not inflate it), iterated from a
-median start, then the triangulation is re-weighted with the new sigmas and the whole repeated until
-the sigmas change by < 1 %. A camera with fewer than MIN_OBSERVATIONS inliers gets the pooled value.
-
-A large session is measured on a sample of its markers (:func:`sample_markers`: at most MAX_POINTS
-(frame, marker) points, markers spread over the list, topped up until every camera keeps
-MIN_SAMPLED_OBSERVATIONS of its observations): at 30 x 180 x 160 it measures 50 of 180 markers, 3,800-5,000
-observations a camera, whose statistical error in sigma is ~1 % (1 / sqrt(2 nu), nu = sum (2 - h) their degrees
-of freedom), the iteration's own tolerance; measured, the sampled sigmas are the whole session's within 1.5 %,
-in 0.18 s instead of 0.54 s.
-
+Gauss-Newton on the ideal-pixel reprojection error with each camera's current noise). There an observation's
+unit-noise squared residual ``e = r^T S1^-1 r`` (S1 its ideal-pixel covariance for 1 px of raw-pixel noise,
+batgraph.measurement) has expectation ``sigma_c^2 (2 - h)``, h the trace of its 2x2 block of the weighted hat
+matrix (the degrees of freedom the point took from it). Per camera ``sigma_c^2 = sum e / sum (2 - h)`` over its
+inliers (``e / sigma_c^2 < 13.82``, chi-square 2 DOF 99.9 %: mislabels do not inflate it), from a median start;
+the points are re-weighted with the new sigmas until they change by < 1 %. A camera with fewer than
+MIN_OBSERVATIONS inliers gets the pooled value. A large session is measured on a sample of its markers
+(:func:`sample_markers`: at most MAX_POINTS points, every camera keeping MIN_SAMPLED_OBSERVATIONS), whose
+statistical error, 1 / sqrt(2 sum (2 - h)), is ~1 % at 30 x 180 x 160, the iteration's own tolerance.
 Why not a library: aniposelib and OpenCV report reprojection errors, which understate the noise by the
 leverage (with 2 cameras by half) and mix cameras; this is the unbiased per-camera figure.
 """

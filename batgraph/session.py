@@ -1,6 +1,6 @@
 """Session folders <-> validated tables and a camera rig; the only module that knows file layouts.
 
-A session folder (see CONTRACT.md and README.md) holds ``session.toml``, ``calibration.toml``
+A session folder (docs/formats.md) holds ``session.toml``, ``calibration.toml``
 (aniposelib format), ``observations.csv`` or ``.parquet``, and optionally ``truth.csv`` (simulated
 sessions), ``reference_xyz.csv`` (another tool's 3D, e.g. DLTdv's xyzpts, for comparison),
 ``calibration_true.toml`` (simulated sessions with a calibration error: the rig used to render),
@@ -115,23 +115,18 @@ class MotionConfig:
 class Session:
     """A loaded session.
 
-    observations: columns frame (int64), camera (str), marker (str), u, v (float, raw pixels),
-        weight (float in (0, 1]); only seen points (rows with empty u/v are dropped on load).
+    observations: columns frame (int64), camera (str), marker (str), u, v (float, raw pixels), weight (float in
+        (0, 1]); only seen points. When the rig's timing puts a camera off the session clock
+        (batgraph.camera.Camera.on_session_clock), ``frame`` is the session frame nearest each exposure and
+        ``camera_frame`` the camera's own frame, as read (:func:`to_session_clock`).
     truth, reference: columns frame, marker, x, y, z [m, world], or None.
-    pixel_sigma_px: std of one observation [px]: one value, one per camera name, or None = estimate it
-        per camera from the data (batgraph.pixel_noise), which reconstruct does when session.toml has no
-        ``[noise] pixel_sigma_px``.
+    pixel_sigma_px: std of one observation [px]: one value, one per camera name, or None = estimate it per
+        camera from the data (batgraph.pixel_noise), as reconstruct does without ``[noise] pixel_sigma_px``.
     warnings: non-fatal remarks found while loading (e.g. points outside the image).
-    take_gap_s: [session] take_gap_s [s]: longer runs of frames with no observation split takes (:func:`frame_axis`).
-    rigid: [markers] rigid, pairs of markers on one rigid segment (a bone): the smoother ties their
-        distance to one estimated length per segment (batgraph.solver.segments); none by default.
-    rigid_sigma_m: [markers] rigid_sigma_m, the std of such a distance about its length [m].
-    true_timing: simulated sessions (truth_timing.toml): columns camera, fps, time_offset_s, readout_s, the
-        timing the observations were rendered with (the rig may state less: nothing by default).
-
-    When the rig's timing puts a camera off the session clock (batgraph.camera.Camera.on_session_clock),
-    ``observations.frame`` holds the session frame nearest each observation's exposure and ``camera_frame`` the
-    camera's own frame number, as read (:func:`to_session_clock`).
+    take_gap_s: ``[session] take_gap_s`` [s]: a longer run with no observation splits takes (:func:`frame_axis`).
+    rigid: ``[markers] rigid``, marker pairs on one rigid segment (a bone), whose distance the smoother ties to
+        one estimated length per segment; rigid_sigma_m: the std of that distance about its length [m].
+    true_timing: simulated sessions' truth_timing.toml (camera, fps, time_offset_s, readout_s), or None.
     """
 
     name: str
@@ -553,7 +548,7 @@ def read_observations(path: Path, rig: Rig,
     if len(rows) == 0:
         raise InputError(f"{path}: no observations (every u, v is empty)")
     inputs.check_frame_gaps(frame[rows], path, is_csv, rows=rows)
-    # the contract's order: frame, then camera and marker names as text sort (stable: file order within a key)
+    # observations.csv's order: frame, then camera and marker names as text sort (stable: file order within a key)
     rows = rows[np.lexsort((marker.sort_keys()[rows], camera.sort_keys()[rows], frame[rows]))]
     _check_duplicates(rows, frame, camera, marker, path, is_csv)
     warnings = []

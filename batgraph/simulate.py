@@ -1,6 +1,6 @@
 """Synthetic sessions with ground truth: a bat flapping through a camera-lined tunnel, and a bat ear.
 
-The scenes follow the paper (see PAPER.md): a 0.5 m bat flapping at 4 Hz through 90 degrees while
+The scenes follow the paper (docs/method.md): a 0.5 m bat flapping at 4 Hz through 90 degrees while
 flying at 3 m/s along -x, filmed at 120 fps by GoPro-like cameras on the wall of a cylindrical
 tunnel; and a head with a bending 5 cm ear filmed by two low-distortion cameras at 250 fps.
 Occlusion is physical: a marker is hidden from a camera exactly when the segment from the camera
@@ -26,7 +26,7 @@ from .camera import Camera, Rig
 from .geometry import pose
 from .session import MotionConfig, Session, exposure_frames, nearest_frame, to_session_clock
 
-# ----- the paper's flight numbers (PAPER.md, "Motion model") ---------------------------------------
+# ----- the paper's flight numbers (its motion model, docs/method.md) --------------------------------
 FLIGHT_SPEED_MPS = 3.0
 SPAN_M = 0.5
 FLAP_HZ = 4.0

@@ -26,14 +26,15 @@ from .evaluate import (
     SPANS,
     STATUSES,
     add_span,
+    coverage95,
     errors_by_method,
     group_masks,
     method_rows,
     method_summary,
     opening_frame,
     point_errors,
+    rms,
 )
-from .motion import CHI2_3DOF_95
 
 OUTLIER_WARN_FRACTION = 0.05
 """A camera with more than this fraction of its observations flagged as outliers (by the recommended
@@ -143,7 +144,7 @@ def compare(trajectories: pd.DataFrame, reprojection: pd.DataFrame, methods: lis
             joined: dict[str, pd.DataFrame] | None = None) -> Comparison | None:
     """Each method's figure on the points of each group that ``use`` (the verdict's method) estimates.
 
-    trajectories, reprojection: the contract's tables (every method stacked). Against truth: RMSE [m] and
+    trajectories, reprojection: the output tables (every method stacked). Against truth: RMSE [m] and
     95 % coverage; else against a reference: RMS difference [m]; else the reprojection error [px] of the
     observations of those points that no compared method flags as an outlier. None when ``use`` did not run.
     joined: per method, the trajectories joined with the truth (else the reference) where the caller has
@@ -203,13 +204,10 @@ def _group(methods: list[str], use: str, index: dict[str, pd.Index], figures) ->
 
 
 def _point_figures(e: pd.DataFrame, with_truth: bool) -> dict:
-    err = e["err_m"].to_numpy(float)
-    rms = _finite(np.sqrt(np.mean(err**2)))
+    err = rms(e["err_m"].to_numpy(float))
     if not with_truth:
-        return {"rms_m": rms}
-    d2 = e["mahal2"].to_numpy(float)
-    has = np.isfinite(d2)
-    return {"rmse_m": rms, "coverage95": float(np.mean(d2[has] <= CHI2_3DOF_95)) if has.any() else None}
+        return {"rms_m": err}
+    return {"rmse_m": err, "coverage95": coverage95(e["mahal2"].to_numpy(float))}
 
 
 def _pixel_figures(e: np.ndarray) -> dict:
@@ -439,7 +437,7 @@ def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *
     and the smoother's (:func:`smoother_warnings`), with their details in ``warning_details``.
 
     session: batgraph.session.Session (rig, truth, reference, warnings, extra_toml); trajectories, reprojection:
-    the contract's tables, every method stacked (trajectories with status and span); runtimes, infos: per
+    the output tables, every method stacked (trajectories with status and span); runtimes, infos: per
     method, from the estimators; pixel_sigma_px, pixel_noise, checks: from the self-checks (batgraph.checks).
     """
     if "span" not in trajectories.columns:

@@ -1,18 +1,17 @@
 """Is a camera out of step? Two checks on the markers that need no estimate of the timing.
 
-* :func:`timing_check`: the signature of a time offset in a camera's residuals is a displacement along each
-  marker's image velocity; that of a rolling shutter, the same growing with the image row. Each camera's
-  residuals against a given track (positions and velocities per frame) are regressed on both, every point
-  re-triangulated from its own frame's observations so that a camera cannot hide its offset by pulling the point
-  toward itself (the regression is that of the residuals left by a per-frame triangulation: exact for any
-  estimate the triangulation is the start of). Offsets are only relative: a common shift of every camera moves
-  the points and nothing else. They are stated against the reference camera, the one with the most observations
-  used; warnings compare each camera with the median camera ("the others").
-* :func:`scan_lags`: whole-frame lags, from the epipolar (Sampson) distance between two cameras' observations of
-  a marker at frames shifted against each other, every pair, solved jointly for one lag per camera.
+* :func:`timing_check`: a time offset shows in a camera's residuals as a displacement along each marker's
+  image velocity; a rolling shutter, as the same growing with the image row. Each camera's residuals against
+  a given track (positions and velocities per frame) are regressed on both, every point re-triangulated from
+  its own frame's observations so that a camera cannot hide its offset by pulling the point toward itself
+  (exact for any estimate the triangulation is the start of). Offsets are only relative (a common shift moves
+  the points and nothing else): they are stated against the reference camera, the one with the most
+  observations used; warnings compare each camera with the median camera ("the others").
+* :func:`scan_lags`: whole-frame lags, from the epipolar (Sampson) distance between two cameras' observations
+  of a marker at frames shifted against each other, every pair, solved jointly for one lag per camera.
 
-Results are corrections to the rig's known timing (calibration.toml), in seconds and frames of the session clock.
-The figures behind the thresholds are in docs/timing.md (scripts/timing_check.py measures them).
+Results are corrections to the rig's known timing (calibration.toml), in seconds and frames of the session
+clock. docs/timing.md gives the figures behind the thresholds (scripts/timing_check.py measures them).
 """
 
 from __future__ import annotations
@@ -138,7 +137,7 @@ def _cluster_cov(scores: np.ndarray, Ninv: np.ndarray, block: int, s2: float) ->
     MIN_CLUSTERS clusters. scores (F, M, P): each point's score per parameter, x^T W r."""
     F, M, P = scores.shape
     edges = np.arange(0, F, block)
-    per = np.add.reduceat(scores, edges, axis=0).reshape(-1, P) if F else np.zeros((0, P))
+    per = np.add.reduceat(scores, edges, axis=0).reshape(-1, P) if F and P else np.zeros((0, P))
     per = per[np.abs(per).sum(axis=1) > 0]
     model = s2 * Ninv
     G = len(per)

@@ -5,8 +5,8 @@ observations from >= 2 cameras; no motion model, no robust loss. Its covariance 
 first-order one (:func:`_first_order_cov`): the DLT weighs each view by its depth squared, not by its
 pixel noise, so its error is larger than the maximum-likelihood point's ``(sum_c J_c^T S_c^-1 J_c)^-1``
 (J_c the projection Jacobian at the solution, S_c the ideal-pixel noise covariance, see
-batgraph.measurement). That bound, the covariance given here before the eighteenth session, held the truth in
-67-91 % of the 95 % ellipsoids on the simulated and hold-out scenes (the DLT's own: 93-96 %).
+batgraph.measurement). That bound held the truth in only 67-91 % of the 95 % ellipsoids on the simulated and
+hold-out scenes; the DLT's own covariance, in 93-96 %.
 """
 
 from __future__ import annotations
@@ -17,50 +17,29 @@ import numpy as np
 
 from .camera import Rig
 from .geometry import pinhole
+from .geometry.triangulation import linear_points
 from .measurement import IdealObservations, ideal_observations
 from .result import Estimate, Options
 from .session import DenseObservations, Session
 
-_IU4 = np.triu_indices(4)  # the 10 distinct entries of a symmetric 4x4 matrix
 _IU3 = np.triu_indices(3)
 
 
 def dlt_points(rig: Rig, ideal: IdealObservations) -> np.ndarray:
     """Linear DLT positions of every (frame, marker) seen by >= 2 cameras: (F, M, 3) [m, world], else NaN.
 
-    ideal: ideal pixels (C, F, M, 2) (their covariances are not used). Each view gives Hartley &
-    Zisserman's two rows ``a = x P3 - P1``, ``b = y P3 - P2`` in normalised coordinates (well
-    conditioned), scaled by the camera's focal length so that a row is ``depth * pixel residual``.
-    The homogeneous least-squares solution is the eigenvector of the smallest eigenvalue of the 4x4
-    normal matrix sum(a a^T + b b^T), accumulated per camera: the SVD of the stacked (2C, 4) rows
-    has the same null vector but costs ~2x (and 2C x 4 memory per point); the squared condition
-    number is harmless here (positions equal to 2.4e-14 m on the 30-camera, 180-marker flight).
+    ideal: ideal pixels (C, F, M, 2) (their covariances are not used). The rows are written in normalised
+    coordinates with the camera [R | t] (well conditioned) and weighted by fx fy, so that a row is
+    ``depth * pixel residual`` (:func:`batgraph.geometry.triangulation.linear_points`).
     The answer is kept on ``ideal`` (its ``linear_xyz``) and given again, as a copy, for the same rig.
     """
     if ideal.linear_xyz is not None and ideal.linear_xyz[0] is rig:  # triangulated already (IdealObservations)
         return ideal.linear_xyz[1].copy()
     C, F, M = ideal.uv_px.shape[:3]
-    seen = ideal.seen  # (C, F, M)
-    N = np.zeros((F, M, len(_IU4[0])))  # upper triangle of each point's normal matrix
-    for c, cam in enumerate(rig):
-        s = seen[c]
-        if not s.any():
-            continue
-        xy = pinhole.normalized_from_pixels(ideal.uv_px[c][s], np.linalg.inv(cam.K))  # (n, 2)
-        x, y = xy[:, 0], xy[:, 1]
-        Pn = pinhole.projection_matrix(np.eye(3), cam.R, cam.tvec)  # [R | t]: the normalised camera
-        a = x[:, None] * Pn[2] - Pn[0]  # (n, 4)
-        b = y[:, None] * Pn[2] - Pn[1]
-        i, j = _IU4
-        N[s] += cam.K[0, 0] * cam.K[1, 1] * (a[:, i] * a[:, j] + b[:, i] * b[:, j])
-    ok = seen.sum(axis=0) >= 2
-    xyz = np.full((F, M, 3), np.nan)
-    if ok.any():
-        A = np.zeros((int(ok.sum()), 4, 4))
-        A[:, _IU4[0], _IU4[1]] = A[:, _IU4[1], _IU4[0]] = N[ok]
-        X = np.linalg.eigh(A)[1][:, :, 0]  # eigenvalues ascending: the first eigenvector
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xyz[ok] = X[:, :3] / X[:, 3:4]
+    xy = np.stack([pinhole.normalized_from_pixels(ideal.uv_px[c], np.linalg.inv(cam.K)) for c, cam in enumerate(rig)])
+    P = np.stack([pinhole.projection_matrix(np.eye(3), cam.R, cam.tvec) for cam in rig])  # the normalised cameras
+    fxfy = np.array([cam.K[0, 0] * cam.K[1, 1] for cam in rig])
+    xyz = linear_points(P, xy.reshape(C, F * M, 2), fxfy).reshape(F, M, 3)
     ideal.linear_xyz = (rig, xyz.copy())
     return xyz
 

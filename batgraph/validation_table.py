@@ -1,17 +1,15 @@
 """The leave-one-camera-out validation's table: its columns, statistics, verdict and text (no estimation).
 
 batgraph.validate runs the folds and hands their per-observation errors here; summary.json keeps the table
-(``validation``), and the terminal (batgraph.cli) and the report draw it from there.
+(``validation``), and the terminal (batgraph.cli) and the report draw it from there. Definitions:
 
-Definitions:
-
-* status of a held-out observation: the status of its (frame, marker) *in the fold*, i.e. the number of
-  views without camera c: ``observed`` (>= 2), ``single_view`` (1), ``unobserved`` (0).
-* subset ``common``: observations every method estimates (so that methods are compared on the same points;
-  with triangulation among the methods, these are observed points only).
+* status of a held-out observation: that of its (frame, marker) *in the fold*, i.e. the number of views
+  without camera c: ``observed`` (>= 2), ``single_view`` (1), ``unobserved`` (0).
+* subset ``common``: observations every method estimates (methods compared on the same points; with
+  triangulation among the methods, these are observed points only).
 * subset ``smoother_only``: observations the smoother estimates and triangulation cannot (fewer than two
-  other views, or triangulation failed there); every method other than triangulation that estimates all of
-  them is reported on them too. Absent without the smoother.
+  other views, or triangulation failed there); every other method that estimates all of them is reported
+  on them too. Absent without the smoother.
 * held_out ``all``: every camera's held-out observations pooled.
 """
 

@@ -1,74 +1,16 @@
 """A second, independent generator of bat flight with ground truth: a joint-angle wing chain.
 
-:mod:`batgraph.simulate` is one world (the paper's 0.5 m bat, a sinusoidal elevation per wing
-segment, GoPro cameras on a tunnel wall). This module builds scenes to test batgraph on data it was
-not tuned on: a different parameterisation of the wing, different bats, paths, frame rates, noise
-levels and cameras. It only renders scenes (it estimates nothing and writes no files) and nothing in
-it comes from batgraph's motion models: the session it returns states no motion physics, so
-batgraph measures its motion noise from the data as it would for a user's recording.
-
-Wing kinematics (per wing, a rigid kinematic chain driven by joint angles over the wingbeat)
-------------------------------------------------------------------------------------------
-Numbers are rounded, representative values for small (10-30 g) bats from the published
-descriptions below; they are not a fit to any one dataset.
-
-* Riskin et al. 2008 (J. Theor. Biol. 254:604, *Cynopterus brachyotis*, 17 markers, 20 joint
-  angles): shoulder, elbow, wrist and digit joints carry most of the wing's motion; markers on the
-  shoulder, elbow, wrist and the tips of digits III-V capture most of it.
-* Riskin et al. 2010 (J. Exp. Biol. 213:4110): downstroke ratio, stroke amplitude and stroke-plane
-  angle do not change with body size.
-* Wolf et al. 2010 (J. Exp. Biol. 213:2142, *Glossophaga soricina*, 1-7 m/s) and von Busse et al.
-  2012 (Biol. Open 1:1226, *Leptonycteris yerbabuenae*, 0-7 m/s): downstroke ~ 50-60 % of the
-  cycle, the wing folds (span ratio upstroke / downstroke < 1) during the upstroke, the stroke plane
-  tilts with speed, the fifth digit bends to camber the wing.
-* Tian et al. 2006 (AIAA 2006-2865): a broad sweep of the extended wing on the downstroke, a sharp
-  retraction on the upstroke; body speed and height oscillate with the wingbeat.
-* Hedenström & Johansson 2015 (J. Exp. Biol. 218:653, review): wingbeat frequency ~ 4-15 Hz over
-  bat sizes, stroke amplitude ~ 80-120 deg, the wingtip traces a loop or figure of eight relative
-  to the body; turning bats bank and flap their wings asymmetrically (e.g. PLOS ONE
-  10.1371/journal.pone.0241489, a U-turn at 8.7 Hz).
-
-Chain (body frame forward, outward, up of one wing; the other wing mirrors it): the humerus frame is
-``H = R_a(phi) R_m(theta) R_y(psi)`` with stroke angle ``phi`` about the stroke axis ``a`` (in the
-body's sagittal plane, tilted back from the forward axis by the stroke-plane tilt, so the downstroke
-moves the wing forward and down), deviation ``theta`` out of the stroke plane (positive = swept back)
-and pronation ``psi`` about the humerus. The forearm turns forward by the elbow angle ``eps`` in the
-wing plane and bends dorsally by ``kappa_e``; the hand turns back by the wrist angle ``omega`` and
-bends by ``kappa_w``; digits III, IV, V fan back by the spread angles. Every bone is a fixed length,
-so every segment is rigid (``[markers] rigid``). Over the cycle, with ``s`` the stroke phase (0 = top of
-the stroke, 0.5 = bottom; the time warp ``p(s) = s + c (1 - cos 2 pi s) / 2 pi`` makes the downstroke
-last the fraction ``D`` of the cycle, C-infinity):
-
-* ``phi = phi0 + A/2 cos(2 pi s)``; A = stroke amplitude (default drawn in 80-120 deg), phi0 = 5 deg;
-* ``theta = 15 deg + 8 deg sin(4 pi s) + 30 deg fold`` (twice per cycle: the figure of eight);
-* ``psi = 5 deg + 20 deg sin(2 pi s)`` (pronated on the downstroke);
-* fold = ``((1 - cos 2 pi (s - 1/4)) / 2)^2``: 0 at mid-downstroke, 1 at mid-upstroke;
-* ``eps = 50 deg + 55 deg fold``, ``omega = 45 deg + 95 deg fold``; spreads III-IV 25 deg, IV-V 30 deg,
-  both times ``1 - 0.65 fold``;
-* ``kappa_e = 10 deg sin(2 pi s)``, ``kappa_w = 15 deg sin(2 pi s) - 25 deg fold`` (the distal wing lags
-  and flexes on the upstroke); digit V bends 10 deg ventrally (camber).
-
-Bones (for a ~24 cm span; scaled per bat by a factor drawn in 0.85-1.2, i.e. ~20-30 cm span):
-shoulder 12 mm forward of and 11 mm beside the body centre, humerus 27 mm, radius 37 mm, digit III
-70 mm, digit IV 52 mm, digit V 45 mm (wrist to tip). Extended span and span ratio of the defaults:
-see :func:`wing_chain` and the tests.
-
-Flight: the body flies at 2-6 m/s along a path through a flight section: straight, turning (constant
-yaw rate, banked by ``atan(v r / g)``, the inner wing's stroke amplitude 10 % smaller) or gliding
-(wings held extended at a small dihedral wobbling +-3 deg at 2 Hz, descending at 8 deg). The body
-pitches nose-up 5-20 deg with a +-3 deg wobble at the wingbeat, bobs +-3 mm and surges +-1.5 % of
-its speed with the wingbeat.
-
-Cameras: :func:`section_rig` puts cameras on both sides of the flight section at random but
-sensible poses (1.2-2.2 m from the path's middle, 30-150 deg from the flight direction, from 0.8 m
-below to 1.2 m above it, aimed at a random point of the path's middle), with common high-speed
-sensor sizes, a focal length that fits 50-100 % of the path in the image and mild radial distortion.
-
-Occlusion is physical (the ray-triangle and ray-ellipsoid tests of :mod:`batgraph.simulate`, reused):
-membrane triangles between body, arm and digits of each wing and a tail membrane, a body and a head
-ellipsoid; a marker is observed only inside its camera's image and lens field. Noise: i.i.d.
-Gaussian on raw pixels, any std (2-8 px for typical field recordings; 1 px for a clean study).
-All randomness comes from the ``np.random.Generator`` passed in.
+:mod:`batgraph.simulate` is one world (the paper's 0.5 m bat, a sinusoidal elevation per wing segment, GoPro
+cameras on a tunnel wall). This module builds scenes to test batgraph on data it was not tuned on: another
+parameterisation of the wing, other bats, paths, frame rates, noise levels and cameras. It only renders
+scenes (it estimates nothing and writes no files) and nothing in it comes from batgraph's motion models: the
+session it returns states no motion physics. Each wing is a rigid chain (humerus, radius, digits III-V)
+driven by stroke, deviation, pronation, elbow, wrist and spread angles over the wingbeat, with representative
+values for small bats from the literature; the body flies straight, turns banked or glides through a flight
+section filmed by :func:`section_rig`'s random cameras; occlusion by membrane triangles and body and head
+ellipsoids reuses :mod:`batgraph.simulate`'s ray tests; noise is Gaussian on raw pixels. All randomness
+comes from the ``np.random.Generator`` passed in. docs/simulation.md gives every angle, length, range and
+source.
 """
 
 from __future__ import annotations
@@ -410,21 +352,17 @@ def simulate_wingbeat(
     """A bat from the joint-angle generator filmed by a random flight-section rig, as a Session with truth.
 
     n_cameras: >= 2; fps: frame rate [Hz] (60-1000 typical); n_frames: frames to render.
-    flap_hz: wingbeat frequency [Hz] (None: drawn in 4-15; ignored when gliding).
-    pixel_sigma_px: std of the Gaussian pixel noise [px] (None: drawn in 2-8); the session states it.
+    flap_hz: wingbeat frequency [Hz] (None: drawn in 4-15; ignored when gliding). pixel_sigma_px: std of the
+        Gaussian pixel noise [px] (None: drawn in 2-8); the session states it.
     flight: "straight", "turn" (yaw rate drawn in +-60-150 deg/s unless given) or "glide" (no flapping).
     speed_mps (2-6), stroke_amplitude_deg (80-120), downstroke_fraction (0.5-0.6): None = drawn.
-    marker_side: "both" (a wing marker is seen from either side of the wing unless a membrane triangle, the
-        body or the head is in the way) or "dorsal" (painted on the dorsal skin: also hidden from cameras on
-        the wing's ventral side, see :func:`_skin_patch`).
-    outlier_rate: fraction of observations relabelled to another marker (see simulate.render).
-    timing: how the cameras really record (batgraph.simulate.Timing: offsets, rolling-shutter readout, frame
-        rates); None = all at once. It draws nothing: the same seed without it gives the synchronised twin.
-    Also drawn: the wingbeat phase at frame 0, stroke-plane tilt, body pitch, bat size, the heading, the
-    cameras. The session states no motion physics (batgraph measures its motion noise from the data);
-    ``extra_toml`` holds ``[wingbeat]`` (every parameter, enough to rebuild the scene with
-    :func:`wingbeat_scene`); ``rigid`` (session.toml's ``[markers] rigid``) the marker pairs at a constant
-    distance (:func:`rigid_pairs`).
+    marker_side: "both" (a wing marker is seen from either side of the wing unless something is in the way) or
+        "dorsal" (painted on the dorsal skin: also hidden from the wing's ventral side, :func:`_skin_patch`).
+    outlier_rate: fraction of observations relabelled to another marker (see simulate.render). timing: how the
+        cameras really record (batgraph.simulate.Timing); None = all at once; the same seed without it gives the
+        synchronised twin. Also drawn: the wingbeat phase, stroke-plane tilt, body pitch, bat size, heading, cameras.
+    ``extra_toml`` holds ``[wingbeat]`` (every parameter, enough to rebuild the scene with :func:`wingbeat_scene`);
+    ``rigid`` (``[markers] rigid``) the marker pairs at a constant distance (:func:`rigid_pairs`).
     """
     if flight not in FLIGHTS:
         raise ValueError(f"flight must be one of {FLIGHTS}, got {flight!r}")

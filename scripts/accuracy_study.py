@@ -383,7 +383,7 @@ def pooled_coverage(df: pd.DataFrame, group: str, lo: float, hi: float, method: 
 
 
 def target_rows(df: pd.DataFrame) -> list[list[str]]:
-    """The issue's targets on the clean 5-camera flight: [target, measured (median over seeds), seeds, verdict,
+    """The targets on the clean 5-camera flight: [target, measured (median over seeds), seeds, verdict,
     pooled over seeds (coverage rows)].
 
     A target passes only when it holds on every seed (seeds where a status has no points are skipped).
@@ -563,7 +563,7 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
     if "flight5" in by:
         out += ["", "## Targets (clean 5-camera flight; a target passes when it holds on every seed)", "",
                 markdown_table(target_head, target_rows(by["flight5"])), "",
-                "The issue states the single-view/unobserved targets for points inside occlusion gaps; the stricter "
+                "The single-view/unobserved targets are for points inside occlusion gaps; the stricter "
                 "rows include the points before a marker's first and after its last triangulable frame. How many "
                 "points each group has is under the split table of the 5-camera flight below (small groups make "
                 "their RMSE noisy).", "",
@@ -577,7 +577,7 @@ def build_report(df: pd.DataFrame, facts: dict, scene_list: list[StudyScene], co
     if held:
         out += ["", "## Targets on the hold-out generator (batgraph.wingbeat; a target passes when it holds on every "
                 "seed)", "", "Scenes from a second, independent generator that batgraph was not tuned on (joint-angle "
-                "wing chain, random flight-section rigs; see batgraph/wingbeat.py). The single-view row counts the "
+                "wing chain, random flight-section rigs; see docs/simulation.md). The single-view row counts the "
                 "single-view points inside a marker's span whose rigid segment partner (`[markers] rigid`) is "
                 "observed on the same frame. The last column pools a coverage target's points over the seeds "
                 "and gives the exact 95 % interval of the true rate: a group of a handful of points per seed "

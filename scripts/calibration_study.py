@@ -32,6 +32,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from batgraph import evaluate  # noqa: E402
 from batgraph.calibrate import write_calibration  # noqa: E402
 from batgraph.camera import Camera, Rig  # noqa: E402
 from batgraph.geometry import gauge, pose  # noqa: E402
@@ -103,7 +104,7 @@ def smoother_rmse(folder: Path, calibration: Path, out: Path) -> dict:
     Xa = s * (X - mx) @ (U @ D @ Vt).T + my
     rms = [c["rms_px"] for c in m["reprojection"].values()]
     return {"rmse_mm": 1000 * m["truth"]["rmse_m"]["observed"],
-            "rmse_pts_mm": 1000 * float(np.sqrt(((Xa - Y) ** 2).sum(-1).mean())),
+            "rmse_pts_mm": 1000 * evaluate.rms(np.linalg.norm(Xa - Y, axis=-1)),
             "reproj_ratio": max(rms) / min(rms)}
 
 

@@ -3,7 +3,8 @@
 import numpy as np
 import pandas as pd
 
-from batgraph.evaluate import errors_against, truth_stats
+from batgraph.evaluate import coverage95, errors_against, rms, truth_stats
+from batgraph.motion import CHI2_3DOF_95
 
 
 def _table(err_x, cov_diag, status):
@@ -23,6 +24,22 @@ def test_rmse_and_coverage_by_status():
     assert s["coverage95"]["single_view"] is None  # no covariance, no coverage figure
     assert s["rmse_m"]["all"] == np.sqrt(14 / 3)
     assert s["n"]["unobserved"] == 0 and s["rmse_m"]["unobserved"] is None
+
+
+def test_rms_and_coverage95_skip_missing_values():
+    assert rms(np.array([3.0, np.nan, 4.0, -np.inf])) == np.sqrt(12.5)
+    assert rms(np.array([np.nan])) is None and np.isnan(rms(np.zeros(0), np.nan))
+    assert coverage95(np.array([1.0, np.nan, CHI2_3DOF_95, 9.0])) == 2 / 3  # the quantile itself is inside
+    assert coverage95(np.array([np.nan, np.nan])) is None
+
+
+def test_coverage95_of_gaussian_errors_is_95_percent():
+    """Errors drawn from the covariance itself: 95 % of them inside (binomial sd 0.2 % at 1e4 points)."""
+    rng = np.random.default_rng(0)
+    L = np.array([[2.0, 0.0, 0.0], [0.5, 1.0, 0.0], [-0.3, 0.2, 0.5]])
+    e = rng.normal(size=(10_000, 3)) @ L.T
+    d2 = np.einsum("ni,ni->n", e, np.linalg.solve(L @ L.T, e.T).T)
+    assert abs(coverage95(d2) - 0.95) < 0.01
 
 
 def test_singular_covariance_gets_no_coverage_instead_of_crashing():

@@ -124,7 +124,7 @@ class FrameMeasurement:
         covariance: ``G Sigma_p G^T`` with G = :func:`pose_jacobian` placed in its camera's six
         columns, so rows of one camera share its pose and different cameras' poses are independent.
         As in the paper, this calibration term is re-drawn independently every frame (a real pose
-        error is the same on every frame; batgraph.graph models that with camera variables).
+        error is the same on every frame; the smoother, batgraph.solver, models that with camera variables).
         """
         if self.rig.pose_cov is None:
             return MeasurementNoise(self.cov_px2)

@@ -1,65 +1,17 @@
 """One method's trajectories table -> C3D (biomechanics readers), TRC (OpenSim) and analysis tables; a TRC reader.
 
-Input is a table with the columns of trajectories.csv (docs/formats.md; metres, world frame, NaN xyz where a
-method has no estimate). The world frame is written as it is: no axis swap (OpenSim's Y-up is the
-user's business, as it is for Pose2Sim's files, see :func:`read_trc`). Frame ``k`` of a session is at
-time ``k / fps``; C3D and TRC count frames from 1, so session frame ``k`` is file frame ``k + 1``.
-This module does not estimate, filter or fill anything: a missing point stays missing. A result with
-several takes (batgraph.session.frame_axis) writes one take per C3D / TRC file, the longest by default
-(:func:`one_take`): both formats are one contiguous run of frames.
-
-Range (``keep``, the CLI's ``--range``), applied by :func:`keep_range` to every writer here:
-
-* ``"span"`` (default, also for reconstruct's trajectories.c3d / .trc): points inside each marker's span
-  (``span == "inside"``: from its first to its last frame with >= 2 views). The track ends, where every
-  method extrapolates from the motion model alone, are written as missing.
-* ``"observed"``: only points with ``status == "observed"`` (>= 2 views that frame).
-* ``"all"``: every estimate the method made.
-
-A table without ``span`` gets it from n_views (:func:`batgraph.evaluate.add_span`); without ``status``,
-from n_views too.
-
-C3D (C3D.org's "3D Data - Floating-point Format"), 32-bit float, Intel byte order:
-
-* ``POINT:UNITS = "mm"``: C3D readers (Mokka, Visual3D, OpenSim's C3D adapter) assume millimetres,
-  so coordinates are metres x 1000. ``POINT:LABELS`` = marker names; ``POINT:RATE`` = fps; header first
-  frame = first session frame + 1.
-* ``POINT:SCALE`` is negative (float data) and the header's scale factor is the same number (py-c3d
-  refuses a file where they differ). Its magnitude is the residual's unit and, as the spec asks, is
-  derived from the largest coordinate: the smallest of 0.1, 0.2, 0.5, 1, 2, 5, ... mm that is
-  >= max|coordinate| / 32000 (:func:`c3d_point_scale_mm`), so 0.1 mm for a rig within 3.2 m of its origin.
-* The 4th word of a point is a float holding a 16-bit integer: low byte = residual / |POINT:SCALE|,
-  high byte = camera mask (bit k = camera k + 1 contributed), -1 = invalid point.
-  Residual = ``sqrt(trace(cov) / 3)`` in mm, the RMS of the three per-axis posterior standard
-  deviations (not the spec's "average of the measurement residuals": batgraph's own quality figure), rounded to
-  steps of |POINT:SCALE|, at least one step and saturating at 255 steps (a quality flag; the full
-  covariance is in trajectories.csv and in ``export csv|parquet``). An estimate without covariance gets
-  residual 0 (C3D: "computed, not measured").
-* Camera mask: the cameras whose observation of that marker in that frame is in the reprojection table
-  and not flagged as an outlier (the cameras that contributed); bit order = ``cameras`` (the rig's order),
-  recorded in the parameter ``BATGRAPH:CAMERAS``. The spec has room for 7 cameras: with more, or without a
-  reprojection table, the mask is 0 (n_views alone cannot say which cameras).
-* A missing point (no estimate, or outside the range) has coordinates 0 and 4th word -1.
-* ezc3d (1.7) writes the file, then batgraph rewrites the header scale factor and every 4th word:
-  ezc3d puts the residual in the high byte and the mask in the low byte, the reverse of the spec
-  (pyomeca/ezc3d#386), so ezc3d reads batgraph's residual as a camera mask and vice versa; its
-  coordinates and missing points (NaN) are right. py-c3d, which follows the spec, reads both right.
-
-TRC (tab-separated text, the OpenSim marker format): header ``PathFileType 4 (X/Y/Z)``, then
-DataRate, CameraRate, NumFrames, NumMarkers, Units, OrigDataRate, OrigDataStartFrame, OrigNumFrames,
-then ``Frame#  Time  name1 . .  name2 ...``, ``X1 Y1 Z1 X2 ...`` and a blank line. Units are metres by
-default (``units="mm"`` or ``"cm"``). Every data row has exactly 2 + 3 x NumMarkers cells, and a missing
-point is written ``NaN NaN NaN``: OpenSim 4.6's TRCFileAdapter accepts NaN (and writes ``nan`` itself)
-and accepts empty cells inside a row, but its tokenizer drops a row's trailing empty cell, so a missing
-last marker written as empty cells fails with "Unexpected number of columns".
-
-Analysis table (:func:`analysis_table`, ``batgraph export csv|parquet``): long format, one row per
-method, frame and marker (every frame x marker of the method, points outside the range with empty
-position and uncertainty): ``method, frame, time_s, marker, x_U, y_U, z_U, sd_x_U, sd_y_U, sd_z_U, r_xy,
-r_xz, r_yz, n_views, status, span`` with ``U`` the unit (m, cm or mm) in the column names; ``sd_*`` are the
-per-axis posterior standard deviations and ``r_*`` the correlations (the covariance is
-``sd_i sd_j r_ij``; NaN where a standard deviation is 0). Read with ``pandas.read_csv`` /
-``pandas.read_parquet`` or R's ``read.csv`` / ``arrow::read_parquet``.
+Input: a table with trajectories.csv's columns (metres, world frame, NaN xyz where the method has no estimate),
+written as it is (no axis swap, no filling: a missing point stays missing). Session frame ``k`` is at time
+``k / fps`` and is file frame ``k + 1`` (C3D and TRC count from 1); both hold one take (:func:`one_take`, the
+longest by default). :func:`keep_range` applies the range to every writer: "span" (default: each marker's
+first to last frame with >= 2 views; the extrapolated track ends are missing), "observed" (>= 2 views that
+frame) or "all"; a table without ``span`` or ``status`` gets them from n_views.
+C3D: float format in millimetres; a point's 4th word holds its residual (the RMS of its three standard
+deviations, in steps of |POINT:SCALE|, :func:`c3d_point_scale_mm`) and its camera mask, written by ezc3d and
+rewritten here because ezc3d swaps the two bytes (pyomeca/ezc3d#386). TRC: metres by default, ``NaN`` for a
+missing point (OpenSim drops a row's trailing empty cells). Analysis table (:func:`analysis_table`): long
+format, one row per method, frame and marker, with per-axis standard deviations ``sd_*`` and correlations
+``r_*`` (NaN where a standard deviation is 0). docs/formats.md describes every field of each format.
 """
 
 from __future__ import annotations

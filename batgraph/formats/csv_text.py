@@ -1,25 +1,17 @@
 """CSV text of a table, the same characters ``DataFrame.to_csv(index=False, float_format=...)`` writes, ~3x faster.
 
-Why not pandas itself: its float formatting runs per value through several layers (NaN masks, object
-arrays); on the 30 x 180 x 160 scene reprojection.csv (1.06 M rows, 10 columns) took 5.2 s in
-``to_csv`` and 1.6 s here (issue "Speed a user feels"). Here every row is one ``%`` format of a
-template over Python lists. pyarrow's CSV writer is faster still but writes other text (shortest
-round-trip floats, ``true`` for ``True``), which would change the contract's files.
-
+Why not pandas itself: its float formatting runs per value through several layers (NaN masks, object arrays):
+reprojection.csv of a 30 x 180 x 160 scene (1.06 M rows) took 5.2 s in ``to_csv``, 1.6 s here, where every
+row is one ``%`` format of a template over Python lists. pyarrow's writer is faster still but writes other
+text (shortest round-trip floats, ``true``), which would change the files users read.
 Same text as pandas: floats by ``float_format`` with NaN as an empty field, integers ``%d``, booleans
-``True``/``False``, anything else ``str``; "\\n" line ends. A table whose text fields would need CSV
-quoting (a comma, quote or line break) or whose columns are not plain numbers, booleans and strings is
-handed to pandas unchanged. tests/test_csv_text.py compares with ``to_csv``.
-
-Fixed-point and general formats (``"%.6f"``: reprojection.csv, observations.csv; ``"%.9g"``: trajectories.csv)
-take a faster path still, :func:`fixed_csv_bytes`: every field of every row is built as bytes by numpy at once,
-no Python object per value (reprojection.csv of the 30 x 180 x 160 scene: ~1.5 s of CPU per-row, ~0.2 s this
-way). A float's digits come from rounding x * 10^k to the nearest integer (k = N for "%.Nf"; for "%.Ng" the k
-that leaves N digits before the point), which is Python's correctly rounded ``%`` text except where x * 10^k
-lies within a few units in the last place of a tie (.5): those few values, and any too large or small for the
-integer path (or, for "%.Ng", within one unit of a power of ten, where the exponent could be off), zero and
-values that are not finite, are formatted by ``%`` itself. Digits are written two at a time from a table of
-the 100 pairs "00".."99".
+``True``/``False``, anything else ``str``; "\\n" line ends. A table that would need CSV quoting or holds other
+column types is handed to pandas unchanged (tests/test_csv_text.py compares with ``to_csv``).
+Fixed-point and general formats (``"%.6f"``, ``"%.9g"``) take a faster path, :func:`fixed_csv_bytes`: every
+field built as bytes by numpy at once (~0.2 s instead of ~1.5 s for that table). Digits come from rounding
+x * 10^k to an integer, which is Python's correctly rounded ``%`` text except within a few units in the last
+place of a tie: those values, values too large or small for the integer path (or near a power of ten for
+"%.Ng"), zero and non-finite ones are formatted by ``%`` itself.
 """
 
 from __future__ import annotations

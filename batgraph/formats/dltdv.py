@@ -1,30 +1,24 @@
 """DLTdv8 / DLTdv7 (and Argus) files <-> batgraph: 2D clicks, 11-parameter DLT coefficients, 3D points.
 
-DLTdv's files (Hedrick lab; Argus writes the same layout):
-
 * ``*xypts.csv``: one row per frame, columns ``pt{p}_cam{c}_X, pt{p}_cam{c}_Y`` (p, c from 1; DLTdv 8.4 writes
-  ``_U, _V``),
-  ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's own GUI
-  counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
+  ``_U, _V``), ``NaN`` = not digitised. **Row k (0-based, after the header) is batgraph frame k**; DLTdv's
+  GUI counts frames from 1, so DLTdv frame n is batgraph frame n - 1.
 * ``*dltCoefs.csv``: 11 rows (L1..L11) x one column per camera, no header;
-  ``u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)``, v likewise with L5..L8, in the
-  pixel convention of the xypts file.
+  ``u = (L1 X + L2 Y + L3 Z + L4) / (L9 X + L10 Y + L11 Z + 1)``, v likewise with L5..L8.
 * ``*xyzpts.csv``: ``pt{p}_X, pt{p}_Y, pt{p}_Z`` per frame; ``*xyzres.csv``: ``pt{p}_dltres``.
 
-Conventions (pixel origin, handedness, units) are read from the coefficients, not from a version
-number: every DLTdv version (DLTdv8 included), Argus and easyWand store pixels with the origin at the
-lower left, y up, 1-based, and a DLT world may be mirrored or in millimetres. The rules and the
-arithmetic are in :mod:`batgraph.geometry.dlt`; :func:`resolve_conventions` applies them to a trial.
-
-This module reads and writes files and builds a session. Camera offsets (DLTdv's ``*offsets.csv``, Argus's) are
-read by :mod:`batgraph.formats.offsets`: the clicks keep each camera's own video frame and calibration.toml gets
-each camera's ``time_offset_s``. DLTdv8's "sparse" xypts layout is not read.
+Pixel origin, handedness and units are read from the coefficients, not from a version number (every DLTdv
+version, Argus and easyWand put the origin at the lower left, y up, 1-based; a DLT world may be mirrored or in
+millimetres): the arithmetic is in :mod:`batgraph.geometry.dlt`, :func:`resolve_conventions` applies it.
+Camera offsets (``*offsets.csv``) are read by :mod:`batgraph.formats.offsets`: the clicks keep each camera's
+own video frame and calibration.toml gets its ``time_offset_s``. DLTdv8's "sparse" xypts layout is not read.
 """
 
 from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +28,7 @@ from .. import atomic
 from ..camera import Camera, Rig
 from ..errors import InputError
 from ..geometry import dlt
+from ..geometry.triangulation import linear_points
 from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 from .c3d_trc import keep_range
@@ -372,7 +367,7 @@ def resolve_conventions(P_file: np.ndarray, uv_file_px: np.ndarray, pixel_origin
     A given origin that disagrees with the sign means a mirrored world: z is negated internally.
     Returns (origin, world_mirror (3,), note). Raises InputError naming the camera that disagrees.
     """
-    xyz = dlt.triangulate_linear(P_file, uv_file_px)
+    xyz = linear_points(P_file, uv_file_px)  # each view's rows at unit norm: the file's own 3D
     if xyz_file is not None:
         xyz = np.where(np.isfinite(xyz), xyz, xyz_file)
     seen = np.isfinite(uv_file_px[..., 0])
@@ -411,26 +406,52 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
                  offsets: list[str | Path] = ()) -> Session:
     """Convert a DLTdv / Argus / easyWand trial into a session folder ``out`` and return it as read back.
 
-    xypts, coefs: ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention).
-    fps: camera frame rate [Hz]; frame k (row k of xypts) is at time k / fps.
-    pixel_origin: "lower-left" (DLTdv's), "upper-left", or None to detect it from the coefficients
-        (:func:`resolve_conventions`); a given origin that the coefficients contradict means a mirrored
-        world, which the session keeps as ``[metadata] world_mirror`` so results come back in the
-        file's frame.
+    xypts, coefs: ``*xypts.csv`` and ``*dltCoefs.csv`` (same pixel convention); fps [Hz]: row k is at k / fps.
+    pixel_origin: "lower-left" (DLTdv's), "upper-left", or None to detect it (:func:`resolve_conventions`); a
+        given origin the coefficients contradict means a mirrored world (``[metadata] world_mirror``).
     units: the world units of the coefficients and xyzpts ("m", "cm", "mm"); the session is in metres.
-    image_size: (W, H) [px] of every camera; None infers it per camera (:func:`infer_image_size`) and the
-        session says so (reconstruct warns).
+    image_size: (W, H) [px] of every camera; None infers it per camera (:func:`infer_image_size`; reconstruct warns).
     xyzpts: optional ``*xyzpts.csv``, kept as the session's reference (reference_xyz.csv, metres).
     camera_names, marker_names: default cam1.. (coefficient columns) and pt1.. (xypts points).
     pixel_sigma_px: click noise [px]; None (default) lets reconstruct estimate it per camera.
-    offsets: up to two offsets files (batgraph.formats.offsets): DLTdv's or the Argus clicker's per-row offsets
-        (which video frame each row shows: observations.csv gets those frame numbers, and the offsets become
-        calibration.toml's time_offset_s) and/or Argus's sync table (the time offsets to a fraction of a frame,
-        taking precedence). Clicks that fall before a video's first frame are dropped (counted in [import]).
+    offsets: up to two offsets files (:func:`_apply_offsets`: per-row video frames and/or Argus's sync table).
     The imported pinholes reproduce each camera's own DLT projection exactly, with the points in front.
     Raises InputError naming the file (and camera) for bad input.
     """
     xypts, coefs, out = Path(xypts), Path(coefs), Path(out)
+    image_size = _check_import_options(pixel_origin, units, fps, pixel_sigma_px, image_size)
+    trial = _read_trial(xypts, coefs, xyzpts, camera_names, marker_names)
+    uv_file, xyz_file = dense_clicks(trial)
+    P_file = dlt.dlt_matrix(trial.coefs)
+    origin, mirror, note = resolve_conventions(P_file, uv_file, pixel_origin, xyz_file=xyz_file,
+                                               camera_names=trial.cameras, coefs_path=coefs)
+    sizes = ([image_size] * len(P_file) if image_size is not None
+             else [infer_image_size(P, uv[np.isfinite(uv[:, 0])]) for P, uv in zip(P_file, uv_file, strict=True)])
+    clicks = trial.clicks
+    ci, pi = clicks["camera_index"].to_numpy(), clicks["point_index"].to_numpy()
+    own, time_offsets, timing_note = _apply_offsets(offsets, clicks["frame"].to_numpy(), ci, len(P_file),
+                                                    clicks.attrs["n_frames"], fps, xypts)
+    rig, uv_cv = _opencv_rig(P_file, clicks, trial.cameras, sizes, origin, mirror, units, time_offsets)
+    observations = pd.DataFrame({
+        "frame": own, "camera": np.array(trial.cameras)[ci], "marker": np.array(trial.markers)[pi],
+        "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
+    })[own >= 0]
+    provenance = {"format": "dltdv", "xypts": xypts.name, "dlt_coefs": coefs.name, "pixel_origin": origin,
+                  "pixel_origin_source": "detected" if pixel_origin is None else "given",
+                  "pixel_origin_note": note, "world": "mirrored" if rig.mirrored else "right-handed",
+                  "units": units, "image_size": "given" if image_size is not None else "inferred"}
+    if xyzpts is not None:
+        provenance["xyzpts"] = Path(xyzpts).name
+    provenance.update(timing_note)
+    session = Session(name=out.name, fps=float(fps), rig=rig, observations=observations,
+                      pixel_sigma_px=pixel_sigma_px, marker_names=trial.markers,
+                      reference=_reference_table(trial, units), extra_toml={"import": provenance})
+    write_session(session, out)
+    return read_session(out)
+
+
+def _check_import_options(pixel_origin, units, fps, pixel_sigma_px, image_size) -> tuple[int, int] | None:
+    """InputError for an option of :func:`import_dltdv` out of its range; the image size as (W, H) ints."""
     if pixel_origin is not None and pixel_origin not in dlt.PIXEL_ORIGINS:
         raise InputError(f"pixel origin must be one of {', '.join(dlt.PIXEL_ORIGINS)}, got {pixel_origin!r}")
     if units not in dlt.UNITS_M:
@@ -440,11 +461,28 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
     if pixel_sigma_px is not None and not (isinstance(pixel_sigma_px, int | float) and math.isfinite(pixel_sigma_px)
                                            and pixel_sigma_px > 0):
         raise InputError(f"pixel_sigma_px must be a number > 0, got {pixel_sigma_px!r}")
-    if image_size is not None:
-        size = np.asarray(image_size, dtype=object)
-        if size.shape != (2,) or not all(isinstance(s, int | float) and s > 0 and s == int(s) for s in size):
-            raise InputError(f"image size must be two positive integers W H, got {image_size!r}")
-        image_size = (int(size[0]), int(size[1]))
+    if image_size is None:
+        return None
+    size = np.asarray(image_size, dtype=object)
+    if size.shape != (2,) or not all(isinstance(s, int | float) and s > 0 and s == int(s) for s in size):
+        raise InputError(f"image size must be two positive integers W H, got {image_size!r}")
+    return int(size[0]), int(size[1])
+
+
+@dataclass
+class Trial:
+    """A DLTdv trial as read: coefs (C, 11); clicks (:func:`read_xypts`); the camera and marker names;
+    reference: the xyzpts table (:func:`read_xyzpts`) or None."""
+
+    coefs: np.ndarray
+    clicks: pd.DataFrame
+    cameras: list[str]
+    markers: list[str]
+    reference: pd.DataFrame | None
+
+
+def _read_trial(xypts: Path, coefs: Path, xyzpts, camera_names, marker_names) -> Trial:
+    """Read a trial's files and check that they agree with each other and with the names given."""
     L = read_dlt_coefs(coefs)
     clicks = read_xypts(xypts)
     if clicks.attrs["n_cams"] != len(L):
@@ -459,61 +497,58 @@ def import_dltdv(xypts: str | Path, coefs: str | Path, fps: float, out: str | Pa
         ref = read_xyzpts(xyzpts)
         if ref.attrs["n_points"] != len(markers):
             raise InputError(f"{xyzpts} line 1: {ref.attrs['n_points']} point(s) but {xypts} has {len(markers)}")
+    return Trial(L, clicks, cams, markers, ref)
 
-    # dense (C, N) layout of the clicks, N = (frame, point) pairs, for the convention check
-    ci, fi, pi = (clicks[k].to_numpy() for k in ("camera_index", "frame", "point_index"))
-    P_count = clicks.attrs["n_points"]
-    n = fi * P_count + pi
-    uv_file = np.full((len(L), clicks.attrs["n_frames"] * P_count, 2), np.nan)
-    uv_file[ci, n] = clicks[["u", "v"]].to_numpy()
-    xyz_file = None
-    if ref is not None:
-        xyz_file = np.full((uv_file.shape[1], 3), np.nan)
-        k = ref["frame"].to_numpy() * P_count + ref["point_index"].to_numpy()
-        inside = k < len(xyz_file)
-        xyz_file[k[inside]] = ref[["x", "y", "z"]].to_numpy()[inside]
-    P_file = dlt.dlt_matrix(L)
-    origin, mirror, note = resolve_conventions(P_file, uv_file, pixel_origin, xyz_file=xyz_file,
-                                               camera_names=cams, coefs_path=coefs)
-    sizes = ([image_size] * len(L) if image_size is not None
-             else [infer_image_size(P_file[c], uv_file[c][np.isfinite(uv_file[c, :, 0])]) for c in range(len(L))])
+
+def dense_clicks(trial: Trial) -> tuple[np.ndarray, np.ndarray | None]:
+    """The clicks in the file's pixels as (C, N, 2), N = (row, point) pairs, NaN where missing; and the
+    xyzpts positions (N, 3) in the file's world (None without xyzpts): the convention check's input."""
+    clicks, n_points = trial.clicks, trial.clicks.attrs["n_points"]
+    n = clicks["frame"].to_numpy() * n_points + clicks["point_index"].to_numpy()
+    uv_file = np.full((len(trial.coefs), clicks.attrs["n_frames"] * n_points, 2), np.nan)
+    uv_file[clicks["camera_index"].to_numpy(), n] = clicks[["u", "v"]].to_numpy()
+    if trial.reference is None:
+        return uv_file, None
+    ref = trial.reference
+    xyz_file = np.full((uv_file.shape[1], 3), np.nan)
+    k = ref["frame"].to_numpy() * n_points + ref["point_index"].to_numpy()
+    inside = k < len(xyz_file)
+    xyz_file[k[inside]] = ref[["x", "y", "z"]].to_numpy()[inside]
+    return uv_file, xyz_file
+
+
+def _opencv_rig(P_file: np.ndarray, clicks: pd.DataFrame, cameras: list[str], sizes: list, origin: str,
+                mirror: np.ndarray, units: str, time_offsets: np.ndarray) -> tuple[Rig, np.ndarray]:
+    """The trial's cameras in batgraph's conventions (OpenCV pixels, metres, right-handed) and every click
+    (N, 2) in OpenCV pixels: each camera's DLT with its pixel origin and the world's scale and mirror undone."""
     T = dlt.world_scale_mirror(dlt.UNITS_M[units], mirror)  # X_file = T @ X_internal
-    own, time_offsets, timing_note = _apply_offsets(offsets, fi, ci, len(L), clicks.attrs["n_frames"], fps, xypts)
-    cameras, uv_cv = [], np.empty((len(clicks), 2))
-    for c, name in enumerate(cams):
+    ci = clicks["camera_index"].to_numpy()
+    out, uv_cv = [], np.empty((len(clicks), 2))
+    for c, name in enumerate(cameras):
         A_inv = np.linalg.inv(dlt.pixel_affine(origin, sizes[c][1]))
         P_cv = dlt.transform_dlt(P_file[c], pixel_from=A_inv, world_to=T)
         cam = Camera.from_dlt(name, dlt.dlt_coefs(P_cv), sizes[c])
         cam.time_offset_s = float(time_offsets[c])
-        cameras.append(cam)
+        out.append(cam)
         uv_cv[ci == c] = dlt.apply_affine(A_inv, clicks.loc[ci == c, ["u", "v"]].to_numpy())
-    rig = Rig(cameras, world_mirror=mirror)
-    observations = pd.DataFrame({
-        "frame": own, "camera": np.array(cams)[ci], "marker": np.array(markers)[pi],
-        "u": uv_cv[:, 0], "v": uv_cv[:, 1], "weight": 1.0,
-    })[own >= 0]
-    reference = None
-    if ref is not None:  # the user's frame, in metres
-        reference = ref.assign(marker=np.array(markers)[ref["point_index"].to_numpy()])
-        reference[["x", "y", "z"]] = reference[["x", "y", "z"]].to_numpy() * dlt.UNITS_M[units]
-        reference = reference[["frame", "marker", "x", "y", "z"]]
-    provenance = {"format": "dltdv", "xypts": xypts.name, "dlt_coefs": coefs.name, "pixel_origin": origin,
-                  "pixel_origin_source": "detected" if pixel_origin is None else "given",
-                  "pixel_origin_note": note, "world": "mirrored" if rig.mirrored else "right-handed",
-                  "units": units, "image_size": "given" if image_size is not None else "inferred"}
-    if xyzpts is not None:
-        provenance["xyzpts"] = Path(xyzpts).name
-    provenance.update(timing_note)
-    session = Session(name=out.name, fps=float(fps), rig=rig, observations=observations,
-                      pixel_sigma_px=pixel_sigma_px, marker_names=markers, reference=reference,
-                      extra_toml={"import": provenance})
-    write_session(session, out)
-    return read_session(out)
+    return Rig(out, world_mirror=mirror), uv_cv
+
+
+def _reference_table(trial: Trial, units: str) -> pd.DataFrame | None:
+    """The xyzpts points as a session's reference table (frame, marker, x, y, z) in the user's frame, metres."""
+    if trial.reference is None:
+        return None
+    ref = trial.reference
+    reference = ref.assign(marker=np.array(trial.markers)[ref["point_index"].to_numpy()])
+    reference[["x", "y", "z"]] = reference[["x", "y", "z"]].to_numpy() * dlt.UNITS_M[units]
+    return reference[["frame", "marker", "x", "y", "z"]]
 
 
 def _apply_offsets(paths, row: np.ndarray, cam: np.ndarray, n_cams: int, n_rows: int, fps: float, xypts: Path):
-    """(each click's video frame (N,), time_offset_s per camera (C,), provenance) from offsets files (see
-    :func:`import_dltdv`); without any, the rows are the cameras' own frames and the offsets 0."""
+    """(each click's video frame (N,), time_offset_s per camera (C,), provenance) from offsets files: DLTdv's or
+    the Argus clicker's per-row offsets (which video frame each row shows; clicks before a video's first frame
+    get a negative frame and are dropped) and/or Argus's sync table (time offsets to a fraction of a frame,
+    taking precedence). Without any, the rows are the cameras' own frames and the offsets 0."""
     from .offsets import read_offsets
 
     files = [read_offsets(p, n_cams) for p in paths]

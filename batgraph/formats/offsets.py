@@ -2,21 +2,16 @@
 
 Three files, told apart by their header:
 
-* DLTdv8 ``*offsets.csv``: ``cam1_offset, ..., camN_offset``, one row per row of ``*xypts.csv``. Row r (0-based)
-  of camera c holds the offset in force when the row was shown: its clicks are of the camera's video frame
-  ``round(r + offset)`` (0-based; MATLAB's round, a half away from zero). Offsets may be non-integer (DLTdv then
-  interpolates the 2D points); 0 means "not set" (DLTdv's sparse convention) and DLTdv itself takes a camera's
-  non-zero values as its offset.
+* DLTdv8 ``*offsets.csv``: ``cam1_offset, ..., camN_offset``, one row per xypts row: row r's clicks of camera c
+  are of its video frame ``round(r + offset)`` (0-based, MATLAB's round; may be non-integer; 0 = not set).
 * Argus clicker ``*-offsets.csv``: ``camera_1, ..., camera_N``, one row per frame: row r shows the camera's
   video frame ``r + offset`` (integers; NaN allowed).
 * Argus sync ``*_offsets.csv``: ``Filename, seconds_offset, frames_offset, max_correlation``, one row per camera
-  (the first 0): the cross-correlation of the cameras' audio against the first's; ``frames_offset`` d > 0 means
-  the same sound comes d frames later in this camera's video, the convention of the Argus clicker's offsets.
+  (the first 0): ``frames_offset`` d > 0 means the same sound comes d frames later in this camera's video.
 
-All three mean: camera c's video frame ``r + offset`` shows the instant of the first camera's frame r. So its
-frame j is exposed at ``(j - offset) / fps``: batgraph's ``time_offset_s = -offset / fps`` (``-seconds_offset``
-for the sync file). Checked against each tool's code (DLTdv8a's video reader and sub-frame interpolation, Argus's
-``find_offset`` and its clicker's frame reader) and against a synthetic audio delay (tests/test_offsets.py).
+All three mean: camera c's video frame ``r + offset`` shows the instant of the first camera's frame r, so its
+frame j is exposed at ``(j - offset) / fps``: ``time_offset_s = -offset / fps`` (``-seconds_offset`` for the
+sync file). docs/timing.md gives the sources; tests/test_offsets.py checks a synthetic audio delay.
 """
 
 from __future__ import annotations
@@ -83,7 +78,7 @@ def read_offsets(path: str | Path, n_cams: int | None = None) -> Offsets:
     frames = np.zeros(len(cols))
     for c in range(len(cols)):
         v = values[:, c]
-        set_ = np.isfinite(v) & (v != 0)
+        set_ = np.isfinite(v) & (v != 0)  # 0 = not set (DLTdv's sparse convention): the offset is the rest
         if set_.any():
             first = int(np.argmax(set_))
             other = set_ & (np.abs(v - v[first]) > SAME_OFFSET)

@@ -1,24 +1,17 @@
 """The 11-parameter DLT: pixel origins, units and handedness, and DLT <-> K, R, t.
 
-What a DLT coefficient set means depends on three conventions its file does not state:
-
-* **Pixel origin.** OpenCV (batgraph's own convention): (0, 0) is the centre of the top-left pixel, v
-  down. ``upper-left`` files (DeepLabCut-like, 1-based): ``u = u_cv + 1, v = v_cv + 1``.
-  ``lower-left`` files (every DLTdv version, Argus, easyWand: MATLAB's ``axis xy``, 1-based):
-  ``u = u_cv + 1, v = H - v_cv`` with H the image height.
-* **Handedness.** A DLT world may be left-handed (mirrored); nothing in the format forbids it.
-* **Units** of the world (metres, millimetres, ...).
-
-For a right-handed world in OpenCV pixels, P = lambda K [R | t] with det(R) = +1 and K's diagonal
-positive, so sign(det P[:, :3]) = sign(lambda); a point in front of the camera has depth > 0, hence
-``w = P[2] @ [X, 1] = lambda * depth`` has that same sign. Flipping the pixel y axis (lower-left
-origin) or mirroring the world each flip the sign of det P[:, :3] and leave w alone, so
-:func:`orientation_sign` = sign(det P[:, :3] * w) over the points a camera sees is +1 for upper-left
-pixels with a right-handed world (or lower-left with a mirrored one) and -1 for lower-left pixels with a
-right-handed world (or upper-left with a mirrored one): the coefficients cannot tell the two readings of
-one sign apart, and both give the same 3D in the file's own world frame.
-
-This module converts; it reads no files (see :mod:`batgraph.formats.dltdv`).
+A DLT coefficient set depends on three conventions its file does not state: the **pixel origin** (OpenCV,
+batgraph's: (0, 0) the centre of the top-left pixel, v down; ``upper-left`` files, 1-based: ``u_cv + 1,
+v_cv + 1``; ``lower-left`` files, every DLTdv version, Argus, easyWand: ``u_cv + 1, H - v_cv``), the
+**handedness** of the world (it may be mirrored) and its **units**.
+For a right-handed world and OpenCV pixels, P = lambda K [R | t] with det R = +1 and K's diagonal positive,
+so sign(det P[:, :3]) = sign(lambda), and a point in front of the camera has ``w = P[2] @ [X, 1]`` of that
+sign. A lower-left origin or a mirrored world each flip sign(det P[:, :3]) and leave w alone, so
+:func:`orientation_sign`, sign(det P[:, :3] * w) over the points a camera sees, is +1 for upper-left pixels
+with a right-handed world (or lower-left with a mirrored one) and -1 for lower-left with a right-handed world
+(or upper-left with a mirrored one): the coefficients cannot tell the two readings of one sign apart, and
+both give the same 3D in the file's own world frame. This module converts; it reads no files
+(:mod:`batgraph.formats.dltdv` does).
 """
 
 from __future__ import annotations
@@ -96,30 +89,6 @@ def principal_point(P: np.ndarray) -> np.ndarray:
     M = np.asarray(P, dtype=float)[..., :3]
     m3 = M[..., 2, :]
     return np.einsum("...ij,...j->...i", M[..., :2, :], m3) / np.sum(m3 * m3, axis=-1)[..., None]
-
-
-def triangulate_linear(P: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
-    """Linear (homogeneous DLT) triangulation with raw projection matrices, in their own conventions.
-
-    P: (C, 3, 4); uv_px: (C, N, 2), NaN where a camera does not see a point. Rows are normalised so
-    each camera weighs the same. Returns xyz (N, 3) in P's world frame; NaN where < 2 views. Needs no
-    pixel origin, handedness or units: it is how the file's own coefficients define the 3D.
-    """
-    P = np.asarray(P, dtype=float)
-    seen = np.isfinite(uv_px[..., 0])  # (C, N)
-    u = np.where(seen, uv_px[..., 0], 0.0)[..., None]
-    v = np.where(seen, uv_px[..., 1], 0.0)[..., None]
-    rows = np.concatenate([u * P[:, None, 2] - P[:, None, 0], v * P[:, None, 2] - P[:, None, 1]])  # (2C, N, 4)
-    norm = np.linalg.norm(rows, axis=-1, keepdims=True)
-    rows = np.where(np.concatenate([seen, seen])[..., None], rows / np.where(norm > 0, norm, 1.0), 0.0)
-    ok = seen.sum(axis=0) >= 2
-    xyz = np.full((uv_px.shape[1], 3), np.nan)
-    if ok.any():
-        A = np.moveaxis(rows[:, ok], 1, 0)  # (n, 2C, 4)
-        X = np.linalg.svd(A)[2][:, -1]  # right singular vector of the smallest singular value
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xyz[ok] = X[:, :3] / X[:, 3:4]
-    return xyz
 
 
 def orientation_sign(P: np.ndarray, xyz: np.ndarray, seen: np.ndarray) -> np.ndarray:

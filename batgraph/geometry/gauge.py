@@ -1,21 +1,17 @@
 """The gauge of a rig seen only through images: the 7 degrees of freedom of a world similarity.
 
-Images fix a rig's poses only up to a similarity of the world (rotation 3, translation 3, scale 1):
-moving every camera and every point by ``x' = s R x + t`` leaves every projection unchanged. This
-module fits that similarity between two rigs (:func:`fit_similarity`), gives its tangent directions
-(:func:`gauge_directions`), the first-order map that removes them from a perturbation of the rig
-(:func:`gauge_projection`), and the Mahalanobis distance between two rigs with the gauge removed
-(:func:`gauge_free_chi2`). It estimates nothing from images.
-
-Conventions: poses are cam_from_world arrays (R_cw (C, 3, 3), t_cw (C, 3) [m]); a rig's tangent is
-C stacked GTSAM Pose3 tangents of world_from_cam, perturbed on the right (``T exp(xi)``),
-``xi = [omega (rad), v (m)]`` (6C,), as in ``Camera.pose_cov``.
-
-The fit: minimise over (s, R, t) the sum over cameras of ``|s R c_i + t - c'_i|^2 + L^2 |log(R R_i R_i'^T)|^2``
-(c: camera centre, R_i: camera orientation world_from_cam, L: a lever arm [m], default the rms distance
-of the target's centres from their centroid), i.e. every camera weighs the same, and a rotation by
-theta counts as a displacement of theta L. Centres alone fix the similarity only for 3 or more
-cameras off a line; with the orientations two cameras suffice.
+Images fix a rig's poses only up to a similarity of the world (rotation 3, translation 3, scale 1): moving
+every camera and point by ``x' = s R x + t`` leaves every projection unchanged. This module fits that
+similarity between two rigs (:func:`fit_similarity`), gives its tangent directions (:func:`gauge_directions`),
+the first-order map that removes them from a perturbation of the rig (:func:`gauge_projection`), and the
+Mahalanobis distance between two rigs with the gauge removed (:func:`gauge_free_chi2`).
+Poses are cam_from_world arrays (R_cw (C, 3, 3), t_cw (C, 3) [m]); a rig's tangent (6C,) stacks the GTSAM
+Pose3 tangents of world_from_cam, perturbed on the right, ``xi = [omega (rad), v (m)]``, as ``Camera.pose_cov``.
+The fit minimises over (s, R, t) the sum over cameras of ``|s R c_i + t - c'_i|^2 + L^2 |log(R R_i R_i'^T)|^2``
+(c: camera centre, R_i: world_from_cam orientation, L: a lever arm [m], default the rms distance of the
+target's centres from their centroid): every camera weighs the same and a turn by theta counts as a
+displacement of theta L. Centres alone fix the similarity only for 3 or more cameras off a line; with the
+orientations two cameras suffice.
 """
 
 from __future__ import annotations

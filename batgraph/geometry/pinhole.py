@@ -7,7 +7,7 @@ Two forms of the same camera (conventions in :mod:`batgraph.geometry`):
 * by the projection matrix P = K [R | t] to ideal pixels (paper eq. 6), for the estimators' inner
   loops: :func:`project_ideal`, :func:`point_jacobian` (paper eq. 16), :func:`pose_jacobian`. Their
   core, :func:`project_rows` / :func:`point_jacobian_rows`, takes P component-major, ``(12, *B)``,
-  so that a solver can keep its rows contiguous (batgraph.graph.fast's hot path).
+  so that a solver can keep its rows contiguous (its hot path).
 
 No check that a point is in front of the camera in the P form: callers that need one look at the
 depth (``1 / inv_depth``) that :func:`project_rows` returns.
