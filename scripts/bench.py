@@ -233,9 +233,9 @@ def bench_first_run(args) -> None:
                 "command after the compile step": lambda: run(command, state["cache"])}
         runs = alternate(jobs, args.cold_repeats)
     print(table(runs, "warm command"))
-    warm = median(runs["warm command"])
     for name in ("command, empty cache", "command after the compile step"):
-        print(f"{name} - warm command: {median(runs[name]) - warm:+.1f} s (medians)")
+        print(f"{name} - warm command (medians): {median(runs[name]) - median(runs['warm command']):+.1f} s wall, "
+              f"{median(runs[name], 'cpu') - median(runs['warm command'], 'cpu'):+.1f} s CPU")
 
 
 SECTIONS = {"smoother": bench_smoother, "command": bench_command, "first-run": bench_first_run}
