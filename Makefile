@@ -23,7 +23,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q -ra
 
-## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 20 minutes on 2 cores)
+## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 15 minutes on 2 cores)
 bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
