@@ -23,14 +23,13 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q -ra
 
-## bench: speed and memory, ratios against baselines measured in the same run (see BENCHMARKS.md)
+## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 15 minutes on 2 cores)
 bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
-	$(BIN)/python scripts/bench_cores.py --skip reconstruct --repeats 1
 	test -x .venv-bench/bin/python || ($(PYTHON) -m venv .venv-bench && .venv-bench/bin/python -m pip install --quiet aniposelib)
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
-	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib/points.npz bench_out/aniposelib/calibration.toml
+	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib
 
 ## study: the accuracy study (writes docs/accuracy.md)
 study: install

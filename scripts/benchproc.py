@@ -1,94 +1,119 @@
-"""Whole batgraph commands as a user runs them, timed in fresh processes: shared by the benchmark scripts.
+"""What the benchmark scripts share: the machine's line, whole commands timed in fresh processes, and jobs run in
+turn (A B C A B C ...) with medians and round-by-round ratios against a baseline job.
 
-Imports only the standard library (so that a machine without GTSAM, e.g. the 16-core device of
-scripts/bench_cores.py, can run it).
+The machine these run on is shared and its load moves within minutes, so a figure is quoted as a median of
+alternated runs and a speed as a ratio to a baseline measured in the same rounds. Standard library only, so that
+a machine without GTSAM runs bench_cores.py.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
-import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "samples" / "flight_5cam"
-BATCH_SESSIONS = 16  # the issue's batch: small sessions of 10 cameras x 30 markers x 120 frames
 
 
-def machine() -> dict:
-    """nproc, CPU model and RAM of this machine, from /proc; the versions of Python and numpy."""
-    import numpy as np
-
-    cpu = platform.processor() or "?"
+def machine() -> str:
+    """One line: usable / all cores, CPU model, RAM, load average, Python, date."""
+    cpu, ram = platform.processor() or "?", 0.0
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        mem_kb = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
-                      if line.startswith("MemTotal"))
-    except OSError:
-        mem_kb = 0
-    return {"nproc": os.cpu_count(), "cpu": cpu, "ram_gib": mem_kb / 2**20, "python": platform.python_version(),
-            "numpy": np.__version__}
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+        ram = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
+                   if line.startswith("MemTotal")) / 2**20
+    except (OSError, StopIteration):
+        pass
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    return (f"{len(os.sched_getaffinity(0))} of {os.cpu_count()} cores, {cpu}, {ram:.1f} GiB RAM, load {load}, "
+            f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M')}")
 
 
-# The command runs in a child that writes its own peak resident memory (VmHWM of /proc/self/status: the
-# high-water mark of its address space after exec) on exit; rusage's ru_maxrss would include the pages
-# the child shared with this process at fork.
-_CHILD = ("import atexit, os, runpy, sys\n"
-          "def _hwm():\n"
-          "    with open('/proc/self/status') as f, open(os.environ['BENCH_HWM'], 'w') as out:\n"
-          "        out.write(next(l.split()[1] for l in f if l.startswith('VmHWM')))\n"
-          "atexit.register(_hwm)\n"
-          "sys.argv = ['batgraph', *sys.argv[1:]]\n"
-          "runpy.run_module('batgraph.cli', run_name='__main__', alter_sys=True)\n")
+def batgraph(*args: str) -> list[str]:
+    """``python -m batgraph ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "batgraph", *args]
 
 
-def run_process(cli: list[str], cwd: Path, cpus: Iterable[int] | None = None, env: dict | None = None) -> dict:
-    """``python -m batgraph.cli *cli`` in a fresh process from ``cwd`` (so that tree's batgraph is imported),
-    on the CPUs ``cpus`` only when given (its affinity, inherited by its children), with ``env`` added to
-    this process's environment: wall [s], CPU = user + system [s] (rusage of the child), peak resident
-    memory [MiB] (its VmHWM)."""
-    cpus = None if cpus is None else set(cpus)
-    with tempfile.NamedTemporaryFile(suffix=".hwm") as hwm:
-        env = {**os.environ, **(env or {}), "BENCH_HWM": hwm.name}
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", _CHILD, *cli], cwd=cwd, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                preexec_fn=None if cpus is None else lambda: os.sched_setaffinity(0, cpus))
-        err = proc.stderr.read().decode(errors="replace")
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        proc.stderr.close()
-        code = os.waitstatus_to_exitcode(status)
-        proc.returncode = code
-        if code != 0:
-            raise RuntimeError(f"batgraph {' '.join(cli)} in {cwd} failed ({code}): {err[-2000:]}")
-        peak_kib = float(Path(hwm.name).read_text() or "nan")
-    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "rss": peak_kib / 1024}
+# A small launcher starts the command and reads its rusage: a child spawned straight from a large benchmark
+# process inherits that process's resident high-water mark at exec.
+_LAUNCH = """import json, os, subprocess, sys, time
+cpus = os.environ.pop("BENCH_CPUS", "")
+if cpus:
+    os.sched_setaffinity(0, [int(c) for c in cpus.split(",")])
+t0 = time.perf_counter()
+p = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+err = p.stderr.read()
+_, status, ru = os.wait4(p.pid, 0)
+p.returncode = os.waitstatus_to_exitcode(status)
+print(json.dumps({"wall": time.perf_counter() - t0, "cpu": ru.ru_utime + ru.ru_stime, "rss": ru.ru_maxrss / 1024,
+                  "code": p.returncode, "err": err[-2000:].decode(errors="replace")}))
+"""
 
 
-def simulate_sessions(tmp: str, big: tuple[int, int, int] | None = (30, 180, 160), batch: bool = True,
-                      wingbeat: bool = False, parallel: int = 1) -> None:
-    """Simulate the benchmark's sessions under ``tmp``: ``big`` (cameras, markers, frames; seed 3) in tmp/big,
-    the accuracy study's 5-camera flight (14 markers, 160 frames, seed 1) in tmp/f5 when ``wingbeat``, and the
-    batch's BATCH_SESSIONS small sessions in tmp/many/sNN when ``batch``; ``parallel`` processes at a time."""
-    from concurrent.futures import ThreadPoolExecutor
+def run(argv: list[str], env: dict | None = None, cpus: list[int] | None = None) -> dict:
+    """``argv`` in a fresh process from the repository root, its output discarded: wall [s], cpu = user + system of
+    it and its children [s], rss = the largest resident set of it or one child [MiB]. ``env`` is added to this
+    environment; ``cpus``: the processors it (and its children) may use. A failed command raises."""
+    env = {**os.environ, **(env or {}), **({"BENCH_CPUS": ",".join(map(str, cpus))} if cpus else {})}
+    out = subprocess.run([sys.executable, "-c", _LAUNCH, *argv], cwd=ROOT, env=env, capture_output=True, text=True,
+                         check=True)
+    res = json.loads(out.stdout)
+    if res.pop("code") != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed: {res['err']}")
+    del res["err"]
+    return res
 
-    clis = []
-    if big is not None:
-        clis.append(["simulate", "flight", f"{tmp}/big", "--cameras", str(big[0]), "--markers", str(big[1]),
-                     "--frames", str(big[2]), "--seed", "3"])
-    if wingbeat:
-        clis.append(["simulate", "flight", f"{tmp}/f5", "--cameras", "5", "--seed", "1"])
-    for seed in range(BATCH_SESSIONS if batch else 0):
-        clis.append(["simulate", "flight", f"{tmp}/many/s{seed:02d}", "--cameras", "10", "--markers", "30",
-                     "--frames", "120", "--seed", str(seed)])
-    with ThreadPoolExecutor(max(1, parallel)) as pool:
-        list(pool.map(lambda cli: run_process(cli, ROOT), clis))
+
+def timed(fn: Callable[[], object]) -> dict:
+    """``fn()`` in this process: wall [s], cpu [s] (this process, every thread), and its result."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = fn()
+    return {"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0, "result": result}
+
+
+def alternate(jobs: dict[str, Callable[[], dict]], rounds: int, warmup: bool = False,
+              log: Callable[[str], None] = print) -> dict[str, list[dict]]:
+    """Every job once per round, in turn, for ``rounds`` rounds (after one untimed round with ``warmup``): each
+    job's figures (dicts from :func:`run` or :func:`timed`) per round."""
+    runs: dict[str, list[dict]] = {name: [] for name in jobs}
+    for r in range(-1 if warmup else 0, rounds):
+        for name, job in jobs.items():
+            res = job()
+            if r >= 0:
+                runs[name].append(res)
+            log(f"  {'warm-up' if r < 0 else f'round {r + 1}'}: {name}: {res['wall']:.2f} s wall, "
+                f"{res['cpu']:.2f} s CPU")
+    return runs
+
+
+def median(runs: list[dict], key: str = "wall") -> float:
+    return statistics.median(r[key] for r in runs)
+
+
+def ratio(runs: list[dict], base: list[dict], key: str = "wall") -> float:
+    """The median of the round-by-round ratios runs[r] / base[r]."""
+    return statistics.median(a[key] / b[key] for a, b in zip(runs, base, strict=True))
+
+
+def table(runs: dict[str, list[dict]], baseline: str | None = None) -> str:
+    """A markdown table: per job the median wall (min-max) and CPU [s], the peak memory where measured, and the
+    ratios of wall and CPU to ``baseline``'s (medians of the round-by-round ratios)."""
+    peak = all("rss" in r for rs in runs.values() for r in rs)
+    cols = ["job", "wall [s], median (min-max)", "CPU [s]"] + ["peak [MiB]"] * peak
+    cols += [f"wall / {baseline}", f"CPU / {baseline}"] if baseline else []
+    lines = ["| " + " | ".join(cols) + " |", "|---" * len(cols) + "|"]
+    for name, rs in runs.items():
+        walls = [r["wall"] for r in rs]
+        row = [name, f"{median(rs):.2f} ({min(walls):.2f}-{max(walls):.2f})", f"{median(rs, 'cpu'):.2f}"]
+        row += [f"{median(rs, 'rss'):.0f}"] if peak else []
+        row += [f"{ratio(rs, runs[baseline]):.2f}", f"{ratio(rs, runs[baseline], 'cpu'):.2f}"] if baseline else []
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
