@@ -5,7 +5,7 @@ Why: batgraph spreads its own work over the cores (the report's forked child, me
 kernels' thread pool, Dask workers), and its solves already pin BLAS to one thread around small-matrix work
 (threadpoolctl, batgraph.solver.threads.one_blas_thread). Elsewhere numpy's and scipy's OpenBLAS each kept one
 worker per core: on a 16-core machine the bundled flight used 21.6 s of CPU for 7.6-8.8 s of wall time, and
-12.7 s with OPENBLAS_NUM_THREADS=1 at the same wall time (the 2-core figure; BENCHMARKS.md). Nothing is set
+12.7 s with OPENBLAS_NUM_THREADS=1 at the same wall time. Nothing is set
 when the user set any of USER_THREAD_VARIABLES (OpenBLAS also obeys OpenMP's).
 """
 

@@ -25,6 +25,8 @@ import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from .errors import InputError
+
 TMP_TAG = ".batgraph-tmp-"
 NEW_TAG = ".batgraph-new"
 OLD_TAG = ".batgraph-old"
@@ -238,8 +240,6 @@ def result_folder(target: str | os.PathLike, owned: Iterable[str], in_place: boo
     final = Path(os.path.realpath(target))
     owned = set(owned)
     if os.path.lexists(final) and not final.is_dir():
-        from .errors import InputError
-
         raise InputError(f"{target}: exists and is not a folder")
     final.parent.mkdir(parents=True, exist_ok=True)
     recover_folder(final, owned)

@@ -108,7 +108,7 @@ def _compile_note(args) -> None:
 
     if kernels.needs_compiling():
         print("batgraph: compiling its inner loops for this machine, once after an install or update "
-              "(1-2 minutes on 2 cores; cached on disk after)", file=sys.stderr)
+              "(about 15-40 s on 2 cores; cached on disk after)", file=sys.stderr)
 
 
 def _check_not_a_result(session: str | Path) -> None:

@@ -251,7 +251,7 @@ def stream_jobs(fn: Callable[[int], object], n: int, workers: int,
 
     Why not Dask's local cluster (which batgraph.batch keeps for ``--scheduler`` and where forking is not
     possible): its workers are spawned, so each one imports Python, Dask and batgraph afresh and loads the
-    compiled kernels; 16 sessions took 29.2 s with 2 workers there and 21.1 s so (BENCHMARKS.md).
+    compiled kernels (16 sessions: 29.2 s with 2 workers there, 21.1 s so, on 2 cores).
     """
     if n > MAX_JOBS:
         raise ValueError(f"stream_jobs takes at most {MAX_JOBS} jobs, got {n}")

@@ -10,7 +10,7 @@ Sections (each prints a markdown table; medians of jobs run in turn, ratios roun
 - command: ``python -m batgraph reconstruct data/samples/flight_5cam --out X`` with --viewer none and save, and the
   same with --methods triangulate (start-up and outputs), warm, fresh processes.
 - first-run: that command with an empty numba cache (NUMBA_CACHE_DIR a new folder), the compile step ``python -m
-  batgraph.solver.kernels`` into an empty cache and the command after it, each against the warm command.
+  batgraph.solver.warm`` into an empty cache and the command after it, each against the warm command.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from batgraph.result import Options  # noqa: E402
 from batgraph.session import dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
 from batgraph.solver import filter as filter_method  # noqa: E402
-from batgraph.solver import fit, kernels, lm, schedule, search, segments  # noqa: E402
+from batgraph.solver import fit, lm, schedule, search, segments, warm  # noqa: E402
 from batgraph.solver import model as mm  # noqa: E402
 from batgraph.solver.backends import FAST  # noqa: E402
 from batgraph.solver.problem import Loss, gradient  # noqa: E402
@@ -166,7 +166,7 @@ def bench_smoother(args) -> None:
     same_cost = replace(OPTIONS, motion_model="random_walk", robust="none")
     print(f"scene: simulate_flight(default_rng({args.seed})), {len(session.rig)} cameras x {len(dense.markers)} "
           f"markers x {len(dense.frames)} frames, {int(ideal.seen.sum())} observations, {len(session.rigid)} segments")
-    kernels.compile_all()  # loads the compiled loops (compiles them into an empty cache)
+    warm.compile_all()  # loads the compiled loops (compiles them into an empty cache)
     def fresh():  # the observations without their cached linear triangulation: every job triangulates
         return replace(ideal, linear_xyz=None)
 
@@ -225,7 +225,7 @@ def bench_first_run(args) -> None:
 
         def compile_step():
             state["cache"] = {"NUMBA_CACHE_DIR": next(caches)}
-            return run([sys.executable, "-m", "batgraph.solver.kernels"], state["cache"])
+            return run([sys.executable, "-m", "batgraph.solver.warm"], state["cache"])
 
         jobs = {"warm command": lambda: run(command),
                 "command, empty cache": lambda: run(command, {"NUMBA_CACHE_DIR": next(caches)}),

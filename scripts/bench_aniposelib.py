@@ -57,7 +57,7 @@ def export(out_dir: Path, n_cameras: int, n_markers: int, n_frames: int, seed: i
     from batgraph.result import Options
     from batgraph.session import calibration_toml, dense_observations, write_session
     from batgraph.simulate import simulate_flight
-    from batgraph.solver import kernels, schedule
+    from batgraph.solver import schedule, warm
     from batgraph.triangulate import triangulate_ideal
 
     session = simulate_flight(np.random.default_rng(seed), n_cameras=n_cameras, n_markers=n_markers,
@@ -65,7 +65,7 @@ def export(out_dir: Path, n_cameras: int, n_markers: int, n_frames: int, seed: i
     dense = dense_observations(session)
     ideal = ideal_observations(session.rig, dense, session.pixel_sigma_px)
     C, F, M = ideal.seen.shape
-    kernels.compile_all()
+    warm.compile_all()
     t0 = time.perf_counter()
     xyz_tri = triangulate_ideal(session.rig, ideal)[0]
     t1 = time.perf_counter()

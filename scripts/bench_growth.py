@@ -25,7 +25,7 @@ from batgraph.measurement import ideal_observations  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
-from batgraph.solver import kernels, schedule  # noqa: E402
+from batgraph.solver import schedule, warm  # noqa: E402
 
 BASE = {"cameras": 30, "markers": 180, "frames": 160}
 FPS = 120.0  # at 160 frames
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     axes = {axis: [{**BASE, axis: n} for n in getattr(args, axis)] for axis in BASE}
     sizes = {tuple(s.values()) for points in axes.values() for s in points}
     scenes = {size: scene(*size, args.seed) for size in sorted(sizes)}
-    kernels.compile_all()
+    warm.compile_all()
     options = Options(progress=False)
     label = "{} x {} x {}".format
     runs = alternate({label(*size): (lambda s=s: timed(lambda: schedule.run_smoother(*s, options)))

@@ -1,38 +1,34 @@
-"""--sync estimate against the truth: the smoother with the timing given, ignored and estimated.
+"""--sync estimate against the truth: the smoother with the timing estimated, given, ignored, and synchronised.
 
-Scenes: the simulated 5-camera flight with offsets 0, +3.1, -2.4, +1.7, -4.0 ms and a 6 ms rolling shutter
-(seeds 1-3; with --lags the offsets plus whole frames), and the MCSC LED rig (real, hardware-triggered) kept
-at every 5th frame with phases 0-3 of the old frames, i.e. known offsets of 0-0.6 of a new frame (needs the real
-data beside the repository; tests/real_unsync.py). Prints one markdown table: per case the estimated offsets and
-readout, the RMSE and coverage of the observed points (simulated) or the median and 90th percentile of the 3D
-error against the published 3D (MCSC), and the smoother's time. Usage: python scripts/sync_study.py [--lags]
+Simulated scenes, both generators (batgraph.simulate's flight, batgraph.wingbeat's hold-out bat), 5 cameras at
+120 fps, 1 px noise, offsets 0, +3.1, -2.4, +1.7, -4.0 ms plus whole-frame lags 0, +3, -2, 0, -4 frames and a
+6 ms rolling shutter; per seed the same scene synchronised (the twin), with the timing given, ignored and
+estimated. Per case: observed-point RMSE and its ratio to the twin's, 95 % coverage per status, each offset's and
+the readout's error and its z-score (error / reported sd). Then the MCSC LED rig (real, hardware-triggered) kept at
+every 5th frame with phases 0-3 of the old frames (offsets 0-0.6 of a new frame; tests/real_unsync.py, needs the
+real data beside the repository): median and 90th percentile of the 3D error against its published 3D.
+Usage: python scripts/sync_study.py [--seeds 1,2,3]; prints markdown tables.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from batgraph.cli import main as cli_main
-from batgraph.evaluate import CHI2_3DOF_95
+from batgraph.evaluate import coverage95, rms
 from batgraph.result import Options
 from batgraph.runner import run_methods
-from batgraph.session import read_session
+from batgraph.simulate import Timing, simulate_flight
+from batgraph.wingbeat import simulate_wingbeat
 
-OFFSETS_MS = "0,3.1,-2.4,1.7,-4.0"
-LAGS_MS = "0,28.1,-19.1,1.7,-37.3"  # the same sub-frame offsets plus 3, -2, 0, -4 frames at 120 fps
-READOUT_MS = "6"
-
-
-def simulated(folder: Path, seed: int, offsets_ms: str, known: bool):
-    args = ["flight", str(folder), "--seed", str(seed), "--time-offsets-ms", offsets_ms, "--readout-ms", READOUT_MS]
-    cli_main(["simulate", *args, *(["--timing-known"] if known else []), "--force"])
-    return read_session(folder)
+OFFSETS_S = np.array([0.0, 3.1, -2.4, 1.7, -4.0]) * 1e-3 + np.array([0, 3, -2, 0, -4]) / 120.0
+READOUT_S = 0.006
+GENERATORS = {"flight": lambda rng, timing: simulate_flight(rng, n_cameras=5, timing=timing),
+              "wingbeat": lambda rng, timing: simulate_wingbeat(rng, n_cameras=5, timing=timing)}
 
 
 def smoother(session, sync: bool):
@@ -41,63 +37,93 @@ def smoother(session, sync: bool):
     return run, time.perf_counter() - t0
 
 
-def timing_text(run) -> str:
-    refined = run.estimates["smoother"].info.get("rig_refined") or {}
-    offs = ", ".join(f"{v['time_offset_s'] * 1e3:+.2f}" for v in refined.values())
-    ro = sorted({round(v["readout_s"] * 1e3, 2) for v in refined.values()})
-    return f"{offs} ms; readout {', '.join(f'{r:g}' for r in ro)} ms" if refined else "-"
-
-
-def against_truth(run) -> str:
-    """RMSE [mm] and 95 % coverage [%] of the smoother's observed points against the session's truth."""
+def errors(run, truth_name: str = "truth"):
+    """(errors (n, 3) [m], covariances (n, 3, 3), status (n,)) of the smoother's points against the truth."""
     tr = run.trajectories
-    tr = tr[(tr.method == "smoother") & (tr.status == "observed")]
-    j = tr.merge(run.session.truth, on=["frame", "marker"], suffixes=("", "_t"))
+    j = tr[tr.method == "smoother"].merge(getattr(run.session, truth_name), on=["frame", "marker"],
+                                          suffixes=("", "_t"))
     e = j[["x", "y", "z"]].to_numpy() - j[["x_t", "y_t", "z_t"]].to_numpy()
-    cov = j[[f"cov_{a}{b}" for a in "xyz" for b in "xyz"]].to_numpy().reshape(-1, 3, 3)
-    d2 = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
-    rmse_mm = np.sqrt(np.mean(np.sum(e ** 2, 1))) * 1e3
-    return f"RMSE {rmse_mm:.2f} mm, coverage {np.mean(d2 <= CHI2_3DOF_95) * 100:.1f} %"
+    cov = j[[f"cov_{min(a, b)}{max(a, b)}" for a in "xyz" for b in "xyz"]].to_numpy().reshape(-1, 3, 3)
+    return e, cov, j["status"].to_numpy()
 
 
-def against_reference(run) -> str:
-    tr = run.trajectories
-    j = tr[tr.method == "smoother"].merge(run.session.reference, on=["frame", "marker"], suffixes=("", "_r"))
-    e = np.linalg.norm(j[["x", "y", "z"]].to_numpy() - j[["x_r", "y_r", "z_r"]].to_numpy(), axis=1)
-    e = e[np.isfinite(e)] * 1e3
-    return f"median {np.median(e):.1f} mm, p90 {np.percentile(e, 90):.1f} mm ({len(e)} points)"
+def accuracy(run) -> dict:
+    e, cov, status = errors(run)
+    ok = np.isfinite(e).all(1)
+    d2 = np.full(len(e), np.nan)
+    d2[ok] = np.einsum("ni,ni->n", e[ok], np.linalg.solve(cov[ok], e[ok][..., None])[..., 0])
+    out = {"rmse_mm": rms(np.linalg.norm(e[status == "observed"], axis=1)) * 1e3}
+    for st in ("observed", "single_view", "unobserved"):
+        c = coverage95(d2[status == st])
+        out[st] = float("nan") if c is None else 100 * c
+    return out
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--lags", action="store_true", help="add whole-frame lags to the simulated offsets")
-    p.add_argument("--seeds", default="1,2,3")
-    args = p.parse_args()
-    offsets = LAGS_MS if args.lags else OFFSETS_MS
-    print("| scene | timing | estimated offsets; readout | accuracy | smoother [s] |\n|---|---|---|---|---|")
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed in map(int, args.seeds.split(",")):
-            known = simulated(Path(tmp) / f"known{seed}", seed, offsets, True)
-            unknown = simulated(Path(tmp) / f"unknown{seed}", seed, offsets, False)
-            for label, session, sync in (("given", known, False), ("ignored", unknown, False),
-                                         ("estimated", unknown, True)):
+def timing_errors(run) -> str:
+    """Each estimated offset's and readout's error [ms] against the truth, with its z-score."""
+    refined = run.estimates["smoother"].info.get("rig_refined") or {}
+    truth = run.session.true_timing.set_index("camera")
+    parts = []
+    for name, v in refined.items():
+        d_off = (v["time_offset_s"] - truth.loc[name, "time_offset_s"]) * 1e3
+        z = d_off / (v["time_offset_sd_s"] * 1e3) if v["time_offset_sd_s"] > 0 else 0.0
+        parts.append(f"{d_off:+.3f} ({z:+.1f})")
+    v = next(iter(refined.values()))
+    d_ro = (v["readout_s"] - READOUT_S) * 1e3
+    z_ro = d_ro / (v["readout_sd_s"] * 1e3) if v["readout_sd_s"] > 0 else float("nan")
+    return f"offsets {', '.join(parts[1:])}; readout {d_ro:+.3f} ({z_ro:+.1f})"
+
+
+def simulated(seeds: list[int]) -> None:
+    print("| generator, seed | case | observed RMSE [mm] (x twin) | coverage obs / single / unobs [%] | "
+          "timing error [ms] (z) | smoother [s] |\n|---|---|---|---|---|---|")
+    for gen, make in GENERATORS.items():
+        for seed in seeds:
+            twin = make(np.random.default_rng(seed), None)
+            known = make(np.random.default_rng(seed), Timing(tuple(OFFSETS_S), READOUT_S, known=True))
+            unknown = make(np.random.default_rng(seed), Timing(tuple(OFFSETS_S), READOUT_S))
+            base = None
+            for case, session, sync in (("synchronised", twin, False), ("given", known, False),
+                                        ("ignored", unknown, False), ("estimated", unknown, True)):
                 run, sec = smoother(session, sync)
-                print(f"| flight seed {seed} ({offsets} ms, {READOUT_MS} ms readout) | {label} | "
-                      f"{timing_text(run)} | {against_truth(run)} | {sec:.1f} |", flush=True)
+                a = accuracy(run)
+                base = base or a["rmse_mm"]
+                cover = " / ".join(f"{a[s]:.1f}" for s in ("observed", "single_view", "unobserved"))
+                timing = timing_errors(run) if sync else "-"
+                print(f"| {gen} {seed} | {case} | {a['rmse_mm']:.2f} ({a['rmse_mm'] / base:.2f}) | {cover} | "
+                      f"{timing} | {sec:.1f} |", flush=True)
+
+
+def mcsc() -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     import real_unsync
 
     try:
-        mcsc = real_unsync.mcsc_session()
+        rig = real_unsync.mcsc_session()
     except Exception as exc:  # the real data are not beside the repository
         print(f"(MCSC skipped: {exc})")
         return
-    given, ignored = real_unsync.unsynchronise(mcsc, 5, (0, 1, 2, 3))
-    truth = ", ".join(f"{p / mcsc.fps * 1e3:g}" for p in (0, 1, 2, 3))
-    for label, session, sync in (("given", given, False), ("ignored", ignored, False), ("estimated", ignored, True)):
+    given, ignored = real_unsync.unsynchronise(rig, 5, (0, 1, 2, 3))
+    truth = [p / rig.fps * 1e3 for p in (0, 1, 2, 3)]
+    print(f"\n| MCSC, every 5th frame (offsets {', '.join(f'{t:g}' for t in truth)} ms) | estimated offsets [ms] | "
+          "3D error median / p90 [mm] | smoother [s] |\n|---|---|---|---|")
+    for case, session, sync in (("given", given, False), ("ignored", ignored, False), ("estimated", ignored, True)):
         run, sec = smoother(session, sync)
-        print(f"| MCSC every 5th frame (offsets {truth} ms) | {label} | {timing_text(run)} | "
-              f"{against_reference(run)} | {sec:.1f} |", flush=True)
+        e = np.linalg.norm(errors(run, "reference")[0], axis=1)
+        e = e[np.isfinite(e)] * 1e3
+        refined = run.estimates["smoother"].info.get("rig_refined") or {}
+        offs = ", ".join(f"{v['time_offset_s'] * 1e3:.2f} +- {v['time_offset_sd_s'] * 1e3:.2f}"
+                         for v in refined.values()) or "-"
+        print(f"| {case} | {offs} | {np.median(e):.1f} / {np.percentile(e, 90):.1f} ({len(e)} points) | "
+              f"{sec:.1f} |", flush=True)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", default="1,2,3")
+    args = p.parse_args()
+    simulated([int(s) for s in args.seeds.split(",")])
+    mcsc()
 
 
 if __name__ == "__main__":

@@ -121,18 +121,18 @@ def test_help_and_option_checks_import_no_table_or_solver_library():
 
 
 def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
-    """One stderr line before a run that compiles the kernels (the first after an install takes 1-2 minutes on
+    """One stderr line before a run that compiles the kernels (the first after an install takes 15-40 s on
     2 cores), also with --quiet (a silent minute looks hung), none when they are cached. kernels.needs_compiling()
     is True against an empty numba
     cache (a fresh process with NUMBA_CACHE_DIR there: nothing is compiled by asking) and False once the
     kernels have run in this process (compiled and cached, or loaded)."""
     from batgraph import cli
-    from batgraph.solver import kernels
+    from batgraph.solver import kernels, warm
     ask = "from batgraph.solver import kernels; print(kernels.needs_compiling())"
     fresh = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=120,
                            env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")})
     assert fresh.stdout.strip() == "True", fresh.stderr
-    kernels.compile_all()
+    warm.compile_all()
     assert kernels.needs_compiling() is False
     for compiling, quiet in ((True, False), (True, True), (False, False)):
         monkeypatch.setattr(kernels, "needs_compiling", lambda c=compiling: c)

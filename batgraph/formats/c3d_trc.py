@@ -26,7 +26,7 @@ import pandas as pd
 
 from ..atomic import atomic_path, write_text
 from ..errors import InputError
-from ..evaluate import dense_from_table
+from ..evaluate import add_span, dense_from_table, status_of, take_of
 from .csv_text import write_csv
 
 RANGES = ("span", "observed", "all")
@@ -48,8 +48,6 @@ def keep_range(trajectories: pd.DataFrame, keep: str = "span") -> pd.DataFrame:
     keep: "span" (span == inside), "observed" (status == observed) or "all" (unchanged).
     Adds ``status`` / ``span`` from n_views where the table lacks them. Rows are kept, in order.
     """
-    from ..evaluate import add_span, status_of
-
     if keep not in RANGES:
         raise ValueError(f"keep must be one of {', '.join(RANGES)}; got {keep!r}")
     t = trajectories.copy()
@@ -91,8 +89,6 @@ def one_take(trajectories: pd.DataFrame, take: int | None = None) -> tuple[pd.Da
     TRC files are one contiguous run of frames, so they hold one take. take: 0-based index; None = the
     longest (the first of equally long ones). InputError when ``take`` is out of range.
     """
-    from ..evaluate import take_of
-
     frames = trajectories["frame"].to_numpy(np.int64)
     tk = take_of(frames) if len(frames) else np.zeros(0, int)
     n = int(tk.max()) + 1 if len(tk) else 1

@@ -21,6 +21,8 @@ import re
 import numpy as np
 import pandas as pd
 
+from ..atomic import atomic_path
+
 _NEEDS_QUOTES = (",", '"', "\n", "\r")
 CHUNK_ROWS = 100_000
 _FIXED = re.compile(r"%\.(\d)f")  # "%.Nf", N = 0..9: the formats fixed_csv_bytes writes itself
@@ -228,8 +230,6 @@ def write_csv(path, table: pd.DataFrame, float_format: str, chunk_rows: int = CH
     """Write :func:`csv_text` of ``table`` to ``path`` atomically, ``chunk_rows`` rows at a time (the text of
     a million-row table held at once is ~100 MB more peak memory than pandas' own chunked writer); a
     fixed-point format through :func:`fixed_csv_bytes` where it applies."""
-    from ..atomic import atomic_path
-
     with atomic_path(path) as tmp, open(tmp, "wb") as out:
         for start in range(0, max(len(table), 1), chunk_rows):
             chunk = table.iloc[start:start + chunk_rows]

@@ -32,6 +32,7 @@ from ..geometry.triangulation import linear_points
 from ..inputs import read_csv
 from ..session import Session, read_session, write_session
 from .c3d_trc import keep_range
+from .offsets import read_offsets
 
 _MISSING = {"", "nan", "na", "none"}  # DLTdv writes NaN; tolerate what spreadsheets write
 _XYPTS = (re.compile(r"^pt(\d+)_cam(\d+)_([XYUV])$", re.IGNORECASE), "pt{p}_cam{c}_X / pt{p}_cam{c}_Y")
@@ -549,8 +550,6 @@ def _apply_offsets(paths, row: np.ndarray, cam: np.ndarray, n_cams: int, n_rows:
     the Argus clicker's per-row offsets (which video frame each row shows; clicks before a video's first frame
     get a negative frame and are dropped) and/or Argus's sync table (time offsets to a fraction of a frame,
     taking precedence). Without any, the rows are the cameras' own frames and the offsets 0."""
-    from .offsets import read_offsets
-
     files = [read_offsets(p, n_cams) for p in paths]
     per_row = [f for f in files if f.per_row]
     sync = [f for f in files if not f.per_row]

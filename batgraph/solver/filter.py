@@ -75,11 +75,21 @@ def run(session: Session, dense: DenseObservations, ideal: IdealObservations, op
     ``options.solver`` "gtsam", or a camera with a pose covariance (a variable shared by every marker, which this
     filter's independent markers cannot carry): GTSAM's iSAM2 (batgraph.solver.reference.run_filter)."""
     if options.solver == "gtsam" or any(c.pose_cov is not None for c in session.rig):
-        from .reference import run_filter
-
-        return run_filter(session, dense, ideal, options, on_frame)
+        return _run_gtsam(session, ideal, options, on_frame)
     with one_blas_thread():
         return _run(session, ideal, options, on_frame)
+
+
+def _run_gtsam(session, ideal, options, on_frame) -> Estimate:
+    from .reference import run_filter  # GTSAM is a slow import
+
+    t0 = time.perf_counter()
+    name, level, info = filter_motion(session, options)
+    loss = Loss(options.robust, options.robust_k)
+    xyz, cov, n_variables = run_filter(session, ideal, (name, level), join_frames(session.rig, ideal), loss, on_frame)
+    info.update({"solver": "gtsam", "motion_model": name, "robust": options.robust, "robust_k": options.robust_k,
+                 "camera_variables": n_variables})
+    return Estimate("filter", xyz, cov, np.zeros(ideal.seen.shape, bool), time.perf_counter() - t0, info)
 
 
 def _run(session, ideal, options, on_frame) -> Estimate:

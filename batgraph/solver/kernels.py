@@ -372,27 +372,3 @@ def needs_compiling() -> bool:
         return len(_rows._cache._cache_file._load_index()) == 0
     except Exception:  # noqa: BLE001  (a newer numba: no note, no harm)
         return False
-
-
-def compile_all() -> None:
-    """Compile every loop for the argument types the solver passes (tiny inputs), so that the first reconstruct
-    does not wait for it: ``python -m batgraph.solver.kernels`` (run by ``make install``)."""
-    from ..camera import Camera, Rig
-    from ..measurement import IdealObservations
-    from . import chains, lm
-    from .problem import Cameras, Loss, Problem, Rows
-
-    rig = Rig([Camera("a", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.0, 0.0, 1.0]),
-               Camera("b", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.1, 0.0, 1.0])])
-    uv = np.full((2, 3, 1, 2), 50.0)
-    ideal = IdealObservations(uv, np.broadcast_to(np.eye(2), (2, 3, 1, 2, 2)).copy())
-    for name in ("random_walk", "constant_velocity", "constant_acceleration"):
-        prob = Problem(Rows.of(ideal), Cameras.of(rig), 100.0, 3, name, np.ones(1), Loss("huber"), np.zeros((1, 3)))
-        chains.solve(prob, np.zeros((3, 1, prob.d)), lm.LOOSE, covariances=True, slope=True)
-        row_terms(np.zeros((3, 1, prob.d)), prob.rows, prob.cams, Loss("huber"))
-    mirror_lower(np.eye(3))
-    robust_loss(np.ones(2), 1, 2.0)
-
-
-if __name__ == "__main__":
-    compile_all()

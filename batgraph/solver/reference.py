@@ -22,7 +22,7 @@ from ..camera import Camera
 from . import fit as fit_mod
 from . import lm
 from .backends import choose_fast
-from .problem import Problem, derivatives, log_det_units, start_state
+from .problem import Cameras, Loss, Problem, Rows, derivatives, log_det_units, start_state
 from .segments import Segments, groups, initial_lengths
 
 _BITS = 32
@@ -266,22 +266,16 @@ def _fit_unit(setup, models, levels, start, members, seg_ids, covariances, out) 
 RELINEARIZE_THRESHOLD = 1e-5  # [m]: iSAM2 relinearises a variable when its delta exceeds it
 
 
-def run_filter(session, dense, ideal, options, on_frame=None):
-    """The ``filter`` method by GTSAM's iSAM2 fed one frame at a time (the reference of batgraph.solver.filter):
-    a marker joins at its first frame with a triangulation, with the gauge priors there; from then on it gets its
-    state on every frame, the motion factor even when unobserved. A camera with a pose covariance is a Pose3
-    variable under that prior (the paper's eq. 10 as shared variables: its uncertainty reaches every marker)."""
-    import time
-
-    from ..result import Estimate
-    from .filter import filter_motion, join_frames
-    from .problem import Cameras, Loss, Rows
-
-    t0 = time.perf_counter()
-    name, level, info = filter_motion(session, options)
+def run_filter(session, ideal, motion: tuple[str, float], joins: tuple, loss: Loss, on_frame=None) -> tuple:
+    """The filter by GTSAM's iSAM2 fed one frame at a time (the reference of batgraph.solver.filter): a marker
+    joins at its first frame with a triangulation (joins: frames (M,), -1 never, and points (M, 3) [m]), with the
+    gauge priors there; from then on it gets its state on every frame, the motion factor (motion: model, level)
+    even when unobserved. A camera with a pose covariance is a Pose3 variable under that prior (the paper's eq. 10
+    as shared variables: its uncertainty reaches every marker). Returns (xyz (F, M, 3), cov (F, M, 3, 3), the
+    number of camera variables)."""
+    name, level = motion
+    join, tri = joins
     C, F, M = ideal.seen.shape
-    join, tri = join_frames(session.rig, ideal)
-    loss = Loss(options.robust, options.robust_k)
     rows = Rows.of(ideal)
     rows = rows.placed(name, F)
     prob = Problem(rows, Cameras.of(session.rig), session.fps, F, name, np.full(M, level), loss, np.zeros((M, 3)))
@@ -332,9 +326,7 @@ def run_filter(session, dense, ideal, options, on_frame=None):
             cov[k, m] = isam.marginalCovariance(state_key(0, int(m), k))
         if on_frame is not None:
             on_frame(k, xyz[k], cov[k])
-    info.update({"solver": "gtsam", "motion_model": name, "robust": options.robust, "robust_k": options.robust_k,
-                 "camera_variables": int(variable.sum())})
-    return Estimate("filter", xyz, cov, np.zeros((C, F, M), bool), time.perf_counter() - t0, info)
+    return xyz, cov, int(variable.sum())
 
 
 def _isam() -> gtsam.ISAM2:

@@ -1,0 +1,31 @@
+"""Compile every numba loop of the solver (batgraph.solver.kernels) ahead of the first reconstruct: ``make install``
+runs ``python -m batgraph.solver.warm``; numba caches the compiled loops on disk."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera, Rig
+from ..measurement import IdealObservations
+from . import chains, kernels, lm
+from .problem import Cameras, Loss, Problem, Rows
+
+
+def compile_all() -> None:
+    """Compile every loop for the argument types the solver passes (tiny inputs), so that the first reconstruct
+    does not wait for it: ``python -m batgraph.solver.warm`` (run by ``make install``)."""
+    rig = Rig([Camera("a", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.0, 0.0, 1.0]),
+               Camera("b", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.1, 0.0, 1.0])])
+    uv = np.full((2, 3, 1, 2), 50.0)
+    ideal = IdealObservations(uv, np.broadcast_to(np.eye(2), (2, 3, 1, 2, 2)).copy())
+    for name in ("random_walk", "constant_velocity", "constant_acceleration"):
+        prob = Problem(Rows.of(ideal), Cameras.of(rig), 100.0, 3, name, np.ones(1), Loss("huber"), np.zeros((1, 3)))
+        chains.solve(prob, np.zeros((3, 1, prob.d)), lm.LOOSE, covariances=True, slope=True)
+        kernels.row_terms(np.zeros((3, 1, prob.d)), prob.rows, prob.cams, Loss("huber"))
+    kernels.mirror_lower(np.eye(3))
+    kernels.mirror_lower(np.asfortranarray(np.eye(3)))  # LAPACK's output (segments)
+    kernels.robust_loss(np.ones(2), 1, 2.0)
+
+
+if __name__ == "__main__":
+    compile_all()
