@@ -92,9 +92,9 @@ class Rows:
         k = np.floor(t).astype(np.int64)
         W, dW = np.zeros((len(t), 2, 3)), np.zeros((len(t), 2, 3))
         inside = (k >= 0) & (k < n_frames - 1)
-        W[inside], dW[inside] = mm.interpolation(name, t[inside] - k[inside])
+        W[inside], dW[inside] = _each_distinct(lambda u: mm.interpolation(name, u), t[inside] - k[inside])
         for end, sel in ((0, k < 0), (n_frames - 1, k >= n_frames - 1)):
-            W[sel, 0], dW[sel, 0] = mm.extrapolation(name, t[sel] - end)
+            W[sel, 0], dW[sel, 0] = _each_distinct(lambda u: mm.extrapolation(name, u), t[sel] - end)
             k[sel] = end
         return replace(self, k=k, W=W, dW=dW)
 
@@ -129,6 +129,13 @@ class Rows:
         row = np.zeros(len(m)) if rf is None else rf[c, f, mk].astype(float)
         return cls(m, f, np.ascontiguousarray(c), np.ascontiguousarray(ideal.uv_px[c, f, mk].T),
                    np.ascontiguousarray(Linv), s, row, int(seen.shape[2]))
+
+
+def _each_distinct(weights, tau: np.ndarray) -> tuple:
+    """weights(tau) (a pair of arrays (n, ...)) computed once per distinct tau: a synchronised rig's rows all share
+    tau = 0, a rig with offsets one per camera (a rolling shutter adds one per image row)."""
+    u, inverse = np.unique(tau, return_inverse=True)
+    return tuple(a[inverse] for a in weights(u))
 
 
 @dataclass
