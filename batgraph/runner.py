@@ -73,8 +73,8 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
     dense = dense_observations(session, timing=True if sync else None)  # the timing's estimate needs the rows
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
-    if sync:  # whole-frame lags first: the smoother estimates offsets within a frame or so
-        session, dense, pre = with_whole_frame_lags(session, dense, pre)
+    if sync:  # the lag scan first: the smoother refines offsets within a frame or so
+        session, dense, pre = with_scanned_offsets(session, dense, pre)
     session = dataclasses.replace(pre.session, warnings=list(session.warnings) + pre.warnings)
     ideal = pre.ideal
 
@@ -108,14 +108,17 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     return Run(session, traj_all, reproj_all, summary, estimates, dense=dense)
 
 
-def with_whole_frame_lags(session: Session, dense: DenseObservations, pre: checks.Preflight) -> tuple:
-    """(session, dense, preflight) with each camera's whole-frame lag (batgraph.timing.scan_lags, relative to the
-    first camera) added to its time offset and the observations put on that clock; as given when none is found."""
+def with_scanned_offsets(session: Session, dense: DenseObservations, pre: checks.Preflight) -> tuple:
+    """(session, dense, preflight) with each camera's offset as the lag scan finds it (batgraph.timing.scan_lags,
+    to a fraction of a frame, relative to the first camera) added to its time offset and the observations put on
+    that clock: the smoother's estimate starts there. As given where no whole-frame lag is found (a rig
+    synchronised to the frame starts from its stated timing)."""
     scan = scan_lags(session.rig, pre.ideal, dense.frames, session.fps)
-    lags = scan.table["lag_frames"].to_numpy(float)
-    lags = np.where(np.isfinite(lags), lags - (lags[0] if np.isfinite(lags[0]) else 0.0), 0.0)
-    if not lags.any():
+    found = np.isfinite(scan.table["lag_frames"].to_numpy(float))
+    if not (scan.table["lag_frames"].to_numpy(float)[found] != scan.table["lag_frames"].iloc[0]).any():
         return session, dense, pre
+    offsets = scan.table["offset_frames"].to_numpy(float)
+    lags = np.where(found, offsets - (offsets[0] if found[0] else 0.0), 0.0)
     rig = type(session.rig)([dataclasses.replace(c, time_offset_s=c.time_offset_s + lag / c.frame_rate(session.fps))
                              for c, lag in zip(session.rig, lags, strict=True)], world_mirror=session.rig.world_mirror)
     session = retime(session, rig)
