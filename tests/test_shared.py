@@ -61,14 +61,16 @@ def test_sync_estimate_recovers_the_timing(generator):
 @pytest.mark.slow
 def test_refine_rig_writes_a_reusable_rig(tmp_path):
     """Cameras 2-5 bumped by 0.5 deg and 5 mm after their calibration: reconstruct --refine-rig re-estimates the
-    poses with the trajectories and writes OUT/rig.toml with each pose's covariance; reconstructing again with
-    --calibration OUT/rig.toml (poses fixed) gives the refined run's points, and both are far nearer the truth
-    than the bumped rig's, after a similarity alignment (the world frame is held to the input rig's)."""
+    poses with the trajectories, shows the moves in the report and writes OUT/rig.toml with each pose's
+    covariance; reconstructing again with --calibration OUT/rig.toml (poses fixed) gives the refined run's points,
+    and both are far nearer the truth than the bumped rig's, after a similarity alignment (the world frame is
+    held to the input rig's)."""
     s = simulate_flight(np.random.default_rng(1), n_cameras=5, n_frames=72, calib_rot_deg=0.5, calib_trans_mm=5.0)
     write_session(s, tmp_path / "s")
     args = ["reconstruct", str(tmp_path / "s"), "--methods", "smoother", "--viewer", "none", "--quiet"]
     assert main([*args, "--out", str(tmp_path / "bumped")]) == 0
     assert main([*args, "--refine-rig", "--out", str(tmp_path / "refined")]) == 0
+    assert "translation moved [mm]" in (tmp_path / "refined" / "report.html").read_text()
     rig = read_calibration(tmp_path / "refined" / "rig.toml")
     assert all(c.pose_cov is not None and c.pose_cov.shape == (6, 6) for c in rig)
     assert main([*args, "--calibration", str(tmp_path / "refined" / "rig.toml"), "--out", str(tmp_path / "again")]) == 0
