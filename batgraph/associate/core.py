@@ -1,5 +1,6 @@
-"""Association end to end on arrays: detections -> 3D points per frame -> tracks -> named tracks -> every detection
-named (batgraph.associate.views, .tracks, .labelling, .refine). No files (batgraph.associate.session).
+"""Association end to end on arrays: detections -> 3D points per frame (batgraph.associate.views) -> the seeded
+markers tracked away from the seed (batgraph.associate.tracks) -> every detection named by where its marker is
+(batgraph.associate.refine). No files (batgraph.associate.session).
 """
 
 from __future__ import annotations
@@ -9,33 +10,33 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Rig
-from . import labelling, refine, tracks, views
+from . import refine, tracks, views
 from .detections import Detections
 
 SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
 SIGMA_START_PX = 2.0  # the noise assumed while measuring it
+HOW = ("", "seed", "tracked", "ray", "reprojection")
+"""How a detection got its name: not named, the user's seed, a point the tracker assigned to its marker, a lone
+detection the tracker joined along its marker's predicted ray, or matched to where its marker is (refine)."""
 
 
 @dataclass
 class AssociateOptions:
     """pixel_sigma_px: the detections' noise [px] (None: measured from points seen by 4 cameras or more);
     margin: the least extra cost (chi-square units) for a detection's name to be kept (4.6: confidence 0.9);
-    rounds: matching rounds (batgraph.associate.refine); track, label: the tracker's and the namer's options."""
+    rounds: matching rounds (batgraph.associate.refine); track: the tracker's options."""
 
     pixel_sigma_px: float | None = None
     margin: float = 4.6
     rounds: int = 2
     track: tracks.TrackOptions = field(default_factory=tracks.TrackOptions)
-    label: labelling.LabelOptions = field(default_factory=labelling.LabelOptions)
 
 
 @dataclass
 class Association:
     """Per detection (in the order of ``Detections``): label (N,) marker index (-1: unnamed), confidence (N,),
-    candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how
-    (N,) 0 none, 1 seed, 2 segments, 3 motion (how its track was named), 4 reprojection (named by where its
-    marker is, outside a named track). pixel_sigma_px: the noise used [px]; tracks: the tracks; track_labels:
-    their names."""
+    candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
+    an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker."""
 
     label: np.ndarray
     confidence: np.ndarray
@@ -43,37 +44,36 @@ class Association:
     track: np.ndarray
     how: np.ndarray
     pixel_sigma_px: float
-    tracks: tracks.Tracklets
-    track_labels: labelling.TrackLabels
+    sweep: tracks.Sweep
 
 
-def frame_index(dets: Detections, ideal: np.ndarray, sig: np.ndarray) -> refine.FrameIndex:
+def frame_index(dets: Detections, ideal: np.ndarray, sig: np.ndarray) -> tracks.FrameDetections:
     """The detections by frame, over every frame from the first to the last."""
     first, last = int(dets.frame[0]), int(dets.frame[-1])
     start = np.searchsorted(dets.frame, np.arange(first, last + 2))
-    return refine.FrameIndex(dets.frame, dets.camera, ideal, sig, first, start)
+    return tracks.FrameDetections(dets.frame, dets.camera, ideal, sig, first, start)
 
 
-def frame_points(geom: views.Geometry, fi: refine.FrameIndex, f: int) -> views.FramePoints:
-    """One frame's chosen points (three views or more, then unambiguous pairs), views as global indices."""
+def frame_points(geom: views.Geometry, fi: tracks.FrameDetections, f: int) -> views.FramePoints:
+    """One frame's points: those of three views or more chosen, then every two-view candidate on the detections
+    they left (batgraph.associate.views), views as global detection indices."""
     rows = fi.rows(f)
     uv, sig, cam = fi.uv[rows], fi.sig[rows], fi.camera[rows]
     cands, llr = views.candidates(geom, uv, sig, cam)
     chosen = views.select(geom, uv, sig, llr, cands)
     used = np.zeros(len(rows), bool)
     used[chosen.views[chosen.views >= 0]] = True
-    pairs = views.unambiguous_pairs(cands, used)
+    pairs = views.free_pairs(cands, used)
     v = np.concatenate([chosen.views, pairs.views])
     return views.FramePoints(np.where(v >= 0, rows[np.maximum(v, 0)], -1), np.concatenate([chosen.xyz, pairs.xyz]),
                              np.concatenate([chosen.score, pairs.score]))
 
 
-def measure_sigma(geom: views.Geometry, fi: refine.FrameIndex, scale: np.ndarray) -> float:
+def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray) -> float:
     """The detections' noise [px] from the reprojection errors of points seen by 4 cameras or more on up to
     SIGMA_SAMPLE_FRAMES frames: a view's squared error is sigma^2 (1 - 3 / (2 n)) chi-square(2) for n views, so
     sigma^2 = median(e^2 / (1 - 3 / (2 n))) / (2 ln 2). Measured twice, the second time with the first's gates."""
-    F = len(fi.start) - 1
-    frames = fi.first + np.unique(np.linspace(0, F - 1, min(F, SIGMA_SAMPLE_FRAMES)).astype(int))
+    frames = fi.first + np.unique(np.linspace(0, fi.n_frames - 1, min(fi.n_frames, SIGMA_SAMPLE_FRAMES)).astype(int))
     sigma = SIGMA_START_PX
     for _ in range(2):
         fi.sig = sigma * scale
@@ -82,58 +82,43 @@ def measure_sigma(geom: views.Geometry, fi: refine.FrameIndex, scale: np.ndarray
             p = frame_points(geom, fi, int(f))
             n = p.n_views
             four = n >= 4
-            if not four.any():
-                continue
-            rows = p.views[four]
-            r2 = views.residuals(geom, fi.uv, np.ones(len(fi.uv)) * scale, rows, p.xyz[four])
-            e2.append((r2 / (1 - 3 / (2 * n[four]))[:, None])[rows >= 0])
+            if four.any():
+                r2 = views.residuals(geom, fi.uv, scale, p.views[four], p.xyz[four])
+                e2.append((r2 / (1 - 3 / (2 * n[four]))[:, None])[p.views[four] >= 0])
         if not e2:
             return sigma
         sigma = float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
     return sigma
 
 
-def _seed_tracks(tl: tracks.Tracklets, geom: views.Geometry, fi: refine.FrameIndex, seed_det: np.ndarray,
-                 seed_lab: np.ndarray) -> tuple[tracks.Tracklets, dict[int, int]]:
-    """The seed as names of tracks: a track holding seeded detections takes the marker most of them name; a
-    seeded marker none of whose detections is in a track gets a one-frame track of its own where two of its
-    clicks or more triangulate."""
-    det_track = np.full(len(fi.frame), -1, np.int64)
-    has = tl.views >= 0
-    det_track[tl.views[has]] = np.broadcast_to(tl.track[:, None], tl.views.shape)[has]
-    votes: dict[int, dict[int, int]] = {}
-    for d, lab in zip(seed_det, seed_lab, strict=True):
-        if det_track[d] >= 0:
-            v = votes.setdefault(int(det_track[d]), {})
-            v[lab] = v.get(lab, 0) + 1
-    named = {t: max(v, key=v.get) for t, v in votes.items()}
-    taken = {(int(fi.frame[d]), lab) for d, lab in zip(seed_det, seed_lab, strict=True) if det_track[d] >= 0}
-    extra = []
-    next_id = int(tl.track.max()) + 1 if len(tl.track) else 0
+def seeds(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints],
+          seed_det: np.ndarray, seed_lab: np.ndarray) -> dict[int, tracks.Seed]:
+    """The user's clicks as 3D placements per frame: a marker clicked in two cameras or more is triangulated from
+    its clicks; one clicked in one camera takes the point that holds that detection, if any."""
+    out = {}
     C = len(geom.rig)
-    for (f, lab) in sorted({(int(fi.frame[d]), int(lab)) for d, lab in zip(seed_det, seed_lab, strict=True)}):
-        if (f, lab) in taken:
-            continue
-        ds = seed_det[(seed_lab == lab) & (fi.frame[seed_det] == f)]
-        v = np.full((1, C), -1, np.int64)
-        v[0, fi.camera[ds]] = ds
-        if (v >= 0).sum() < 2:
-            continue
-        xyz = views.triangulate(geom, fi.uv, v)
-        if not np.isfinite(xyz).all():
-            continue
-        cov = np.zeros((1, 6, 6))
-        cov[0, :3, :3] = tracks.point_covariance(geom, xyz, v, fi.sig)
-        cov[0, 3:, 3:] = np.eye(3) * 9.0  # velocity unknown: 3 m/s
-        extra.append((next_id, f, np.concatenate([xyz[0], np.zeros(3)]), cov[0], v[0]))
-        named[next_id] = lab
-        next_id += 1
-    if extra:
-        tl = tracks.Tracklets(
-            np.r_[tl.track, [e[0] for e in extra]], np.r_[tl.frame, [e[1] for e in extra]],
-            np.concatenate([tl.state, [e[2] for e in extra]]), np.concatenate([tl.cov, [e[3] for e in extra]]),
-            np.concatenate([tl.views, [e[4] for e in extra]]), np.r_[tl.kind, np.zeros(len(extra), np.int64)])
-    return tl, named
+    for f in np.unique(fi.frame[seed_det]):
+        on = fi.frame[seed_det] == f
+        labs, v, xyz = [], [], []
+        for lab in np.unique(seed_lab[on]):
+            ds = seed_det[on & (seed_lab == lab)]
+            row = np.full(C, -1, np.int64)
+            row[fi.camera[ds]] = ds
+            if len(ds) >= 2:
+                x = views.triangulate(geom, fi.uv, row[None])[0]
+            else:
+                pts = points.get(int(f))
+                hit = np.flatnonzero((pts.views == ds[0]).any(axis=1)) if pts is not None else []
+                if not len(hit):
+                    continue
+                x, row = pts.xyz[hit[0]], pts.views[hit[0]]
+            if np.isfinite(x).all():
+                labs.append(lab)
+                v.append(row)
+                xyz.append(x)
+        if labs:
+            out[int(f)] = tracks.Seed(np.array(labs), np.array(xyz), np.array(v))
+    return out
 
 
 def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.ndarray, n_labels: int,
@@ -146,26 +131,43 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     fi = frame_index(dets, ideal, scale)
     sigma = opt.pixel_sigma_px if opt.pixel_sigma_px is not None else measure_sigma(geom, fi, scale)
     fi.sig = sigma * scale
-    frames = np.arange(fi.first, fi.first + len(fi.start) - 1)
+    frames = np.arange(fi.first, fi.first + fi.n_frames)
     points = {int(f): frame_points(geom, fi, int(f)) for f in frames}
-    dets_t = tracks.FrameDetections(fi.uv, fi.sig, fi.camera, fi.first, fi.start)
-    tl = tracks.track(geom, points, dets_t, frames, fps, opt.track)
-    tl, seeded = _seed_tracks(tl, geom, fi, seed_det, seed_lab)
-    tlab = labelling.label_tracks(tl, seeded, pairs, n_labels, fps, opt.label)
+    placed = seeds(geom, fi, points, seed_det, seed_lab)
+    sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
+    start = min(placed) if placed else int(frames[0])
+    tracks.sweep(geom, points, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track)
+    tracks.sweep(geom, points, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
+                 else {}, pairs, sw, opt.track)
     N = len(dets.frame)
-    track_of = np.full(N, -1, np.int64)
-    has = tl.views >= 0
-    track_of[tl.views[has]] = np.broadcast_to(tl.track[:, None], tl.views.shape)[has]
-    label = np.where(track_of >= 0, tlab.label[np.maximum(track_of, 0)], -1)
+    label, how, track = _from_sweep(sw, N)
     fixed = np.full(N, -1, np.int64)
     fixed[seed_det] = seed_lab
     label = np.where(fixed >= 0, fixed, label)
+    swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
     for _ in range(opt.rounds):
         xyz, std = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps)
         label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed)
-    how = np.where(track_of >= 0, tlab.how[np.maximum(track_of, 0)], 0)
-    in_named_track = (track_of >= 0) & (tlab.label[np.maximum(track_of, 0)] == label)
-    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(in_named_track, how, 4)))
-    return Association(label, conf, cand, track_of, how, sigma, tl, tlab)
+    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
+    track = np.where((label >= 0) & (label == swept), track, -1)
+    return Association(label, conf, cand, track, how, sigma, sw)
+
+
+def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per detection: the marker the tracker gave it (-1), how (HOW index) and its track: a run of consecutive
+    frames on which the tracker placed the marker (a frame without splits it)."""
+    F, L = sw.kind.shape
+    label, how, track = np.full(N, -1, np.int64), np.zeros(N, np.int64), np.full(N, -1, np.int64)
+    on = sw.kind > 0
+    starts = on & ~np.vstack([np.zeros((1, L), bool), on[:-1]])
+    run = np.cumsum(starts.T.ravel()).reshape(L, F).T - 1  # run number, counted marker by marker
+    k, lab = np.nonzero(on)
+    v = sw.views[k, lab]  # (n, C)
+    has = v >= 0
+    det = v[has]
+    label[det] = np.broadcast_to(lab[:, None], v.shape)[has]
+    how[det] = np.broadcast_to(np.where(sw.kind[k, lab] == 1, 2, 3)[:, None], v.shape)[has]
+    track[det] = np.broadcast_to(run[k, lab][:, None], v.shape)[has]
+    return label, how, track

@@ -14,35 +14,17 @@ first give the triangulations of the second.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .tracks import CHI2_2DOF_GATE, assign
+from .assignment import assign
+from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, patch_shift
 from .views import Geometry, _prune, project, triangulate
 
 MAX_REACH = 6  # frames a position is carried from its nearest triangulated frame
 MIN_ACCEL = 5.0  # [m/s^2] the least acceleration a carried position allows for
 
 
-@dataclass
-class FrameIndex:
-    """The detections of the frames, as arrays: frame (N,), camera (N,), ideal pixels uv (N, 2), their noise sig
-    (N,) [ideal px], and each frame's rows ``start[f - first] .. start[f - first + 1]`` (sorted by frame)."""
-
-    frame: np.ndarray
-    camera: np.ndarray
-    uv: np.ndarray
-    sig: np.ndarray
-    first: int
-    start: np.ndarray
-
-    def rows(self, f: int) -> np.ndarray:
-        k = f - self.first
-        return np.arange(self.start[k], self.start[k + 1])
-
-
-def positions(geom: Geometry, fi: FrameIndex, label: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
     """Each marker's triangulated position per frame: xyz (F, L, 3) [m] and its std (F, L) [m], NaN where it has
     fewer than two consistent named views."""
     F = len(fi.start) - 1
@@ -69,7 +51,7 @@ def positions(geom: Geometry, fi: FrameIndex, label: np.ndarray, n_labels: int) 
     return xyz, std
 
 
-def _std(geom: Geometry, fi: FrameIndex, rows: np.ndarray, views: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+def _std(geom: Geometry, fi: FrameDetections, rows: np.ndarray, views: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """A point's position std [m]: the pixel noise over the views' pixels per metre, over sqrt(views - 1)."""
     proj, depth = project(geom, xyz)
     f = np.array([c.K[0, 0] for c in geom.rig])
@@ -81,31 +63,44 @@ def _std(geom: Geometry, fi: FrameIndex, rows: np.ndarray, views: np.ndarray, xy
 
 
 def carry(xyz: np.ndarray, std: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Positions on the frames without a triangulation (see module docstring): (F, L, 3), (F, L) [m]."""
+    """Positions on the frames without a triangulation (see module docstring): (F, L, 3), (F, L) [m].
+
+    Each marker's missing frame gets up to three estimates, combined by inverse variance: the local polynomial
+    through its nearest triangulated frames (within MAX_REACH), and from its last triangulated frame before and
+    its first after (within PATCH_GAP), that position moved as its neighbours triangulated on both frames moved
+    (batgraph.associate.tracks.patch_shift: a wing's markers move together, so this bridges long gaps)."""
     F, L = std.shape
     out, out_std = xyz.copy(), std.copy()
     dt = 1.0 / fps
+    seen = np.isfinite(std)
     for m in range(L):
-        have = np.flatnonzero(np.isfinite(std[:, m]))
-        if len(have) < 2:
+        have = np.flatnonzero(seen[:, m])
+        missing = np.flatnonzero(~seen[:, m])
+        if len(have) < 1 or not len(missing):
             continue
-        acc = _accel(xyz[have, m], have, dt)
-        missing = np.flatnonzero(~np.isfinite(std[:, m]))
-        if not len(missing):
-            continue
+        acc = _accel(xyz[have, m], have, dt) if len(have) >= 3 else 50.0
         pos = np.searchsorted(have, missing)
-        left = np.where(pos > 0, have[np.maximum(pos - 1, 0)], -10 ** 9)
-        right = np.where(pos < len(have), have[np.minimum(pos, len(have) - 1)], 10 ** 9)
-        dl, dr = missing - left, right - missing
-        ok = np.minimum(dl, dr) <= MAX_REACH
-        for j in np.flatnonzero(ok):
-            near = have[np.argsort(np.abs(have - missing[j]))[:4]]
-            deg = 2 if len(near) >= 3 and np.ptp(near) > 0 else 1
-            t = (near - missing[j]) * dt
-            coef = np.polyfit(t, xyz[near, m], deg)
-            out[missing[j], m] = coef[-1]
-            span = dl[j] * dr[j] if (dl[j] < 10 ** 8 and dr[j] < 10 ** 8) else 2 * min(dl[j], dr[j]) ** 2
-            out_std[missing[j], m] = np.nanmean(std[near, m]) + 0.5 * acc * span * dt * dt
+        for j, k in enumerate(missing):
+            est = []
+            left = have[pos[j] - 1] if pos[j] > 0 else None
+            right = have[pos[j]] if pos[j] < len(have) else None
+            if len(have) >= 2 and min(abs(k - x) for x in (left, right) if x is not None) <= MAX_REACH:
+                near = have[np.argsort(np.abs(have - k))[:4]]
+                deg = 2 if len(near) >= 3 else 1
+                coef = np.polyfit((near - k) * dt, xyz[near, m], deg)
+                dl = k - left if left is not None else None
+                dr = right - k if right is not None else None
+                span = dl * dr if dl is not None and dr is not None else 2 * min(x for x in (dl, dr) if x) ** 2
+                est.append((coef[-1], np.nanmean(std[near, m]) + 0.5 * acc * span * dt * dt))
+            for anchor in (left, right):
+                if anchor is not None and abs(k - anchor) <= PATCH_GAP:
+                    shift = patch_shift(xyz, seen, m, anchor, k)
+                    if shift is not None:
+                        est.append((xyz[anchor, m] + shift[0], float(np.hypot(shift[1], std[anchor, m]))))
+            if est:
+                w = np.array([1.0 / s_ ** 2 for _, s_ in est])
+                out[k, m] = (w[:, None] * np.array([x for x, _ in est])).sum(axis=0) / w.sum()
+                out_std[k, m] = 1.0 / np.sqrt(w.sum())
     return out, out_std
 
 
@@ -120,7 +115,7 @@ def _accel(x: np.ndarray, frames: np.ndarray, dt: float) -> float:
     return max(float(np.percentile(a, 90)), MIN_ACCEL)
 
 
-def match(geom: Geometry, fi: FrameIndex, xyz: np.ndarray, std: np.ndarray, margin: float,
+def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray, margin: float,
           fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each detection's marker (N,) (-1: none), its confidence (N,) and, for the unnamed ones, the best candidate
     (N,) (-1: none within the gate), by matching the projected markers in every camera and frame. ``fixed`` (N,)

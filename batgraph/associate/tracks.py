@@ -1,192 +1,78 @@
-"""3D tracks of anonymous markers: each frame's points (batgraph.associate.views) linked to the tracks of the frame
-before, with a constant-velocity Kalman filter's prediction and covariance as the gate.
+"""Every marker the seed names, tracked in 3D frame by frame away from the seed frame (forward, then backward):
+each frame's points (batgraph.associate.views) are assigned to the markers by their motion and their segments.
 
-Per frame: every live track is predicted (batgraph.motion's constant-velocity F and Q); tracks and points are
-linked by the assignment of least total Mahalanobis cost (scipy's linear_sum_assignment on each connected
-group of gated pairs, with a track's miss and a point's birth costing half the gate each). A link is kept only
-when the best assignment without it costs at least ``ambiguity`` more: otherwise the track ends and the point
-starts a new one (a split, for the labels to bridge: batgraph.associate.labelling), rather than risk a swap.
-A track without a point looks for detections that no point used along its predicted rays: in each camera the
-free detections and such tracks are assigned by the same rule on projected Mahalanobis costs; two views or more
-are triangulated, one view updates the filter through its ray. A track that finds nothing coasts, and ends
-after ``max_miss`` frames or when its position's standard deviation passes ``max_std_m``.
-Each track's acceleration noise adapts to its own innovations (slow body markers get tight gates, wing tips
-loose ones). Knows nothing of marker names.
+A marker's state is a constant-velocity Kalman filter (batgraph.motion's F and Q), whose acceleration noise adapts
+to its own innovations (slow body markers get tight gates, wing tips loose ones). On each frame, in rounds:
+
+1. the markers tracked up to the frame before, whose velocity rests on MATURE points or more, are assigned by
+   motion alone (every other marker with a prediction competes for the points, but their links wait);
+2. then, repeatedly, the markers still unassigned have their predictions moved by what their assigned neighbours
+   did (a wing's markers share most of their motion: :func:`_coherent`) and are assigned by motion plus their
+   segments to the partners placed so far (batgraph.associate.segments);
+
+each as the assignment of greatest total log likelihood ratio against clutter (batgraph.associate.assignment), a link kept only when the best assignment without it is worse by ``ambiguity`` nats or more:
+where two assignments are nearly as good, the marker is left unassigned for the frame (its track splits there)
+rather than risk a swap. A marker without a point looks, camera by camera, for free detections along its
+predicted rays when that prediction is sharp (``join_max_px``); one that finds nothing coasts, and is lost after
+``max_miss`` frames or when its position's std passes ``max_std_m``. A lost marker (or one the seed did not
+place) is found again by its segments alone (``acquire_llr``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from ..motion import constant_velocity_F, constant_velocity_Q
-from .views import FramePoints, Geometry, triangulate
+from . import segments as seg_mod
+from .assignment import assign, mahalanobis
+from .views import FramePoints, Geometry
 
-CHI2_3DOF_GATE = 16.27  # 99.9 % of chi-square with 3 DOF: a point's distance to its track's prediction
-CHI2_2DOF_GATE = 13.82  # 99.9 % with 2 DOF: a detection's distance to a track's projected prediction
-BIG = 1e9
+CHI2_3DOF_GATE = 16.27  # 99.9 % of chi-square with 3 DOF: a point's distance to a marker's prediction
+CHI2_2DOF_GATE = 13.82  # 99.9 % with 2 DOF: a detection's distance to a marker's projected prediction
+FIRST_ROUND_CHI2 = 9.35  # 97.5 % with 3 DOF: the first round (motion alone) takes only points near the prediction
+CLUTTER_VOLUME_M3 = 0.3 ** 3  # "not this marker": a point uniform in this volume (the other markers' points are
+# not clutter: they compete for the points in the joint assignment, and its margin measures that)
+LINK_GATE = 60.0  # [nats] an assignment's cost is LINK_GATE - log likelihood ratio; unassigned costs half each
+ROUNDS = 6
+MATURE = 2  # points after which a marker's velocity is its own
+COHERENT_M = 0.04  # [m] the reach of an assigned marker's motion over its neighbours' predictions
+RESEGMENT_FRAMES = 15  # segment lengths are measured again after this many frames
 
 
 @dataclass
 class TrackOptions:
-    """accel_psd_m2_s3: the constant-velocity model's starting acceleration noise q [m^2/s^3] (each track then
-    adapts its own, within [q_min, q_max]); speed_mps: the std of a new track's velocity [m/s]; ambiguity: the
-    least extra cost (chi-square units, -2 log likelihood ratio) of the next-best assignment for a link to be
-    kept; max_miss: frames a track coasts without any detection; max_std_m: the largest position std a coasting
-    track may reach."""
+    """accel_psd_m2_s3: the starting acceleration noise q [m^2/s^3] (each marker then adapts its own within [q_min,
+    q_max]); speed_mps: the std of a marker's velocity when first placed [m/s], flow_std_mps when the body's motion
+    is known (:func:`bulk_velocity`); ambiguity [nats]; max_miss
+    [frames]; max_std_m [m]; join_max_px: the largest projected std [px] of a prediction that may take a lone
+    detection; acquire_llr: the segment evidence [nats] that places a lost marker; learn: learn steady distances
+    as segments."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
     q_max: float = 1e5
     speed_mps: float = 3.0
-    ambiguity: float = 9.0
-    max_miss: int = 10
-    max_std_m: float = 0.03
-
-
-@dataclass
-class Tracklets:
-    """Every track's points, one row per (track, frame), sorted by track then frame: track (E,), frame (E,),
-    state (E, 6) the filtered position [m] and velocity [m/s], cov (E, 6, 6) its covariance, views (E, C) global
-    detection index per camera (-1: none), kind (E,) 0 = a point of the frame, 1 = detections joined along the
-    predicted rays, 2 = coasting (no detection; only between two frames with detections)."""
-
-    track: np.ndarray
-    frame: np.ndarray
-    state: np.ndarray
-    cov: np.ndarray
-    views: np.ndarray
-    kind: np.ndarray
-
-    @property
-    def xyz(self) -> np.ndarray:
-        return self.state[:, :3]
-
-
-class _Live:
-    """The live tracks' filter states as arrays (T, ...): state x (6,), covariance P (6, 6), q, NIS average,
-    frames missed, track id."""
-
-    def __init__(self):
-        self.x = np.zeros((0, 6))
-        self.P = np.zeros((0, 6, 6))
-        self.q = np.zeros(0)
-        self.nis = np.zeros(0)
-        self.miss = np.zeros(0, np.int64)
-        self.id = np.zeros(0, np.int64)
-        self.age = np.zeros(0, np.int64)
-
-    def keep(self, mask: np.ndarray) -> None:
-        for k in ("x", "P", "q", "nis", "miss", "id", "age"):
-            setattr(self, k, getattr(self, k)[mask])
-
-    def add(self, x, P, q, ids) -> None:
-        self.x = np.concatenate([self.x, x])
-        self.P = np.concatenate([self.P, P])
-        self.q = np.concatenate([self.q, q])
-        self.nis = np.concatenate([self.nis, np.full(len(x), 3.0)])
-        self.miss = np.concatenate([self.miss, np.zeros(len(x), np.int64)])
-        self.id = np.concatenate([self.id, ids])
-        self.age = np.concatenate([self.age, np.zeros(len(x), np.int64)])
-
-
-def point_covariance(geom: Geometry, xyz: np.ndarray, views: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """First-order covariance (P, 3, 3) [m^2] of triangulated points: (sum_c J_c^T J_c / sigma_c^2)^-1 over each
-    point's views (J_c the ideal-pixel Jacobian, sigma_c its detection's ideal-pixel noise)."""
-    info = np.zeros((len(xyz), 3, 3))
-    for c in range(views.shape[1]):
-        s = views[:, c] >= 0
-        if s.any():
-            J = _jacobian(geom.P[c], xyz[s])
-            info[s] += np.einsum("nji,njk->nik", J, J) / sig[views[s, c]][:, None, None] ** 2
-    info += np.eye(3) * 1e-6 * np.trace(info, axis1=1, axis2=2)[:, None, None]  # two near-parallel rays
-    return np.linalg.inv(info)
-
-
-def _jacobian(P: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """d(ideal px)/d(xyz) (n, 2, 3) of one camera P (3, 4) at points (n, 3)."""
-    h = xyz @ P[:, :3].T + P[:, 3]
-    uv = h[:, :2] / h[:, 2:3]
-    return (P[None, :2, :3] - uv[:, :, None] * P[None, 2:3, :3]) / h[:, 2, None, None]
-
-
-def _components(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> np.ndarray:
-    """Connected component label of every row node then every column node of a bipartite graph of edges."""
-    n = n_rows + n_cols
-    g = coo_matrix((np.ones(len(rows)), (rows, n_rows + cols)), shape=(n, n))
-    return connected_components(g, directed=False)[1]
-
-
-def assign(cost: np.ndarray, gate: float, ambiguity: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-cost links of rows to columns (cost (R, K), inf beyond the gate; leaving a row or a column out costs
-    gate / 2 each). Returns (rows, cols, margin): the links and, for each, how much more the best assignment
-    without it costs (:func:`_margin`; inf where nothing else competes). Solved per connected group of gated
-    pairs."""
-    R, K = cost.shape
-    r_idx, c_idx = np.nonzero(np.isfinite(cost))
-    if not len(r_idx):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    comp = _components(r_idx, c_idx, R, K)
-    out_r, out_c, out_m = [], [], []
-    for g in np.unique(comp[r_idx]):
-        rows = np.flatnonzero(comp[:R] == g)
-        cols = np.flatnonzero(comp[R:] == g)
-        sub = cost[np.ix_(rows, cols)]
-        if sub.shape == (1, 1):
-            out_r.append(rows[0])
-            out_c.append(cols[0])
-            out_m.append(np.inf)
-            continue
-        links, total = _solve(sub, gate)
-        for a, b in links:
-            out_r.append(rows[a])
-            out_c.append(cols[b])
-            out_m.append(_margin(sub, gate, a, b, total) if ambiguity > 0 else np.inf)
-    return np.asarray(out_r, np.int64), np.asarray(out_c, np.int64), np.asarray(out_m)
-
-
-def _margin(sub: np.ndarray, gate: float, a: int, b: int, total: float) -> float:
-    """How much more the best assignment without the link (a, b) costs, when in it row a or column b links to
-    something else (inf when both are simply left out: then nothing competes for them)."""
-    forbidden = sub.copy()
-    forbidden[a, b] = np.inf
-    links, alt = _solve(forbidden, gate)
-    if not any(x == a or y == b for x, y in links):
-        return np.inf
-    return alt - total
-
-
-def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
-    """Least-cost assignment with a miss / birth of cost gate / 2 for each row / column left out."""
-    R, K = sub.shape
-    full = np.full((R + K, K + R), BIG)
-    full[:R, :K] = np.where(np.isfinite(sub), sub, BIG)
-    full[np.arange(R), K + np.arange(R)] = gate / 2
-    full[R + np.arange(K), np.arange(K)] = gate / 2
-    full[R:, K:] = 0.0
-    r, c = linear_sum_assignment(full)
-    links = [(int(a), int(b)) for a, b in zip(r, c, strict=True) if a < R and b < K]
-    return links, float(full[r, c].sum())
-
-
-def mahalanobis(diff: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """diff^T S^-1 diff for diff (..., d) and S (..., d, d)."""
-    return np.einsum("...i,...i->...", diff, np.linalg.solve(S, diff[..., None])[..., 0])
+    flow_std_mps: float = 1.0
+    ambiguity: float = 5.0
+    max_miss: int = 30
+    max_std_m: float = 0.08
+    join_max_px: float = 4.0
+    acquire_llr: float = 8.0
+    learn: bool = True
 
 
 @dataclass
 class FrameDetections:
-    """The detections the tracker may join along rays: ideal pixels uv (N, 2), their ideal-pixel noise sig (N,),
-    camera (N,), and each frame's rows: frame f holds rows start[f - first] .. start[f - first + 1]."""
+    """The detections by frame: ideal pixels uv (N, 2), their ideal-pixel noise sig (N,), camera (N,), frame (N,),
+    and each frame's rows ``start[f - first] .. start[f - first + 1]`` (sorted by frame)."""
 
+    frame: np.ndarray
+    camera: np.ndarray
     uv: np.ndarray
     sig: np.ndarray
-    camera: np.ndarray
     first: int
     start: np.ndarray
 
@@ -196,238 +82,159 @@ class FrameDetections:
             return np.zeros(0, np.int64)
         return np.arange(self.start[k], self.start[k + 1])
 
-
-class _Recorder:
-    """Collects track rows frame by frame; :meth:`done` drops each track's trailing coasting rows."""
-
-    def __init__(self, n_cams: int):
-        self.parts = []
-        self.C = n_cams
-
-    def add(self, ids, f, x, P, views, kind) -> None:
-        if len(ids):
-            self.parts.append((np.asarray(ids, np.int64), np.full(len(ids), f, np.int64), x.copy(), P.copy(),
-                               views, np.full(len(ids), kind, np.int64)))
-
-    def done(self) -> Tracklets:
-        if not self.parts:
-            z = np.zeros(0, np.int64)
-            return Tracklets(z, z, np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros((0, self.C), np.int64), z)
-        cols = [np.concatenate([p[i] for p in self.parts]) for i in range(6)]
-        order = np.lexsort((cols[1], cols[0]))
-        track, frame, state, cov, views, kind = (c[order] for c in cols)
-        # the last row with detections of each track: rows after it (coasting to the track's end) are dropped
-        seen = np.where(kind < 2, np.arange(len(kind)), -1)
-        ends = np.r_[np.flatnonzero(np.diff(track)), len(track) - 1]
-        last_seen = np.maximum.reduceat(seen, np.r_[0, ends[:-1] + 1])
-        keep = np.arange(len(kind)) <= np.repeat(last_seen, np.diff(np.r_[-1, ends]))
-        return Tracklets(track[keep], frame[keep], state[keep], cov[keep], views[keep], kind[keep])
+    @property
+    def n_frames(self) -> int:
+        return len(self.start) - 1
 
 
-def track(geom: Geometry, points: dict[int, FramePoints], dets: FrameDetections, frames: np.ndarray, fps: float,
-          opt: TrackOptions) -> Tracklets:
-    """Tracks through ``frames`` (sorted) of the points (views holding global detection indices) and the free
-    detections (see module docstring)."""
-    C = len(geom.rig)
-    dt = 1.0 / fps
-    F = constant_velocity_F(dt)
-    Q1 = constant_velocity_Q(1.0, dt)
-    live, rec, next_id = _Live(), _Recorder(C), 0
-    prev, prev_xyz = None, np.zeros((0, 3))
-    for f in frames:
-        f = int(f)
-        if prev is not None and f != prev + 1:  # a gap in the frame axis: every track ends
-            live.keep(np.zeros(len(live.id), bool))
-        prev = f
-        before = (live.x[:, :3].copy(), live.P[:, :3, :3].copy())
-        live.x = live.x @ F.T
-        live.P = F @ live.P @ F.T + live.q[:, None, None] * Q1
-        pts = points.get(f)
-        T = len(live.id)
-        births, linked, ended = np.zeros(0, np.int64), np.zeros(T, bool), np.zeros(T, bool)
-        used = np.zeros(0, np.int64)
-        Rz = np.zeros((0, 3, 3))
-        flow = None
-        if pts is not None and len(pts.xyz):
-            flow = bulk_velocity(prev_xyz, pts.xyz, dt)
-            prev_xyz = pts.xyz
-            Rz = point_covariance(geom, pts.xyz, pts.views, dets.sig)
-            births, linked, ended = _link(live, pts, Rz, opt, rec, f, before, dt)
-            used = pts.views[pts.views >= 0]
-        joined = _join(geom, live, ~linked & ~ended, dets, f, used, opt, rec)
-        coasting = ~linked & ~joined & ~ended
-        live.miss = np.where(coasting, live.miss + 1, 0)
-        rec.add(live.id[coasting], f, live.x[coasting], live.P[coasting],
-                np.full((int(coasting.sum()), C), -1, np.int64), 2)
-        std = np.sqrt(np.max(np.linalg.eigvalsh(live.P[:, :3, :3]), axis=1)) if T else np.zeros(0)
-        live.keep(~ended & (live.miss <= opt.max_miss) & (std <= opt.max_std_m))
-        if len(births):
-            next_id = _birth(live, pts, Rz, births, opt, rec, f, next_id, flow)
-    return rec.done()
+@dataclass
+class Sweep:
+    """What the tracker found per frame k (of the detections' frame axis) and marker: kind (F, L) 0 nothing, 1 a
+    point, 2 detections joined along the rays; views (F, L, C) detection index per camera (-1: none); conf (F, L)
+    the assignment's confidence 1 / (1 + e^-margin); xyz (F, L, 3) [m] the point (kind 1) or the filtered
+    position (kind 2)."""
+
+    kind: np.ndarray
+    views: np.ndarray
+    conf: np.ndarray
+    xyz: np.ndarray
+
+    @classmethod
+    def empty(cls, F: int, L: int, C: int) -> Sweep:
+        return cls(np.zeros((F, L), np.int8), np.full((F, L, C), -1, np.int64), np.zeros((F, L)),
+                   np.full((F, L, 3), np.nan))
 
 
-def _update(live: _Live, sel: np.ndarray, z: np.ndarray, Rz: np.ndarray, nis: np.ndarray) -> None:
-    """Kalman update of the live tracks ``sel`` with 3D points z (n, 3), covariances Rz (n, 3, 3), and the
-    adaptation of their q to the normalised innovation nis (n,) (3 expected)."""
-    P = live.P[sel]
-    S = P[:, :3, :3] + Rz
-    K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1, H = [I 0] (S symmetric)
-    live.x[sel] = live.x[sel] + np.einsum("nij,nj->ni", K, z - live.x[sel, :3])
-    live.P[sel] = P - K @ P[:, :3, :]
-    live.age[sel] += 1
-    _adapt(live, sel, nis, 3.0)
+@dataclass
+class Seed:
+    """Markers placed by the user on one frame: label (S,), xyz (S, 3) [m], views (S, C) their detections; velocity
+    (S, 3) [m/s] and its std (S,) once measured (:func:`initial_velocity`)."""
+
+    label: np.ndarray
+    xyz: np.ndarray
+    views: np.ndarray
+    velocity: np.ndarray | None = None
+    velocity_std: np.ndarray | None = None
 
 
-def _adapt(live: _Live, sel: np.ndarray, nis: np.ndarray, dof: float) -> None:
-    live.nis[sel] = 0.7 * live.nis[sel] + 0.3 * nis / dof * 3.0
-    live.q[sel] = live.q[sel] * np.clip(np.sqrt(live.nis[sel] / 3.0), 0.7, 1.5)
+class _Targets:
+    """The markers' filter states (L, ...): x (6,), P (6, 6), q, NIS average, age (updates), miss, alive."""
+
+    def __init__(self, L: int, opt: TrackOptions):
+        self.x = np.zeros((L, 6))
+        self.P = np.tile(np.eye(6), (L, 1, 1))
+        self.q = np.full(L, opt.accel_psd_m2_s3)
+        self.nis = np.full(L, 3.0)
+        self.age = np.zeros(L, np.int64)
+        self.miss = np.zeros(L, np.int64)
+        self.alive = np.zeros(L, bool)
+        self.last = np.full(L, -10 ** 9, np.int64)  # the frame index of each marker's last point
+        self.opt = opt
+
+    def place(self, lab: np.ndarray, xyz: np.ndarray, R: np.ndarray, v: np.ndarray, sv) -> None:
+        """Start markers ``lab`` at points xyz (n, 3) with covariances R (n, 3, 3), velocity v (n, 3) of std sv
+        [m/s] (one or (n,))."""
+        self.x[lab] = np.concatenate([xyz, v], axis=1)
+        P = np.zeros((len(lab), 6, 6))
+        P[:, :3, :3] = R
+        P[:, 3:, 3:] = np.eye(3) * (np.broadcast_to(np.asarray(sv, float), (len(lab),)) ** 2)[:, None, None]
+        self.P[lab] = P
+        self.age[lab], self.miss[lab], self.alive[lab] = 0, 0, True
+
+    def update(self, lab: np.ndarray, z: np.ndarray, R: np.ndarray, x0: np.ndarray, P0: np.ndarray,
+               adapt: np.ndarray | None = None) -> None:
+        """Kalman update with 3D points z (n, 3), covariances R (n, 3, 3); q adapts (where ``adapt`` (n,), default
+        everywhere) to the innovation against the constant-velocity prediction alone (x0 (n, 6), P0 (n, 6, 6)),
+        not the one its neighbours corrected."""
+        P = self.P[lab]
+        S = P[:, :3, :3] + R
+        r = z - self.x[lab, :3]
+        K = np.linalg.solve(S, P[:, :3, :]).transpose(0, 2, 1)  # P H^T S^-1 with H = [I 0] (P, S symmetric)
+        self.x[lab] = self.x[lab] + np.einsum("nij,nj->ni", K, r)
+        self.P[lab] = P - K @ P[:, :3, :]
+        a = np.ones(len(lab), bool) if adapt is None else adapt
+        self._adapt(lab[a], mahalanobis(z[a] - x0[a, :3], P0[a, :3, :3] + R[a]), 3.0)
+        self.miss[lab] = 0
+
+    def update_ray(self, t: int, P: np.ndarray, uv: np.ndarray, sig: float) -> None:
+        """Extended Kalman update of marker t with one ideal-pixel detection uv (2,) of noise sig [px]."""
+        x, Pt = self.x[t], self.P[t]
+        h = P[:, :3] @ x[:3] + P[:, 3]
+        H = np.zeros((2, 6))
+        H[:, :3] = jacobian(P, x[None, :3])[0]
+        S = H @ Pt @ H.T + sig * sig * np.eye(2)
+        K = Pt @ H.T @ np.linalg.inv(S)
+        r = uv - h[:2] / h[2]
+        self.x[t] = x + K @ r
+        self.P[t] = Pt - K @ H @ Pt
+        self._adapt(np.array([t]), np.array([float(r @ np.linalg.solve(S, r))]), 2.0)
+
+    def _adapt(self, lab: np.ndarray, nis: np.ndarray, dof: float) -> None:
+        self.nis[lab] = 0.7 * self.nis[lab] + 0.3 * nis * 3.0 / dof
+        self.q[lab] = np.clip(self.q[lab] * np.clip(np.sqrt(self.nis[lab] / 3.0), 0.7, 1.5), self.opt.q_min,
+                              self.opt.q_max)
+        self.age[lab] += 1
+        self.miss[lab] = 0
+
+    def pos_std(self) -> np.ndarray:
+        return np.sqrt(np.max(np.linalg.eigvalsh(self.P[:, :3, :3]), axis=1))
 
 
-def _link(live: _Live, pts: FramePoints, Rz: np.ndarray, opt: TrackOptions, rec: _Recorder, f: int,
-          before: tuple[np.ndarray, np.ndarray], dt: float):
-    """Link the frame's points to live tracks; returns (points left for births (n,), linked (T,), ended (T,)).
-
-    In rounds. The first links only the tracks whose velocity rests on MATURE points or more (a young track's
-    wide gate would make every link near it look ambiguous). Each later round moves the predictions of the
-    tracks still unlinked by what their linked neighbours did (:func:`_coherent`: a wing's markers share most
-    of their motion) and assigns the rest again. A track still ambiguous when nothing more links ends.
-    before: the live tracks' positions (T, 3) [m] and their covariances (T, 3, 3) on the frame before.
-    """
-    T, n = len(live.id), len(pts.xyz)
-    linked, ambiguous = np.zeros(T, bool), np.zeros(T, bool)
-    free = np.ones(n, bool)
-    if T == 0:
-        return np.arange(n), linked, ambiguous
-    x0, P0 = live.x.copy(), live.P.copy()
-    moved = np.zeros((T, 3))  # a linked track's point less its position on the frame before
-    resid = np.zeros((T, 3))  # ... less its prediction
-    for rnd in range(COHERENT_ROUNDS):
-        tr, pi = np.flatnonzero(~linked), np.flatnonzero(free)
-        if rnd == 0:
-            tr = tr[live.age[tr] >= MATURE]
-        else:
-            _coherent(live, tr, linked, resid, moved, x0, P0, before, dt)
-        if not len(tr) or not len(pi):
-            continue
-        d = pts.xyz[pi][None] - live.x[tr][:, None, :3]
-        m = mahalanobis(d, live.P[tr][:, None, :3, :3] + Rz[pi][None])
-        rows, cols, margin = assign(np.where(m < CHI2_3DOF_GATE, m, np.inf), CHI2_3DOF_GATE, opt.ambiguity)
-        sure = margin >= opt.ambiguity
-        ambiguous[tr] = False
-        ambiguous[tr[rows[~sure]]] = True
-        r, c = tr[rows[sure]], pi[cols[sure]]
-        if not len(r) and rnd > 0:
-            break
-        resid[r] = pts.xyz[c] - x0[r, :3]
-        moved[r] = pts.xyz[c] - before[0][r]
-        _update(live, r, pts.xyz[c], Rz[c], m[rows[sure], cols[sure]])
-        linked[r] = True
-        free[c] = False
-        rec.add(live.id[r], f, live.x[r], live.P[r], pts.views[c], 0)
-    return np.flatnonzero(free), linked, ambiguous & ~linked
+def jacobian(P: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """d(ideal px)/d(xyz) (n, 2, 3) of one camera's projection matrix P (3, 4) at points (n, 3)."""
+    h = xyz @ P[:, :3].T + P[:, 3]
+    uv = h[:, :2] / h[:, 2:3]
+    return (P[None, :2, :3] - uv[:, :, None] * P[None, 2:3, :3]) / h[:, 2, None, None]
 
 
-COHERENT_ROUNDS = 5
-COHERENT_M = 0.04  # [m] the reach of a linked track's motion over its neighbours' predictions
-MATURE = 2  # points after which a track's velocity is its own
+def point_covariance(geom: Geometry, xyz: np.ndarray, views: np.ndarray, sig: np.ndarray) -> np.ndarray:
+    """First-order covariance (P, 3, 3) [m^2] of triangulated points: (sum_c J_c^T J_c / sigma_c^2)^-1 over each
+    point's views (J_c the ideal-pixel Jacobian, sigma_c its detection's ideal-pixel noise)."""
+    info = np.zeros((len(xyz), 3, 3))
+    for c in range(views.shape[1]):
+        s = views[:, c] >= 0
+        if s.any():
+            J = jacobian(geom.P[c], xyz[s])
+            info[s] += np.einsum("nji,njk->nik", J, J) / sig[views[s, c]][:, None, None] ** 2
+    info += np.eye(3) * 1e-6 * np.trace(info, axis1=1, axis2=2)[:, None, None]  # two near-parallel rays
+    return np.linalg.inv(info)
 
 
-def _coherent(live: _Live, tr: np.ndarray, linked: np.ndarray, resid: np.ndarray, moved: np.ndarray,
-              x0: np.ndarray, P0: np.ndarray, before: tuple[np.ndarray, np.ndarray], dt: float) -> bool:
-    """New predictions for the unlinked tracks ``tr`` from their linked neighbours (Gaussian weights of reach
-    COHERENT_M): a mature track's prediction x0 (T, 6) moves by their mean innovation ``resid``, its position
-    covariance shrinks to a quarter of P0's (T, 6, 6) plus the innovations' spread; a young track moves from its
-    position on the frame before by their mean displacement ``moved``, which also becomes its velocity. Returns
-    whether any track had linked neighbours."""
-    lk = np.flatnonzero(linked)
-    if not len(lk) or not len(tr):
-        return False
-    d2 = np.sum((x0[tr][:, None, :3] - x0[lk][None, :, :3]) ** 2, axis=-1)
-    w = np.exp(-0.5 * d2 / COHERENT_M ** 2) * (d2 < (3 * COHERENT_M) ** 2)
-    wsum = w.sum(axis=1)
-    has = wsum > 1e-3
-    if not has.any():
-        return False
-    t, w = tr[has], w[has] / wsum[has, None]
-    mature = live.age[t] >= MATURE
-    step = np.where(mature[:, None], w @ resid[lk], w @ moved[lk])
-    dev = np.where(mature[:, None, None], resid[lk][None], moved[lk][None]) - step[:, None]
-    spread = np.einsum("tk,tki,tkj->tij", w, dev, dev) + np.eye(3) * 1e-6
-    tm, ty = t[mature], t[~mature]
-    live.x[tm, :3] = x0[tm, :3] + step[mature]
-    # the position block becomes A' = P0 / 4 + spread; P' = M P0 M^T with M = blockdiag(L' L^-1, I) keeps the
-    # velocity's covariance and its correlation with the position consistent (positive definite)
-    A = P0[tm, :3, :3]
-    M = np.tile(np.eye(6), (len(tm), 1, 1))
-    M[:, :3, :3] = np.linalg.cholesky(0.25 * A + spread[mature]) @ np.linalg.inv(np.linalg.cholesky(A))
-    live.P[tm] = M @ P0[tm] @ M.transpose(0, 2, 1)
-    live.x[ty, :3] = before[0][ty] + step[~mature]
-    live.x[ty, 3:] = step[~mature] / dt
-    A = spread[~mature] + before[1][ty]
-    live.P[ty] = np.block([[A, A / dt], [A / dt, A / dt ** 2]]) + np.diag([0, 0, 0, 1, 1, 1]) * 1e-4
-    return True
+INIT_GATE_M = 0.03  # [m] how far a seeded marker's point may be on the next frame from where the body's flow puts it
+INIT_MIN_STD_MPS = 0.25  # [m/s] the least std of a seeded marker's first velocity
 
 
-def _join(geom: Geometry, live: _Live, want: np.ndarray, dets: FrameDetections, f: int, used: np.ndarray,
-          opt: TrackOptions, rec: _Recorder) -> np.ndarray:
-    """Free detections joined to the tracks ``want`` (T,) along their predicted rays, camera by camera;
-    returns the tracks that joined any (T,)."""
-    T = len(live.id)
-    joined = np.zeros(T, bool)
-    rows = dets.rows(f)
-    free = rows[~np.isin(rows, used)]
-    tr = np.flatnonzero(want & (live.age >= 1))  # a track's velocity is known after its second point
-    if not len(free) or not len(tr):
-        return joined
-    views = np.full((T, len(geom.rig)), -1, np.int64)
-    for c in range(len(geom.rig)):
-        fc = free[dets.camera[free] == c]
-        if not len(fc):
-            continue
-        x = live.x[tr, :3]
-        h = x @ geom.P[c][:, :3].T + geom.P[c][:, 3]
-        front = h[:, 2] > 0
-        if not front.any():
-            continue
-        t_in = tr[front]
-        J = _jacobian(geom.P[c], live.x[t_in, :3])
-        uv_hat = h[front, :2] / h[front, 2:3]
-        S = J @ live.P[t_in, :3, :3] @ J.transpose(0, 2, 1)
-        diff = dets.uv[fc][None] - uv_hat[:, None]
-        Sfull = S[:, None] + np.eye(2) * dets.sig[fc][None, :, None, None] ** 2
-        m = mahalanobis(diff, Sfull)
-        cost = np.where(m < CHI2_2DOF_GATE, m, np.inf)
-        r, k, margin = assign(cost, CHI2_2DOF_GATE, opt.ambiguity)
-        sure = margin >= opt.ambiguity
-        views[t_in[r[sure]], c] = fc[k[sure]]
-    got = np.flatnonzero((views >= 0).any(axis=1))
-    for t in got:  # one 2D update per view, each along the ray at the current estimate
-        for c in np.flatnonzero(views[t] >= 0):
-            _update_2d(live, t, geom.P[c], dets.uv[views[t, c]], dets.sig[views[t, c]])
-    joined[got] = True
-    rec.add(live.id[got], f, live.x[got], live.P[got], views[got], 1)
-    return joined
+def initial_velocity(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded markers' velocities (S, 3) [m/s] and stds (S,) from the next frame's points z (n, 3): the seeded
+    positions p (S, 3), moved by the body's ``flow``, are matched to the points (least total distance, within
+    INIT_GATE_M); each marker takes the median displacement of the matched markers within PATCH_M of it (itself
+    included: one wrong match is outvoted), its std their spread (at least INIT_MIN_STD_MPS)."""
+    from scipy.optimize import linear_sum_assignment
+
+    base = p + (0.0 if flow is None else flow * dt)
+    d = np.linalg.norm(z[None] - base[:, None], axis=-1)
+    r, c = linear_sum_assignment(np.where(d < INIT_GATE_M, d, 1e3))
+    ok = d[r, c] < INIT_GATE_M
+    disp = np.full(p.shape, np.nan)
+    disp[r[ok]] = z[c[ok]] - p[r[ok]]
+    v = np.zeros((len(p), 3)) + (0.0 if flow is None else flow)
+    sv = np.full(len(p), 1.0)
+    for i in range(len(p)):
+        near = (np.linalg.norm(p - p[i], axis=1) < PATCH_M) & np.isfinite(disp[:, 0])
+        if near.sum() >= 2:
+            med = np.median(disp[near], axis=0)
+            v[i] = med / abs(dt)
+            spread = 1.4826 * np.median(np.linalg.norm(disp[near] - med, axis=1)) / abs(dt)
+            sv[i] = max(spread, INIT_MIN_STD_MPS)
+    return v * np.sign(dt), sv
 
 
-def _update_2d(live: _Live, t: int, P: np.ndarray, uv: np.ndarray, sig: float) -> None:
-    """Extended Kalman update of track t with one ideal-pixel detection uv (2,) of noise sig [px]."""
-    x, Pt = live.x[t], live.P[t]
-    J = _jacobian(P, x[None, :3])[0]  # (2, 3)
-    h = P[:, :3] @ x[:3] + P[:, 3]
-    H = np.zeros((2, 6))
-    H[:, :3] = J
-    S = H @ Pt @ H.T + sig * sig * np.eye(2)
-    K = Pt @ H.T @ np.linalg.inv(S)
-    innov = uv - h[:2] / h[2]
-    live.x[t] = x + K @ innov
-    live.P[t] = Pt - K @ H @ Pt
-    nis = float(innov @ np.linalg.solve(S, innov))
-    _adapt(live, np.array([t]), np.array([nis]), 2.0)
+def bulk_velocity(a: np.ndarray, b: np.ndarray, dt: float, radius_m: float = 0.005) -> np.ndarray | None:
+    """The displacement most pairs of points a (n, 3) -> b (k, 3) share, per second [m/s] (the body's motion: a
+    marker placed without a velocity starts with it); None when fewer than 3 pairs agree."""
+    from scipy.spatial import cKDTree
 
-
-def bulk_velocity(a: np.ndarray, b: np.ndarray, dt: float, radius_m: float = 0.01) -> np.ndarray | None:
-    """The displacement most pairs of points a (n, 3) -> b (k, 3) share, per second [m/s] (the body's motion,
-    which a new track takes as its velocity when no live track is near it); None when fewer than 3 agree."""
     if len(a) < 3 or len(b) < 3:
         return None
     D = (b[None] - a[:, None]).reshape(-1, 3)
@@ -435,33 +242,350 @@ def bulk_velocity(a: np.ndarray, b: np.ndarray, dt: float, radius_m: float = 0.0
     best = int(np.argmax(counts))
     if counts[best] < 3:
         return None
-    inl = np.linalg.norm(D - D[best], axis=1) <= radius_m
-    return D[inl].mean(axis=0) / dt
+    return D[np.linalg.norm(D - D[best], axis=1) <= radius_m].mean(axis=0) / dt
 
 
-def _birth(live: _Live, pts: FramePoints, Rz: np.ndarray, births: np.ndarray, opt: TrackOptions, rec: _Recorder,
-           f: int, next_id: int, flow: np.ndarray | None) -> int:
-    """New tracks from the points ``births``: velocity and q from the live tracks within 5 cm, if any, else the
-    bulk ``flow`` [m/s] (with half the speed's std about it)."""
-    n = len(births)
-    z = pts.xyz[births]
-    v0 = np.zeros((n, 3)) if flow is None else np.tile(flow, (n, 1))
-    sv = np.full(n, opt.speed_mps if flow is None else 0.5 * opt.speed_mps)
-    q = np.full(n, opt.accel_psd_m2_s3)
-    if len(live.id):
-        near = np.linalg.norm(z[:, None] - live.x[None, :, :3], axis=-1) < NEIGHBOUR_M  # (n, T)
+PAIR_PRIOR = 2.0  # [nats] a two-view candidate's handicap: it is real less often than a point of three views
+
+
+def pair_prior(views: np.ndarray) -> np.ndarray:
+    """Log prior odds (n,) that a candidate is a marker: 0 for three views or more; for two, -PAIR_PRIOR less the
+    log of the number of two-view candidates its busier detection is in (of k rival pairings, one at most is real)."""
+    n = (views >= 0).sum(axis=1)
+    two = n == 2
+    out = np.zeros(len(views))
+    if two.any():
+        ids = views[two][views[two] >= 0]
+        count = np.bincount(ids)
+        busiest = np.max(np.where(views[two] >= 0, count[np.maximum(views[two], 0)], 0), axis=1)
+        out[two] = -PAIR_PRIOR - np.log(busiest)
+    return out
+
+
+class _Frame:
+    """One frame's working set: the points (xyz (n, 3), R (n, 3, 3), views (n, C)), which are taken, which markers
+    are assigned and where they were placed, and what the assigned markers did (for :func:`_coherent`)."""
+
+    def __init__(self, pts: FramePoints, R: np.ndarray, L: int):
+        self.xyz, self.R, self.views = pts.xyz, R, pts.views
+        self.taken = np.zeros(len(pts.xyz), bool)
+        self.assigned = np.zeros(L, bool)
+        self.placed = np.full((L, 3), np.nan)
+        self.resid = np.zeros((L, 3))  # an assigned marker's point less its prediction
+        self.moved = np.zeros((L, 3))  # ... less its position on the frame before
+        self.moves = np.zeros(L, bool)  # which markers have resid and moved (tracked before this frame)
+        self.prior = pair_prior(pts.views)
+
+
+def sweep(geom: Geometry, points: dict[int, FramePoints], dets: FrameDetections, frames: np.ndarray, dt: float,
+          seeds: dict[int, Seed], pairs: list[tuple[int, int]], out: Sweep, opt: TrackOptions) -> None:
+    """Track every marker through ``frames`` (in the order given; dt [s] negative backward), starting at the seed
+    frames' placements; results go into ``out`` (see module docstring)."""
+    L = out.kind.shape[1]
+    F_dt = constant_velocity_F(dt)
+    Q1 = constant_velocity_Q(1.0, abs(dt))
+    tg = _Targets(L, opt)
+    seg = _measure(out, pairs, opt)
+    since = 0
+    flow = None  # the body's velocity [m/s] from the first seed to the next frame's points (lost markers' start)
+    if len(frames) > 1 and int(frames[0]) in seeds and int(frames[1]) in points:
+        flow = bulk_velocity(seeds[int(frames[0])].xyz, points[int(frames[1])].xyz, dt)
+    for f, sd in seeds.items():  # each seeded marker starts with its neighbourhood's velocity to the next frame
+        nxt = points.get(f + (1 if dt > 0 else -1))
+        if nxt is not None:
+            sd.velocity, sd.velocity_std = initial_velocity(sd.xyz, nxt.xyz, dt, flow)
+    for f in frames:
+        f = int(f)
+        k = f - dets.first
+        before = (tg.x[:, :3].copy(), tg.P[:, :3, :3].copy())
+        tg.x = tg.x @ F_dt.T
+        tg.P = F_dt @ tg.P @ F_dt.T + tg.q[:, None, None] * Q1
+        pts = points.get(f)
+        if pts is None:
+            pts = FramePoints(np.zeros((0, len(geom.rig)), np.int64), np.zeros((0, 3)), np.zeros(0))
+        fr = _Frame(pts, point_covariance(geom, pts.xyz, pts.views, dets.sig) if len(pts.xyz) else
+                    np.zeros((0, 3, 3)), L)
+        if f in seeds:
+            _place_seed(tg, fr, seeds[f], geom, dets, out, k, opt, flow)
+        _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
+        used = np.concatenate([fr.views[fr.taken].ravel(), out.views[k][fr.assigned].ravel()])
+        joined = _join(geom, tg, fr, dets, f, used[used >= 0], out, k, opt)
+        idle = tg.alive & ~fr.assigned & ~joined
+        tg.miss[idle] += 1
+        tg.alive &= (tg.miss <= opt.max_miss) & (tg.pos_std() <= opt.max_std_m)
+        since += 1
+        if since >= RESEGMENT_FRAMES:
+            seg, since = _measure(out, pairs, opt), 0
+
+
+def _measure(out: Sweep, pairs: list[tuple[int, int]], opt: TrackOptions) -> seg_mod.Segments:
+    """Segments measured on the points assigned so far (kind 1)."""
+    X = np.where((out.kind == 1)[..., None], out.xyz, np.nan)
+    return seg_mod.measure(X, pairs, opt.learn)
+
+
+def _place_seed(tg: _Targets, fr: _Frame, seed: Seed, geom: Geometry, dets: FrameDetections, out: Sweep, k: int,
+                opt: TrackOptions, flow: np.ndarray | None) -> None:
+    """Put the seeded markers where the user placed them; a marker already tracked keeps its velocity."""
+    R = point_covariance(geom, seed.xyz, seed.views, dets.sig)
+    keep_v = tg.alive[seed.label] & (tg.age[seed.label] >= MATURE)
+    if seed.velocity is not None:
+        v, sv = seed.velocity, seed.velocity_std
+    else:
+        v, sv = np.tile(0.0 if flow is None else flow, (len(seed.label), 1)), np.full(len(seed.label), opt.speed_mps)
+    v = np.where(keep_v[:, None], tg.x[seed.label, 3:], v)
+    tg.place(seed.label, seed.xyz, R, v, sv)
+    tg.age[seed.label[keep_v]] = MATURE
+    fr.assigned[seed.label] = True
+    fr.placed[seed.label] = seed.xyz
+    tg.last[seed.label] = k
+    clicked = np.isin(fr.views, seed.views[seed.views >= 0]) & (fr.views >= 0)
+    fr.taken |= clicked.any(axis=1)
+    out.kind[k, seed.label] = 1
+    out.views[k, seed.label] = seed.views
+    out.conf[k, seed.label] = 1.0
+    out.xyz[k, seed.label] = seed.xyz
+
+
+def _rounds(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
+            before: tuple[np.ndarray, np.ndarray], dt: float, opt: TrackOptions, flow: np.ndarray | None) -> None:
+    """Assign the frame's points to the markers in rounds (see module docstring)."""
+    x0, P0 = tg.x.copy(), tg.P.copy()
+    patch = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    for rnd in range(ROUNDS):
+        cand = np.flatnonzero(~fr.assigned)
+        steady = tg.alive & (np.abs(k - tg.last) == 1) & (tg.age >= MATURE)  # tracked up to the frame before
+        if rnd > 0:
+            _coherent(tg, cand[steady[cand]], fr, x0, P0, before, dt)
+        patch = _patch(tg, fr, out, k, cand)
+        pred_x, pred_S, has = _predictions(tg, cand, steady & (rnd == 0), patch)
+        free = np.flatnonzero(~fr.taken)
+        lab = np.zeros(0, np.int64)
+        if len(cand) and len(free):
+            gate = FIRST_ROUND_CHI2 if rnd == 0 else CHI2_3DOF_GATE
+            llr, feasible = _llr(pred_x, pred_S, has, cand, fr, free, seg, opt, gate)
+            rows, cols, margin = assign(np.where(feasible, LINK_GATE - llr, np.inf), LINK_GATE, opt.ambiguity)
+            # every marker competes for the points; the first round commits the steady markers' links only
+            sure = np.flatnonzero((margin >= opt.ambiguity) & (steady[cand[rows]] | (rnd > 0)))
+            sure = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
+            lab = cand[rows[sure]]
+            if len(lab):
+                _commit(tg, fr, lab, free[cols[sure]], margin[sure], out, k, x0, P0, steady[lab], before, opt, flow)
+        if rnd > 0 and not len(lab):
+            break
+    idle = ~fr.assigned  # a marker left unassigned keeps its corrected position but not the shrunk covariance
+    tg.P[idle] = P0[idle]
+    anchored = patch[0][tg.alive[patch[0]] & idle[patch[0]]]  # ... and a coasting one follows its neighbours
+    if len(anchored):
+        at = np.isin(patch[0], anchored)
+        tg.update(anchored, patch[1][at], patch[2][at], x0[anchored], P0[anchored], np.zeros(len(anchored), bool))
+
+
+def _predictions(tg: _Targets, cand: np.ndarray, steady: np.ndarray,
+                 patch: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each candidate marker should be (T, 3) and its covariance (T, 3, 3), and whether it has a prediction
+    (T,): a ``steady`` marker's filter, else its patch's (:func:`_patch`), else a live filter's (coherent-corrected
+    where it was steady)."""
+    pred_x, pred_S = tg.x[cand, :3].copy(), tg.P[cand, :3, :3].copy()
+    has = tg.alive[cand].copy()
+    at = {int(m): i for i, m in enumerate(patch[0])}
+    for j, m in enumerate(cand):
+        if not steady[m] and int(m) in at:
+            i = at[int(m)]
+            pred_x[j], pred_S[j], has[j] = patch[1][i], patch[2][i], True
+    return pred_x, pred_S, has
+
+
+PATCH_M = 0.06  # [m] the neighbours whose motion a marker's patch prediction follows (Gaussian weights)
+PATCH_GAP = 40  # [frames] the longest gap a patch prediction bridges
+PATCH_FLOOR_M = 0.002  # [m] a patch prediction's least std ...
+PATCH_GROWTH_M = 0.0015  # [m] ... and its growth per frame of gap (the patch deforms)
+
+
+def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int) -> tuple[np.ndarray, float] | None:
+    """How marker m moved from frame k_from to k_to, as the markers known on both frames near it did: their
+    displacements' mean with Gaussian weights of width PATCH_M about m's position on k_from (a rigid fit of a few
+    neighbours would turn far markers by its rotation's error). X (F, L, 3) [m] positions, known (F, L) where they
+    are. Returns (shift (3,) [m], its std [m]: the displacements' weighted spread plus PATCH_FLOOR_M + PATCH_GROWTH_M
+    per frame of gap), or None without a neighbour within 2 PATCH_M."""
+    nb = np.flatnonzero(known[k_from] & known[k_to])
+    nb = nb[nb != m]
+    d = np.linalg.norm(X[k_from, nb] - X[k_from, m], axis=1)
+    near = d < 2 * PATCH_M
+    if not near.any():
+        return None
+    w = np.exp(-0.5 * (d[near] / PATCH_M) ** 2)
+    w = w / w.sum()
+    disp = X[k_to, nb[near]] - X[k_from, nb[near]]
+    t = w @ disp
+    spread = float(np.sqrt(np.sum(w * np.sum((disp - t) ** 2, axis=1)) / 3))
+    return t, spread + PATCH_FLOOR_M + PATCH_GROWTH_M * abs(k_to - k_from)
+
+
+def _patch(tg: _Targets, fr: _Frame, out: Sweep, k: int, cand: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predictions of markers from their neighbours (:func:`patch_shift` from the frame of each one's last point to
+    this one). Returns (markers (n,), positions (n, 3) [m], covariances (n, 3, 3) [m^2], isotropic)."""
+    labs, xs, Ss = [], [], []
+    if not len(cand):
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
+    X = out.xyz.copy()
+    known = out.kind == 1
+    X[k] = fr.placed
+    known[k] = np.isfinite(fr.placed[:, 0])
+    for m in cand:
+        kp = int(tg.last[m])
+        if not 0 < abs(k - kp) <= PATCH_GAP:
+            continue
+        shift = patch_shift(X, known, int(m), kp, k)
+        if shift is None:
+            continue
+        labs.append(m)
+        xs.append(out.xyz[kp, m] + shift[0])
+        Ss.append(np.eye(3) * shift[1] ** 2)
+    if not labs:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
+    return np.asarray(labs, np.int64), np.asarray(xs), np.asarray(Ss)
+
+
+def _disjoint(views: np.ndarray, margin: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The links ``idx`` whose points share no detection with a surer one (two-view candidates may overlap)."""
+    order = np.argsort(-margin, kind="stable")
+    seen: set[int] = set()
+    keep = []
+    for i in order:
+        v = views[i][views[i] >= 0].tolist()
+        if not seen.intersection(v):
+            seen.update(v)
+            keep.append(idx[i])
+    return np.sort(np.asarray(keep, np.int64))
+
+
+def _llr(pred_x: np.ndarray, pred_S: np.ndarray, has: np.ndarray, cand: np.ndarray, fr: _Frame, free: np.ndarray,
+         seg: seg_mod.Segments, opt: TrackOptions, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Log likelihood ratios (T, n) of the free points being the candidate markers, and which pairs may link: a
+    marker with a prediction (pred_x (T, 3), pred_S (T, 3, 3) where ``has``) by motion (Mahalanobis distance within
+    ``gate``) plus segments, one without by segments alone (acquire_llr); plus each point's prior (pair_prior)."""
+    z, R = fr.xyz[free], fr.R[free]
+    S = pred_S[:, None] + R[None]
+    m = mahalanobis(z[None] - pred_x[:, None], S)
+    motion = -0.5 * (m + np.linalg.slogdet(S)[1] + 3 * math.log(2 * math.pi)) + math.log(CLUTTER_VOLUME_M3)
+    segs = seg_mod.evidence(seg, cand, z, fr.placed)
+    has = has[:, None]
+    llr = np.where(has, motion + segs, segs) + fr.prior[free][None]
+    feasible = np.where(has, m <= gate, segs >= opt.acquire_llr) & (llr > 0)
+    return llr, feasible
+
+
+def _commit(tg: _Targets, fr: _Frame, lab: np.ndarray, p: np.ndarray, margin: np.ndarray, out: Sweep, k: int,
+            x0: np.ndarray, P0: np.ndarray, steady: np.ndarray, before: tuple[np.ndarray, np.ndarray],
+            opt: TrackOptions, flow: np.ndarray | None) -> None:
+    """Update (or, for a lost marker, place) the markers ``lab`` with points ``p`` and record them."""
+    z, R = fr.xyz[p], fr.R[p]
+    alive = tg.alive[lab]
+    u = lab[alive]
+    fr.resid[u] = z[alive] - x0[u, :3]
+    fr.moved[u] = z[alive] - before[0][u]
+    fr.moves[u] = steady[alive]
+    tg.update(u, z[alive], R[alive], x0[u], P0[u], steady[alive])
+    a = lab[~alive]
+    if len(a):
+        near = _neighbour_velocity(z[~alive], fr, x0)
+        v = np.where(np.isfinite(near), near, 0.0 if flow is None else flow)
+        tg.place(a, z[~alive], R[~alive], v, opt.speed_mps)
+    fr.assigned[lab] = True
+    fr.placed[lab] = z
+    tg.last[lab] = k
+    fr.taken |= np.isin(fr.views, fr.views[p][fr.views[p] >= 0]).any(axis=1)
+    out.kind[k, lab] = 1
+    out.views[k, lab] = fr.views[p]
+    out.conf[k, lab] = 1.0 / (1.0 + np.exp(-np.minimum(margin, 50.0)))
+    out.xyz[k, lab] = z
+
+
+def _neighbour_velocity(z: np.ndarray, fr: _Frame, x0: np.ndarray) -> np.ndarray:
+    """The mean velocity of the markers that moved this frame within COHERENT_M of each point (n, 3), NaN where none."""
+    out = np.full((len(z), 3), np.nan)
+    nb = np.flatnonzero(fr.moves)
+    if len(nb):
+        near = np.linalg.norm(z[:, None] - x0[nb][None, :, :3], axis=-1) < COHERENT_M
         for i in np.flatnonzero(near.any(axis=1)):
-            vel = live.x[near[i], 3:]
-            v0[i] = vel.mean(axis=0)
-            sv[i] = max(float(np.sqrt(np.mean(np.var(vel, axis=0)))) + 0.3 * opt.speed_mps, 0.1)
-            q[i] = float(np.median(live.q[near[i]]))
-    P = np.zeros((n, 6, 6))
-    P[:, :3, :3] = Rz[births]
-    P[:, 3:, 3:] = sv[:, None, None] ** 2 * np.eye(3)
-    ids = next_id + np.arange(n)
-    live.add(np.concatenate([z, v0], axis=1), P, q, ids)
-    rec.add(ids, f, live.x[-n:], live.P[-n:], pts.views[births], 0)
-    return next_id + n
+            out[i] = x0[nb[near[i]], 3:].mean(axis=0)
+    return out
 
 
-NEIGHBOUR_M = 0.05  # live tracks this close to a new point lend it their velocity
+def _coherent(tg: _Targets, tr: np.ndarray, fr: _Frame, x0: np.ndarray, P0: np.ndarray,
+              before: tuple[np.ndarray, np.ndarray], dt: float) -> None:
+    """New predictions for the unassigned tracked markers ``tr`` from the markers that moved this frame (Gaussian
+    weights of reach COHERENT_M): a mature marker's prediction x0 (L, 6) moves by their mean innovation, its
+    position covariance shrinks to a quarter of P0's (L, 6, 6) plus the innovations' spread; a young one moves from
+    its position on the frame before by their mean displacement, which also becomes its velocity."""
+    nb = np.flatnonzero(fr.moves)
+    if not len(nb) or not len(tr):
+        return
+    d2 = np.sum((x0[tr][:, None, :3] - x0[nb][None, :, :3]) ** 2, axis=-1)
+    w = np.exp(-0.5 * d2 / COHERENT_M ** 2) * (d2 < (3 * COHERENT_M) ** 2)
+    wsum = w.sum(axis=1)
+    has = wsum > 1e-3
+    if not has.any():
+        return
+    t, w = tr[has], w[has] / wsum[has, None]
+    mature = tg.age[t] >= MATURE
+    step = np.where(mature[:, None], w @ fr.resid[nb], w @ fr.moved[nb])
+    dev = np.where(mature[:, None, None], fr.resid[nb][None], fr.moved[nb][None]) - step[:, None]
+    spread = np.einsum("tk,tki,tkj->tij", w, dev, dev) + np.eye(3) * 1e-6
+    tm, ty = t[mature], t[~mature]
+    tg.x[tm, :3] = x0[tm, :3] + step[mature]
+    # the position block becomes A' = P0 / 4 + spread; P' = M P0 M^T with M = blockdiag(L' L^-1, I) keeps the
+    # velocity's covariance and its correlation with the position consistent (positive definite)
+    A = P0[tm, :3, :3]
+    M = np.tile(np.eye(6), (len(tm), 1, 1))
+    M[:, :3, :3] = np.linalg.cholesky(0.25 * A + spread[mature]) @ np.linalg.inv(np.linalg.cholesky(A))
+    tg.P[tm] = M @ P0[tm] @ M.transpose(0, 2, 1)
+    tg.x[ty, :3] = before[0][ty] + step[~mature]
+    tg.x[ty, 3:] = step[~mature] / dt
+    A = spread[~mature] + before[1][ty]
+    tg.P[ty] = np.block([[A, A / dt], [A / dt, A / dt ** 2]]) + np.diag([0, 0, 0, 1.0, 1.0, 1.0]) * 1e-4
+
+
+def _join(geom: Geometry, tg: _Targets, fr: _Frame, dets: FrameDetections, f: int, used: np.ndarray, out: Sweep,
+          k: int, opt: TrackOptions) -> np.ndarray:
+    """Free detections joined, camera by camera, to the tracked unassigned markers whose projected prediction is
+    sharp (join_max_px); returns which markers joined any (L,)."""
+    L = len(tg.x)
+    joined = np.zeros(L, bool)
+    rows = dets.rows(f)
+    free = rows[~np.isin(rows, used)]
+    want = np.flatnonzero(tg.alive & ~fr.assigned)
+    if not len(free) or not len(want):
+        return joined
+    views = np.full((L, len(geom.rig)), -1, np.int64)
+    conf = np.ones(L)
+    for c in range(len(geom.rig)):
+        fc = free[dets.camera[free] == c]
+        h = tg.x[want, :3] @ geom.P[c][:, :3].T + geom.P[c][:, 3]
+        if not len(fc) or not (h[:, 2] > 0).any():
+            continue
+        t = want[h[:, 2] > 0]
+        J = jacobian(geom.P[c], tg.x[t, :3])
+        S = J @ tg.P[t, :3, :3] @ J.transpose(0, 2, 1)
+        sharp = np.sqrt(np.linalg.eigvalsh(S)[:, 1]) <= opt.join_max_px
+        if not sharp.any():
+            continue
+        t, S = t[sharp], S[sharp]
+        uv_hat = (h[h[:, 2] > 0][sharp, :2] / h[h[:, 2] > 0][sharp, 2:3])
+        Sfull = S[:, None] + np.eye(2) * dets.sig[fc][None, :, None, None] ** 2
+        m = mahalanobis(dets.uv[fc][None] - uv_hat[:, None], Sfull)
+        r, d, margin = assign(np.where(m < CHI2_2DOF_GATE, m, np.inf), CHI2_2DOF_GATE, 2 * opt.ambiguity)
+        sure = margin >= 2 * opt.ambiguity
+        views[t[r[sure]], c] = fc[d[sure]]
+        conf[t[r[sure]]] = np.minimum(conf[t[r[sure]]], 1.0 / (1.0 + np.exp(-np.minimum(margin[sure], 100) / 2)))
+    for t in np.flatnonzero((views >= 0).any(axis=1)):
+        for c in np.flatnonzero(views[t] >= 0):
+            tg.update_ray(t, geom.P[c], dets.uv[views[t, c]], float(dets.sig[views[t, c]]))
+        joined[t] = True
+        out.kind[k, t] = 2
+        out.views[k, t] = views[t]
+        out.conf[k, t] = conf[t]
+        out.xyz[k, t] = tg.x[t, :3]
+    return joined

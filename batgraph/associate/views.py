@@ -291,14 +291,11 @@ def select(geom: Geometry, uv: np.ndarray, sig: np.ndarray, llr0: np.ndarray, ca
     return FramePoints(views, xyz, _score(views, residuals(geom, uv, sig, views, xyz), llr0))
 
 
-def unambiguous_pairs(cands: FramePoints, used: np.ndarray) -> FramePoints:
-    """The two-view candidates on unused detections whose two detections form no other such candidate."""
+def free_pairs(cands: FramePoints, used: np.ndarray) -> FramePoints:
+    """The two-view candidates on unused detections (they may share detections: two rays always meet somewhere,
+    so which of them is a marker is for the tracker to say, from where its markers should be)."""
     two = cands.n_views == 2
     v = cands.views[two]
     free = ~(used[np.maximum(v, 0)] & (v >= 0)).any(axis=1)
-    v = v[free]
-    ids = v[v >= 0]
-    count = np.bincount(ids, minlength=len(used)) if len(ids) else np.zeros(len(used), int)
-    alone = np.all((v < 0) | (count[np.maximum(v, 0)] == 1), axis=1)
-    idx = np.flatnonzero(two)[free][alone]
+    idx = np.flatnonzero(two)[free]
     return FramePoints(cands.views[idx], cands.xyz[idx], cands.score[idx])

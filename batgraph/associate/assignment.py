@@ -1,0 +1,71 @@
+"""Least-cost assignment with a measure of how sure each link is: the margin by which the best assignment
+without that link costs more (another link, or none: a weak link is not sure either). Rows and columns may stay
+unassigned (half the gate each), so a link is made only when it costs less than the gate; solved per connected
+group of gated pairs with scipy's linear_sum_assignment.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+BIG = 1e9
+
+
+def _components(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> np.ndarray:
+    """Connected component label of every row node then every column node of a bipartite graph of edges."""
+    n = n_rows + n_cols
+    g = coo_matrix((np.ones(len(rows)), (rows, n_rows + cols)), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+def assign(cost: np.ndarray, gate: float, ambiguity: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-cost links of rows to columns (cost (R, K), inf beyond the gate; leaving a row or a column out costs
+    gate / 2 each). Returns (rows, cols, margin): the links and, for each, how much more the best assignment
+    without it costs (:func:`_margin`). Solved per connected group of gated pairs."""
+    R, K = cost.shape
+    r_idx, c_idx = np.nonzero(np.isfinite(cost))
+    if not len(r_idx):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    comp = _components(r_idx, c_idx, R, K)
+    out_r, out_c, out_m = [], [], []
+    for g in np.unique(comp[r_idx]):
+        rows = np.flatnonzero(comp[:R] == g)
+        cols = np.flatnonzero(comp[R:] == g)
+        sub = cost[np.ix_(rows, cols)]
+        links, total = _solve(sub, gate)
+        for a, b in links:
+            out_r.append(rows[a])
+            out_c.append(cols[b])
+            out_m.append(_margin(sub, gate, a, b, total) if ambiguity > 0 else np.inf)
+    return np.asarray(out_r, np.int64), np.asarray(out_c, np.int64), np.asarray(out_m)
+
+
+def _margin(sub: np.ndarray, gate: float, a: int, b: int, total: float) -> float:
+    """How much more the best assignment without the link (a, b) costs: against another link for row a or column
+    b, or against leaving both out (gate - cost: the link's own evidence), whichever is cheaper."""
+    if sub.shape == (1, 1):
+        return gate - float(sub[0, 0])
+    forbidden = sub.copy()
+    forbidden[a, b] = np.inf
+    return _solve(forbidden, gate)[1] - total
+
+
+def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
+    """Least-cost assignment with a miss / birth of cost gate / 2 for each row / column left out."""
+    R, K = sub.shape
+    full = np.full((R + K, K + R), BIG)
+    full[:R, :K] = np.where(np.isfinite(sub), sub, BIG)
+    full[np.arange(R), K + np.arange(R)] = gate / 2
+    full[R + np.arange(K), np.arange(K)] = gate / 2
+    full[R:, K:] = 0.0
+    r, c = linear_sum_assignment(full)
+    links = [(int(a), int(b)) for a, b in zip(r, c, strict=True) if a < R and b < K]
+    return links, float(full[r, c].sum())
+
+
+def mahalanobis(diff: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """diff^T S^-1 diff for diff (..., d) and S (..., d, d)."""
+    return np.einsum("...i,...i->...", diff, np.linalg.solve(S, diff[..., None])[..., 0])

@@ -1,0 +1,88 @@
+"""Segments: marker pairs whose distance stays nearly constant (a bone, the body), their lengths measured on the
+named points, and the evidence a candidate point's distances to named partners give for a marker.
+
+A segment is a declared pair (session.toml ``[markers] rigid`` and ``skeleton``) or, for marker sets that declare
+none, a pair the named points show to be as steady as a bone (learned: LEARN_MIN_FRAMES frames together, a robust
+std of at most LEARN_MAX_STD_M, a length of at most LEARN_MAX_LENGTH_M; its std then at least LEARN_MIN_SIGMA_M).
+Its length is the median distance, its
+std 1.4826 MAD (at least MIN_SIGMA_M, the triangulation's noise on two points; twice that from fewer than three
+frames).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+RANGE_M = 0.3  # "not this marker": a distance uniform on [0, RANGE_M]
+CAP_SIGMA = 5.0  # a residual counts at most this many std (one bad point cannot sink a marker)
+MIN_SIGMA_M = 0.0015
+LEARN_MIN_FRAMES = 40  # more than a wingbeat at 120 fps: a pair steady only over part of a stroke is not a bone
+LEARN_MAX_STD_M = 0.002
+LEARN_MIN_SIGMA_M = 0.003  # a learned segment is trusted less than a declared one
+LEARN_MAX_LENGTH_M = 0.12
+LEARN_MAX_PARTNERS = 6  # learned segments kept per marker (the steadiest)
+
+
+@dataclass
+class Segments:
+    """Per marker its partners (L, K) (-1: none), the lengths (L, K) [m] and stds (L, K) [m] (NaN: none)."""
+
+    partner: np.ndarray
+    length: np.ndarray
+    sigma: np.ndarray
+
+    @classmethod
+    def none(cls, n_labels: int) -> Segments:
+        return cls(np.full((n_labels, 1), -1, np.int64), np.full((n_labels, 1), np.nan), np.full((n_labels, 1), np.nan))
+
+
+def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool) -> Segments:
+    """Segments measured on named positions X (F, L, 3) [m] (NaN where unnamed): the declared ``pairs`` (marker
+    index pairs) and, with ``learn``, the steady undeclared ones (see module docstring)."""
+    L = X.shape[1]
+    declared = {tuple(sorted(p)) for p in pairs}
+    cand = set(declared)
+    if learn:
+        have = np.isfinite(X[..., 0]).astype(np.int32)
+        a, b = np.nonzero(np.triu(have.T @ have >= LEARN_MIN_FRAMES, 1))
+        cand |= set(zip(a.tolist(), b.tolist(), strict=True))
+    per: list[list[tuple]] = [[] for _ in range(L)]
+    for a, b in cand:
+        d = np.linalg.norm(X[:, a] - X[:, b], axis=1)
+        d = d[np.isfinite(d)]
+        if not len(d):
+            continue
+        med = float(np.median(d))
+        std = 1.4826 * float(np.median(np.abs(d - med))) if len(d) >= 3 else 2 * MIN_SIGMA_M
+        std = max(std, MIN_SIGMA_M)
+        is_declared = (a, b) in declared
+        if not is_declared:
+            if std > LEARN_MAX_STD_M or med > LEARN_MAX_LENGTH_M:
+                continue
+            std = max(std, LEARN_MIN_SIGMA_M)
+        per[a].append((not is_declared, std, b, med))
+        per[b].append((not is_declared, std, a, med))
+    keep = [[x for x in sorted(p) if not x[0]] + [x for x in sorted(p) if x[0]][:LEARN_MAX_PARTNERS] for p in per]
+    K = max([len(p) for p in keep] + [1])
+    seg = Segments(np.full((L, K), -1, np.int64), np.full((L, K), np.nan), np.full((L, K), np.nan))
+    for i, p in enumerate(keep):
+        for j, (_, std, other, med) in enumerate(p):
+            seg.partner[i, j], seg.length[i, j], seg.sigma[i, j] = other, med, std
+    return seg
+
+
+def evidence(seg: Segments, targets: np.ndarray, points: np.ndarray, placed: np.ndarray) -> np.ndarray:
+    """Log likelihood ratios (T, n) that each point (n, 3) [m] is each target marker (T,), from its distances to
+    the target's partners placed on this frame (placed: (L, 3) positions, NaN where not placed), against
+    "another point": per partner ln N(d; length, std) (residual capped at CAP_SIGMA) - ln(1 / RANGE_M)."""
+    part = seg.partner[targets]  # (T, K)
+    where = placed[np.maximum(part, 0)]  # (T, K, 3)
+    d = np.linalg.norm(points[None, :, None] - where[:, None], axis=-1)  # (T, n, K)
+    sigma, length = seg.sigma[targets][:, None], seg.length[targets][:, None]
+    z = (d - length) / sigma
+    term = (-0.5 * np.minimum(z * z, CAP_SIGMA ** 2) - np.log(sigma * math.sqrt(2 * math.pi)) + math.log(RANGE_M))
+    ok = (part >= 0)[:, None] & np.isfinite(term)
+    return np.where(ok, term, 0.0).sum(axis=2)
