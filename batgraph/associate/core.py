@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Rig
-from . import refine, tracks, views
+from . import refine, segments, tracks, verify, views
 from .detections import Detections
 
 SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
@@ -144,15 +144,56 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     fixed = np.full(N, -1, np.int64)
     fixed[seed_det] = seed_lab
     label = np.where(fixed >= 0, fixed, label)
+    seeded = np.zeros((fi.n_frames, n_labels), bool)
+    seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
+    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels)
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
+    det_xyz, det_std = _detection_points(geom, fi, points)
     for _ in range(opt.rounds):
-        xyz, std = refine.positions(geom, fi, label, n_labels)
+        xyz, std, label = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps)
-        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed)
+        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
     return Association(label, conf, cand, track, how, sigma, sw)
+
+
+def _detection_points(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Per detection the point of three views or more it is in (N, 3) [m] and that point's std (N,) [m] (the
+    largest axis of its first-order covariance); NaN where none."""
+    N = len(fi.frame)
+    xyz, std = np.full((N, 3), np.nan), np.full(N, np.nan)
+    for p in points.values():
+        three = p.n_views >= 3
+        if not three.any():
+            continue
+        v, x = p.views[three], p.xyz[three]
+        s = np.sqrt(np.linalg.eigvalsh(tracks.point_covariance(geom, x, v, fi.sig))[:, -1])
+        has = v >= 0
+        xyz[v[has]] = np.broadcast_to(x[:, None], v.shape + (3,))[has]
+        std[v[has]] = np.broadcast_to(s[:, None], v.shape)[has]
+    return xyz, std
+
+
+def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray, fixed: np.ndarray,
+             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int) -> np.ndarray:
+    """The names (N,) left where batgraph.associate.verify vouches for the marker's path; a name on a frame where
+    its marker has no triangulated position stays only if the path is vouched for within 2 frames of it."""
+    xyz, std, label = refine.positions(geom, fi, label, n_labels)
+    have = np.isfinite(std)
+    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, learn=True)
+    keep = verify.vouched(xyz, have, seeded, seg)
+    near = keep.copy()
+    for s_ in (1, 2):
+        near[s_:] |= keep[:-s_]
+        near[:-s_] |= keep[s_:]
+    k = fi.frame - fi.first
+    lab = np.maximum(label, 0)
+    ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
+    return np.where((label >= 0) & (ok | (fixed >= 0)), label, -1)
 
 
 def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

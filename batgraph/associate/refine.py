@@ -21,16 +21,20 @@ from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, patch_shift
 from .views import Geometry, _prune, project, triangulate
 
 MAX_REACH = 6  # frames a position is carried from its nearest triangulated frame
+POINT_SIGMA = 4.0
+POINT_SLACK_M = 0.003
 MIN_ACCEL = 5.0  # [m/s^2] the least acceleration a carried position allows for
 
 
-def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each marker's triangulated position per frame: xyz (F, L, 3) [m] and its std (F, L) [m], NaN where it has
-    fewer than two consistent named views."""
+    fewer than two consistent named views; and the names (N,) less those of views dropped as beyond the gate."""
     F = len(fi.start) - 1
     C = len(geom.rig)
     xyz = np.full((F, n_labels, 3), np.nan)
     std = np.full((F, n_labels), np.nan)
+    label = label.copy()
     for k in range(F):
         rows = fi.rows(fi.first + k)
         lab = label[rows]
@@ -44,11 +48,16 @@ def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: 
             continue
         llr = np.full(len(rows), 50.0)  # the views are named: only the gate drops one
         v, x, _, keep = _prune(geom, fi.uv[rows], fi.sig[rows], llr, views[have].copy())
+        before = views[have]
+        after = np.full_like(before, -1)
+        after[keep] = v
+        dropped = before[(before >= 0) & (after < 0)]
+        label[rows[dropped]] = -1
         if not len(v):
             continue
         xyz[k, have[keep]] = x
         std[k, have[keep]] = _std(geom, fi, rows, v, x)
-    return xyz, std
+    return xyz, std, label
 
 
 def _std(geom: Geometry, fi: FrameDetections, rows: np.ndarray, views: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -116,10 +125,12 @@ def _accel(x: np.ndarray, frames: np.ndarray, dt: float) -> float:
 
 
 def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray, margin: float,
-          fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          fixed: np.ndarray, det_xyz: np.ndarray, det_std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each detection's marker (N,) (-1: none), its confidence (N,) and, for the unnamed ones, the best candidate
     (N,) (-1: none within the gate), by matching the projected markers in every camera and frame. ``fixed`` (N,)
-    holds names that stay (the seed's; -1 elsewhere)."""
+    holds names that stay (the seed's; -1 elsewhere). det_xyz (N, 3) [m], det_std (N,) [m]: the point of three
+    views or more each detection is in (NaN: none); a marker may not take a detection whose point lies more than
+    POINT_SIGMA combined stds from it (that detection is another marker's)."""
     N = len(fi.frame)
     label = fixed.copy()
     conf = np.where(fixed >= 0, 1.0, 0.0)
@@ -143,7 +154,9 @@ def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray,
             d2 = np.sum((proj[c, ok][:, None] - fi.uv[rc][None]) ** 2, axis=-1)  # (P, n)
             s2 = s_proj[:, None] ** 2 + fi.sig[rc][None] ** 2
             m = d2 / s2
-            cost = np.where(m < CHI2_2DOF_GATE, m + 2 * np.log(s2 / np.min(s2)), np.inf)
+            far = (np.linalg.norm(det_xyz[rc][None] - xyz[k, have[ok]][:, None], axis=-1)
+                   > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None]) + POINT_SLACK_M)
+            cost = np.where((m < CHI2_2DOF_GATE) & ~far, m + 2 * np.log(s2 / np.min(s2)), np.inf)
             r, d, mg = assign(cost, CHI2_2DOF_GATE + 2 * np.log(np.max(s2) / np.min(s2)), margin)
             best = np.where(np.isfinite(cost).any(axis=0), np.argmin(cost, axis=0), -1)
             cand[rc] = np.where(best >= 0, have[ok][np.maximum(best, 0)], -1)

@@ -112,3 +112,20 @@ def make_scene(session: Session, rng: np.random.Generator, options: SceneOptions
     seed = table[(table["frame"] == frame) & (table["kind"] == "marker")][["frame", "camera", "marker", "u", "v"]]
     return Scene(table[["frame", "camera", "u", "v", "size"]], table[["marker", "kind"]],
                  seed.sort_values(["camera", "marker"]).reset_index(drop=True))
+
+
+def write_scene(session: Session, scene: Scene, folder) -> None:
+    """A session folder of the scene as a user would have it: session.toml, calibration.toml, detections.csv,
+    seed_labels.csv, truth.csv (the 3D truth) and truth_labels.csv (each detection's true marker and kind, in
+    detections.csv's order)."""
+    from pathlib import Path
+
+    from ..formats.csv_text import write_csv
+    from ..session import write_session
+
+    folder = Path(folder)
+    write_session(session, folder)
+    (folder / "observations.csv").unlink()
+    write_csv(folder / "detections.csv", scene.detections, "%.6f")
+    write_csv(folder / "seed_labels.csv", scene.seed, "%.6f")
+    scene.truth.to_csv(folder / "truth_labels.csv", index=False)
