@@ -21,10 +21,12 @@ def _components(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) ->
     return connected_components(g, directed=False)[1]
 
 
-def assign(cost: np.ndarray, gate: float, ambiguity: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def assign(cost: np.ndarray, gate: float, ambiguity: float, compete_only: bool = False
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least-cost links of rows to columns (cost (R, K), inf beyond the gate; leaving a row or a column out costs
     gate / 2 each). Returns (rows, cols, margin): the links and, for each, how much more the best assignment
-    without it costs (:func:`_margin`). Solved per connected group of gated pairs."""
+    without it costs (:func:`_margin`; with ``compete_only``, inf where that assignment just leaves both out: the
+    link's own strength is then the caller's to judge). Solved per connected group of gated pairs."""
     R, K = cost.shape
     r_idx, c_idx = np.nonzero(np.isfinite(cost))
     if not len(r_idx):
@@ -39,18 +41,21 @@ def assign(cost: np.ndarray, gate: float, ambiguity: float) -> tuple[np.ndarray,
         for a, b in links:
             out_r.append(rows[a])
             out_c.append(cols[b])
-            out_m.append(_margin(sub, gate, a, b, total) if ambiguity > 0 else np.inf)
+            out_m.append(_margin(sub, gate, a, b, total, compete_only) if ambiguity > 0 else np.inf)
     return np.asarray(out_r, np.int64), np.asarray(out_c, np.int64), np.asarray(out_m)
 
 
-def _margin(sub: np.ndarray, gate: float, a: int, b: int, total: float) -> float:
+def _margin(sub: np.ndarray, gate: float, a: int, b: int, total: float, compete_only: bool) -> float:
     """How much more the best assignment without the link (a, b) costs: against another link for row a or column
-    b, or against leaving both out (gate - cost: the link's own evidence), whichever is cheaper."""
+    b, or against leaving both out (gate - cost: the link's own evidence; inf with ``compete_only``)."""
     if sub.shape == (1, 1):
-        return gate - float(sub[0, 0])
+        return np.inf if compete_only else gate - float(sub[0, 0])
     forbidden = sub.copy()
     forbidden[a, b] = np.inf
-    return _solve(forbidden, gate)[1] - total
+    links, alt = _solve(forbidden, gate)
+    if compete_only and not any(x == a or y == b for x, y in links):
+        return np.inf
+    return alt - total
 
 
 def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:

@@ -5,6 +5,7 @@ markers tracked away from the seed (batgraph.associate.tracks) -> every detectio
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -134,6 +135,9 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     frames = np.arange(fi.first, fi.first + fi.n_frames)
     points = {int(f): frame_points(geom, fi, int(f)) for f in frames}
     placed = seeds(geom, fi, points, seed_det, seed_lab)
+    if placed:
+        volume, size = tracks.extent(np.concatenate([sd.xyz for sd in placed.values()]))
+        opt = dataclasses.replace(opt, track=dataclasses.replace(opt.track, volume_m3=volume, range_m=size))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     start = min(placed) if placed else int(frames[0])
     tracks.sweep(geom, points, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track)
@@ -193,7 +197,7 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     k = fi.frame - fi.first
     lab = np.maximum(label, 0)
     ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
-    return np.where((label >= 0) & (ok | (fixed >= 0)), label, -1)
+    return np.where(fixed >= 0, fixed, np.where((label >= 0) & ok, label, -1))
 
 
 def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

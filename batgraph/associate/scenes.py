@@ -93,6 +93,20 @@ def seed_frame(obs: pd.DataFrame) -> int:
     return int(per_frame.idxmax())
 
 
+def strip_labels(session: Session, seed_at: int | None = None) -> Scene:
+    """A labelled session (real data: its identities are the truth) as a scene: its observations without their
+    markers, in frame order, and every observation of one frame as the seed (``seed_at``, default the frame where
+    the most markers are seen by two cameras or more)."""
+    obs = session.observations
+    table = pd.DataFrame({"frame": obs["frame"].to_numpy(), "camera": obs["camera"].to_numpy(),
+                          "u": obs["u"].to_numpy(), "v": obs["v"].to_numpy(), "marker": obs["marker"].to_numpy(),
+                          "kind": "marker"}).sort_values("frame", kind="stable").reset_index(drop=True)
+    frame = seed_frame(obs) if seed_at is None else int(seed_at)
+    seed = table[table["frame"] == frame][["frame", "camera", "marker", "u", "v"]]
+    return Scene(table[["frame", "camera", "u", "v"]], table[["marker", "kind"]],
+                 seed.sort_values(["camera", "marker"]).reset_index(drop=True))
+
+
 def make_scene(session: Session, rng: np.random.Generator, options: SceneOptions | None = None) -> Scene:
     """Detections, truth and a seed from a simulated session (see module docstring)."""
     o = options or SceneOptions()

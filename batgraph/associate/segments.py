@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-RANGE_M = 0.3  # "not this marker": a distance uniform on [0, RANGE_M]
 CAP_SIGMA = 5.0  # a residual counts at most this many std (one bad point cannot sink a marker)
 MIN_SIGMA_M = 0.0015
 LEARN_MIN_FRAMES = 40  # more than a wingbeat at 120 fps: a pair steady only over part of a stroke is not a bone
@@ -74,15 +73,16 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool) -> Segment
     return seg
 
 
-def evidence(seg: Segments, targets: np.ndarray, points: np.ndarray, placed: np.ndarray) -> np.ndarray:
+def evidence(seg: Segments, targets: np.ndarray, points: np.ndarray, placed: np.ndarray, range_m: float) -> np.ndarray:
     """Log likelihood ratios (T, n) that each point (n, 3) [m] is each target marker (T,), from its distances to
     the target's partners placed on this frame (placed: (L, 3) positions, NaN where not placed), against
-    "another point": per partner ln N(d; length, std) (residual capped at CAP_SIGMA) - ln(1 / RANGE_M)."""
+    "another point": per partner ln N(d; length, std) (residual capped at CAP_SIGMA) - ln(1 / range_m), range_m [m]
+    the size of the marker set (a distance uniform on [0, range_m])."""
     part = seg.partner[targets]  # (T, K)
     where = placed[np.maximum(part, 0)]  # (T, K, 3)
     d = np.linalg.norm(points[None, :, None] - where[:, None], axis=-1)  # (T, n, K)
     sigma, length = seg.sigma[targets][:, None], seg.length[targets][:, None]
     z = (d - length) / sigma
-    term = (-0.5 * np.minimum(z * z, CAP_SIGMA ** 2) - np.log(sigma * math.sqrt(2 * math.pi)) + math.log(RANGE_M))
+    term = (-0.5 * np.minimum(z * z, CAP_SIGMA ** 2) - np.log(sigma * math.sqrt(2 * math.pi)) + math.log(range_m))
     ok = (part >= 0)[:, None] & np.isfinite(term)
     return np.where(ok, term, 0.0).sum(axis=2)

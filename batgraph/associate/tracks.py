@@ -33,8 +33,7 @@ from .views import FramePoints, Geometry
 CHI2_3DOF_GATE = 16.27  # 99.9 % of chi-square with 3 DOF: a point's distance to a marker's prediction
 CHI2_2DOF_GATE = 13.82  # 99.9 % with 2 DOF: a detection's distance to a marker's projected prediction
 FIRST_ROUND_CHI2 = 9.35  # 97.5 % with 3 DOF: the first round (motion alone) takes only points near the prediction
-CLUTTER_VOLUME_M3 = 0.3 ** 3  # "not this marker": a point uniform in this volume (the other markers' points are
-# not clutter: they compete for the points in the joint assignment, and its margin measures that)
+MIN_EXTENT_M = 0.1  # the smallest side of the marker set's box (:func:`extent`)
 LINK_GATE = 60.0  # [nats] an assignment's cost is LINK_GATE - log likelihood ratio; unassigned costs half each
 ROUNDS = 6
 MATURE = 2  # points after which a marker's velocity is its own
@@ -46,10 +45,12 @@ RESEGMENT_FRAMES = 15  # segment lengths are measured again after this many fram
 class TrackOptions:
     """accel_psd_m2_s3: the starting acceleration noise q [m^2/s^3] (each marker then adapts its own within [q_min,
     q_max]); speed_mps: the std of a marker's velocity when first placed [m/s], flow_std_mps when the body's motion
-    is known (:func:`bulk_velocity`); ambiguity [nats]; max_miss
+    is known (:func:`bulk_velocity`); ambiguity: the least margin [nats] over the next-best assignment for a link to be made;
+    min_llr: the least log likelihood ratio against clutter [nats] of a link; max_miss
     [frames]; max_std_m [m]; join_max_px: the largest projected std [px] of a prediction that may take a lone
     detection; acquire_llr: the segment evidence [nats] that places a lost marker; learn: learn steady distances
-    as segments."""
+    as segments; volume_m3, range_m: the marker set's box [m^3] and size [m] (a point or a distance of no marker
+    in particular is uniform in them: the clutter the evidence is weighed against; :func:`extent`)."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
@@ -57,11 +58,17 @@ class TrackOptions:
     speed_mps: float = 3.0
     flow_std_mps: float = 1.0
     ambiguity: float = 5.0
+    min_llr: float = 2.0
     max_miss: int = 30
     max_std_m: float = 0.08
     join_max_px: float = 4.0
     acquire_llr: float = 8.0
     learn: bool = True
+    volume_m3: float = 0.3 ** 3
+    range_m: float = 0.3
+    register: bool = False
+    rescue: bool = False
+    beta_m: float = 0.05
 
 
 @dataclass
@@ -230,6 +237,13 @@ def initial_velocity(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray |
     return v * np.sign(dt), sv
 
 
+def extent(xyz: np.ndarray) -> tuple[float, float]:
+    """The marker set's box [m^3] and diagonal [m] from its seeded positions (n, 3): each side 1.5 times their
+    spread, at least MIN_EXTENT_M."""
+    side = np.maximum(1.5 * np.ptp(xyz, axis=0), MIN_EXTENT_M) if len(xyz) else np.full(3, MIN_EXTENT_M)
+    return float(np.prod(side)), float(np.linalg.norm(side))
+
+
 def bulk_velocity(a: np.ndarray, b: np.ndarray, dt: float, radius_m: float = 0.005) -> np.ndarray | None:
     """The displacement most pairs of points a (n, 3) -> b (k, 3) share, per second [m/s] (the body's motion: a
     marker placed without a velocity starts with it); None when fewer than 3 pairs agree."""
@@ -307,7 +321,10 @@ def sweep(geom: Geometry, points: dict[int, FramePoints], dets: FrameDetections,
                     np.zeros((0, 3, 3)), L)
         if f in seeds:
             _place_seed(tg, fr, seeds[f], geom, dets, out, k, opt, flow)
-        _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
+        if opt.register:
+            _register(tg, fr, seg, out, k, before, opt, flow)
+        else:
+            _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
         used = np.concatenate([fr.views[fr.taken].ravel(), out.views[k][fr.assigned].ravel()])
         joined = _join(geom, tg, fr, dets, f, used[used >= 0], out, k, opt)
         idle = tg.alive & ~fr.assigned & ~joined
@@ -364,21 +381,118 @@ def _rounds(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
         if len(cand) and len(free):
             gate = FIRST_ROUND_CHI2 if rnd == 0 else CHI2_3DOF_GATE
             llr, feasible = _llr(pred_x, pred_S, has, cand, fr, free, seg, opt, gate)
-            rows, cols, margin = assign(np.where(feasible, LINK_GATE - llr, np.inf), LINK_GATE, opt.ambiguity)
+            rows, cols, margin = assign(np.where(feasible, LINK_GATE - llr, np.inf), LINK_GATE, opt.ambiguity, True)
             # every marker competes for the points; the first round commits the steady markers' links only
-            sure = np.flatnonzero((margin >= opt.ambiguity) & (steady[cand[rows]] | (rnd > 0)))
-            sure = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
+            strong = llr[rows, cols] >= opt.min_llr
+            sure = np.flatnonzero((margin >= opt.ambiguity) & strong & (steady[cand[rows]] | (rnd > 0)))
+            margin = np.minimum(margin, llr[rows, cols])
+            sure, views = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
             lab = cand[rows[sure]]
             if len(lab):
-                _commit(tg, fr, lab, free[cols[sure]], margin[sure], out, k, x0, P0, steady[lab], before, opt, flow)
+                _commit(tg, fr, lab, free[cols[sure]], views, margin[sure], out, k, x0, P0, steady[lab], before, opt,
+                        flow)
         if rnd > 0 and not len(lab):
             break
+    if opt.rescue:
+        _rescue(tg, fr, seg, out, k, x0, P0, before, opt, flow, patch)
     idle = ~fr.assigned  # a marker left unassigned keeps its corrected position but not the shrunk covariance
     tg.P[idle] = P0[idle]
     anchored = patch[0][tg.alive[patch[0]] & idle[patch[0]]]  # ... and a coasting one follows its neighbours
     if len(anchored):
         at = np.isin(patch[0], anchored)
         tg.update(anchored, patch[1][at], patch[2][at], x0[anchored], P0[anchored], np.zeros(len(anchored), bool))
+
+
+def _rescue(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int, x0: np.ndarray, P0: np.ndarray,
+            before: tuple[np.ndarray, np.ndarray], opt: TrackOptions, flow: np.ndarray | None,
+            patch: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """The markers the rounds left unassigned, found by registering the whole configuration to the frame's points
+    (non-rigid Coherent Point Drift, batgraph.associate.cpd): the assigned markers sit on their points and pin the
+    field, the others start where their patch or filter puts them (a lost one where it was last). Then the least
+    cost hard assignment of those to the free points at their registered positions, a link kept when the next-best
+    assignment is worse by 2 ambiguity in chi-square and no segment to a placed partner is off by more than
+    SEGMENT_SIGMA stds."""
+    from .cpd import register
+
+    rest = np.flatnonzero(~fr.assigned & (tg.last > -10 ** 8))
+    free = np.flatnonzero(~fr.taken)
+    if not len(rest) or not len(free):
+        return
+    anchor = np.flatnonzero(fr.assigned)
+    start = tg.x[rest, :3].copy()
+    at = {int(m): i for i, m in enumerate(patch[0])}
+    for j, m in enumerate(rest):
+        if int(m) in at:
+            start[j] = patch[1][at[int(m)]]
+    Y = np.concatenate([fr.placed[anchor], start])
+    X = np.concatenate([fr.placed[anchor], fr.xyz[free]])
+    R = fr.R[free]
+    noise2 = float(np.median(np.trace(R, axis1=1, axis2=2))) / 3
+    weight = np.r_[np.ones(len(anchor)), np.minimum(np.exp(fr.prior[free] + PAIR_PRIOR / 2), 1.0)]
+    reg = register(Y, X, opt.beta_m, min_sigma2=noise2 + REGISTER_FLOOR_M ** 2, weight=weight)
+    moved = reg.moved[len(anchor):]
+    m = mahalanobis(fr.xyz[free][None] - moved[:, None], reg.sigma2 * np.eye(3)[None, None] + R[None])
+    rows, cols, margin = assign(np.where(m < CHI2_3DOF_GATE, m, np.inf), CHI2_3DOF_GATE, 2 * opt.ambiguity, True)
+    sure = np.flatnonzero(margin >= 2 * opt.ambiguity)
+    sure, views = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
+    lab = rest[rows[sure]]
+    ok = _segments_hold(seg, lab, fr.xyz[free[cols[sure]]], fr.placed)
+    if ok.any():
+        sure, views, lab = sure[ok], views[ok], lab[ok]
+        steady = tg.alive[lab] & (np.abs(k - tg.last[lab]) == 1)
+        _commit(tg, fr, lab, free[cols[sure]], views, margin[sure] / 2, out, k, x0, P0, steady, before, opt, flow)
+
+
+def _register(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
+              before: tuple[np.ndarray, np.ndarray], opt: TrackOptions, flow: np.ndarray | None) -> None:
+    """Assign the frame's points to the markers by registering the predicted configuration to them (non-rigid
+    Coherent Point Drift, batgraph.associate.cpd), then the least-cost hard assignment at the registered positions
+    (a link kept when the next-best assignment is worse by 2 ambiguity in chi-square and no segment to an assigned
+    partner is off by more than SEGMENT_SIGMA stds); a marker left without a point follows the field."""
+    from .cpd import register
+
+    act = np.flatnonzero(tg.alive & ~fr.assigned)
+    free = np.flatnonzero(~fr.taken)
+    if not len(act) or not len(free):
+        return
+    x0, P0 = tg.x.copy(), tg.P.copy()
+    z, R = fr.xyz[free], fr.R[free]
+    noise2 = float(np.median(np.trace(R, axis1=1, axis2=2))) / 3 if len(R) else 1e-6
+    weight = np.exp(fr.prior[free] + PAIR_PRIOR / 2)
+    weight = np.minimum(weight, 1.0)
+    reg = register(tg.x[act, :3], z, opt.beta_m, min_sigma2=noise2 + REGISTER_FLOOR_M ** 2, weight=weight)
+    S = reg.sigma2 * np.eye(3)[None, None] + R[None]
+    m = mahalanobis(z[None] - reg.moved[:, None], S)
+    gate = CHI2_3DOF_GATE
+    rows, cols, margin = assign(np.where(m < gate, m, np.inf), gate, 2 * opt.ambiguity, True)
+    sure = np.flatnonzero(margin >= 2 * opt.ambiguity)
+    sure, views = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
+    lab = act[rows[sure]]
+    ok = _segments_hold(seg, lab, z[cols[sure]], fr.placed)
+    sure, views, lab = sure[ok], views[ok], lab[ok]
+    if len(lab):
+        steady = np.abs(k - tg.last[lab]) == 1
+        _commit(tg, fr, lab, free[cols[sure]], views, margin[sure] / 2, out, k, x0, P0, steady, before, opt, flow)
+    rest = np.setdiff1d(act, lab)
+    if len(rest):  # a marker without a point follows the field (a pseudo-measurement: the filter stays anchored)
+        at = np.searchsorted(act, rest)
+        tg.update(rest, reg.moved[at], np.tile(reg.sigma2 * np.eye(3), (len(rest), 1, 1)) + P0[rest, :3, :3] * 0.25,
+                  x0[rest], P0[rest], np.zeros(len(rest), bool))
+
+
+REGISTER_FLOOR_M = 0.002  # [m] the registration's least std above the points' own noise
+SEGMENT_SIGMA = 4.0
+
+
+def _segments_hold(seg: seg_mod.Segments, lab: np.ndarray, z: np.ndarray, placed: np.ndarray) -> np.ndarray:
+    """Whether each link (markers lab (n,) at points z (n, 3)) keeps its segments to the markers placed on this
+    frame or linked with it (n,) bool: no partner's distance off by more than SEGMENT_SIGMA stds."""
+    where = placed.copy()
+    where[lab] = z
+    part = seg.partner[lab]
+    d = np.linalg.norm(where[np.maximum(part, 0)] - z[:, None], axis=-1)
+    off = (part >= 0) & np.isfinite(d) & (np.abs(d - seg.length[lab]) > SEGMENT_SIGMA * seg.sigma[lab])
+    return ~off.any(axis=1)
 
 
 def _predictions(tg: _Targets, cand: np.ndarray, steady: np.ndarray,
@@ -463,17 +577,24 @@ def _patch(tg: _Targets, fr: _Frame, out: Sweep, k: int, cand: np.ndarray
     return np.asarray(labs, np.int64), np.asarray(xs), np.asarray(Ss)
 
 
-def _disjoint(views: np.ndarray, margin: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """The links ``idx`` whose points share no detection with a surer one (two-view candidates may overlap)."""
+def _disjoint(views: np.ndarray, margin: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The links ``idx`` (sorted) with their views (n, C): a detection two links' points share stays with the surer
+    link (a point of three views may hold one view of a neighbour's); a link left with no view goes."""
     order = np.argsort(-margin, kind="stable")
     seen: set[int] = set()
-    keep = []
+    keep, out = [], []
     for i in order:
-        v = views[i][views[i] >= 0].tolist()
-        if not seen.intersection(v):
-            seen.update(v)
-            keep.append(idx[i])
-    return np.sort(np.asarray(keep, np.int64))
+        v = views[i].copy()
+        clash = np.array([x >= 0 and int(x) in seen for x in v])
+        v[clash] = -1
+        if (v >= 0).any():
+            seen.update(int(x) for x in v[v >= 0])
+            keep.append(i)
+            out.append(v)
+    if not keep:
+        return np.zeros(0, np.int64), np.zeros((0, views.shape[1]), np.int64)
+    at = np.argsort(np.asarray(idx)[keep])
+    return np.asarray(idx)[keep][at], np.asarray(out)[at]
 
 
 def _llr(pred_x: np.ndarray, pred_S: np.ndarray, has: np.ndarray, cand: np.ndarray, fr: _Frame, free: np.ndarray,
@@ -484,18 +605,20 @@ def _llr(pred_x: np.ndarray, pred_S: np.ndarray, has: np.ndarray, cand: np.ndarr
     z, R = fr.xyz[free], fr.R[free]
     S = pred_S[:, None] + R[None]
     m = mahalanobis(z[None] - pred_x[:, None], S)
-    motion = -0.5 * (m + np.linalg.slogdet(S)[1] + 3 * math.log(2 * math.pi)) + math.log(CLUTTER_VOLUME_M3)
-    segs = seg_mod.evidence(seg, cand, z, fr.placed)
+    motion = -0.5 * (m + np.linalg.slogdet(S)[1] + 3 * math.log(2 * math.pi)) + math.log(opt.volume_m3)
+    segs = seg_mod.evidence(seg, cand, z, fr.placed, opt.range_m)
     has = has[:, None]
     llr = np.where(has, motion + segs, segs) + fr.prior[free][None]
     feasible = np.where(has, m <= gate, segs >= opt.acquire_llr) & (llr > 0)
     return llr, feasible
 
 
-def _commit(tg: _Targets, fr: _Frame, lab: np.ndarray, p: np.ndarray, margin: np.ndarray, out: Sweep, k: int,
+def _commit(tg: _Targets, fr: _Frame, lab: np.ndarray, p: np.ndarray, views: np.ndarray, margin: np.ndarray,
+            out: Sweep, k: int,
             x0: np.ndarray, P0: np.ndarray, steady: np.ndarray, before: tuple[np.ndarray, np.ndarray],
             opt: TrackOptions, flow: np.ndarray | None) -> None:
-    """Update (or, for a lost marker, place) the markers ``lab`` with points ``p`` and record them."""
+    """Update (or, for a lost marker, place) the markers ``lab`` with points ``p`` (of which the views (n, C) are
+    theirs) and record them."""
     z, R = fr.xyz[p], fr.R[p]
     alive = tg.alive[lab]
     u = lab[alive]
@@ -511,9 +634,9 @@ def _commit(tg: _Targets, fr: _Frame, lab: np.ndarray, p: np.ndarray, margin: np
     fr.assigned[lab] = True
     fr.placed[lab] = z
     tg.last[lab] = k
-    fr.taken |= np.isin(fr.views, fr.views[p][fr.views[p] >= 0]).any(axis=1)
+    fr.taken |= np.isin(fr.views, views[views >= 0]).any(axis=1)
     out.kind[k, lab] = 1
-    out.views[k, lab] = fr.views[p]
+    out.views[k, lab] = views
     out.conf[k, lab] = 1.0 / (1.0 + np.exp(-np.minimum(margin, 50.0)))
     out.xyz[k, lab] = z
 
