@@ -12,6 +12,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 BIG = 1e9
+EXACT_UP_TO = 16  # rows + columns of a group whose margins are found exactly (one assignment per link)
+LARGE = 64  # rows + columns beyond which links are the mutual choices (:func:`_mutual_best`)
 
 
 def _components(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> np.ndarray:
@@ -28,6 +30,8 @@ def assign(cost: np.ndarray, gate: float, ambiguity: float, compete_only: bool =
     without it costs (:func:`_margin`; with ``compete_only``, inf where that assignment just leaves both out: the
     link's own strength is then the caller's to judge). Solved per connected group of gated pairs."""
     R, K = cost.shape
+    if R + K > LARGE:
+        return _mutual_best(cost, gate, compete_only)
     r_idx, c_idx = np.nonzero(np.isfinite(cost))
     if not len(r_idx):
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -38,10 +42,16 @@ def assign(cost: np.ndarray, gate: float, ambiguity: float, compete_only: bool =
         cols = np.flatnonzero(comp[R:] == g)
         sub = cost[np.ix_(rows, cols)]
         links, total = _solve(sub, gate)
+        exact = sum(sub.shape) <= EXACT_UP_TO
         for a, b in links:
             out_r.append(rows[a])
             out_c.append(cols[b])
-            out_m.append(_margin(sub, gate, a, b, total, compete_only) if ambiguity > 0 else np.inf)
+            if ambiguity <= 0:
+                out_m.append(np.inf)
+            elif exact:
+                out_m.append(_margin(sub, gate, a, b, total, compete_only))
+            else:
+                out_m.append(_local_margin(sub, gate, a, b, compete_only))
     return np.asarray(out_r, np.int64), np.asarray(out_c, np.int64), np.asarray(out_m)
 
 
@@ -56,6 +66,40 @@ def _margin(sub: np.ndarray, gate: float, a: int, b: int, total: float, compete_
     if compete_only and not any(x == a or y == b for x, y in links):
         return np.inf
     return alt - total
+
+
+def _local_margin(sub: np.ndarray, gate: float, a: int, b: int, compete_only: bool) -> float:
+    """:func:`_margin` for a large group, from the link's row and column alone: how much more row a's next-best
+    column or column b's next-best row costs (or leaving the link out, gate - cost, unless ``compete_only``). A lower
+    bound of the exact margin's competition (an alternative may be taken by another link)."""
+    c = float(sub[a, b])
+    row = np.r_[sub[a, :b], sub[a, b + 1:]]
+    col = np.r_[sub[:a, b], sub[a + 1:, b]]
+    alt = min(float(row.min()) if len(row) else np.inf, float(col.min()) if len(col) else np.inf)
+    if not compete_only:
+        alt = min(alt, gate)
+    return alt - c
+
+
+def _mutual_best(cost: np.ndarray, gate: float, compete_only: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For large matrices (more than LARGE rows and columns, a big rig's frame): the links each row and column
+    choose mutually (each the other's least cost, below the gate), with :func:`_local_margin`'s margins, all at
+    once. Not the least-cost assignment where choices chain, but where a link's row and column agree."""
+    R, K = cost.shape
+    C = np.where(np.isfinite(cost), cost, np.inf)
+    if R == 0 or K == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    rb, cb = np.argmin(C, axis=1), np.argmin(C, axis=0)
+    r = np.arange(R)
+    c = C[r, rb]
+    ok = (cb[rb] == r) & (c < gate)
+    rows, cols, c = r[ok], rb[ok], c[ok]
+    row2 = np.partition(C, 1, axis=1)[:, 1] if K >= 2 else np.full(R, np.inf)
+    col2 = np.partition(C, 1, axis=0)[1] if R >= 2 else np.full(K, np.inf)
+    alt = np.minimum(row2[rows], col2[cols])
+    if not compete_only:
+        alt = np.minimum(alt, gate)
+    return rows.astype(np.int64), cols.astype(np.int64), alt - c
 
 
 def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:

@@ -14,6 +14,7 @@ from ..camera import Rig
 from . import refine, segments, tracks, verify, views
 from .detections import Detections
 
+PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
 SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
 SIGMA_START_PX = 2.0  # the noise assumed while measuring it
 HOW = ("", "seed", "tracked", "ray", "reprojection")
@@ -92,6 +93,54 @@ def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.nd
     return sigma
 
 
+SUBSET_CAMERAS = 6  # a large rig's cameras matched pair by pair on the frames next to a seed
+
+
+def _subset_points(rig: Rig, fi: tracks.FrameDetections, seed_det: np.ndarray):
+    """For a large rig: frame -> its points from the SUBSET_CAMERAS cameras that saw the most seeded detections,
+    matched pair by pair (frame_points): where the seeded markers went on the frame next to the seed, before
+    their velocities are known (the predictions that find points in a large rig need them)."""
+    counts = np.bincount(fi.camera[seed_det], minlength=len(rig))
+    cams = np.sort(np.argsort(-counts, kind="stable")[:SUBSET_CAMERAS])
+    sub = views.geometry(Rig([rig[int(c)] for c in cams], world_mirror=rig.world_mirror))
+    where = np.full(len(rig), -1, np.int64)
+    where[cams] = np.arange(len(cams))
+
+    def at(f: int) -> views.FramePoints:
+        rows = fi.rows(f)
+        rows = rows[where[fi.camera[rows]] >= 0]
+        part = tracks.FrameDetections(fi.frame[rows], where[fi.camera[rows]], fi.uv[rows], fi.sig[rows], f,
+                                      np.array([0, len(rows)]))
+        p = frame_points(sub, part, f)
+        v = np.full((len(p.views), len(rig)), -1, np.int64)
+        v[:, cams] = np.where(p.views >= 0, rows[np.maximum(p.views, 0)], -1)
+        return views.FramePoints(v, p.xyz, p.score)
+    return at
+
+
+def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
+               seed_lab: np.ndarray) -> float:
+    """The detections' noise [px] from the seed: the reprojection errors of the seeded markers clicked in 4
+    cameras or more, as :func:`measure_sigma` reads them (SIGMA_START_PX where there are none)."""
+    e2 = []
+    C = len(geom.rig)
+    for f in np.unique(fi.frame[seed_det]):
+        on = fi.frame[seed_det] == f
+        labs = np.unique(seed_lab[on])
+        v = np.full((len(labs), C), -1, np.int64)
+        for i, lab in enumerate(labs):
+            ds = seed_det[on & (seed_lab == lab)]
+            v[i, fi.camera[ds]] = ds
+        n = (v >= 0).sum(axis=1)
+        v = v[n >= 4]
+        if len(v):
+            r2 = views.residuals(geom, fi.uv, scale, v, views.triangulate(geom, fi.uv, v))
+            e2.append((r2 / (1 - 3 / (2 * (v >= 0).sum(axis=1)))[:, None])[v >= 0])
+    if not e2:
+        return SIGMA_START_PX
+    return float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
+
+
 def seeds(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints],
           seed_det: np.ndarray, seed_lab: np.ndarray) -> dict[int, tracks.Seed]:
     """The user's clicks as 3D placements per frame: a marker clicked in two cameras or more is triangulated from
@@ -130,19 +179,40 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     geom = views.geometry(rig)
     ideal, scale = views.undistort(rig, dets.camera, dets.uv_px)
     fi = frame_index(dets, ideal, scale)
-    sigma = opt.pixel_sigma_px if opt.pixel_sigma_px is not None else measure_sigma(geom, fi, scale)
+    large = len(rig) > PAIRS_UP_TO_CAMERAS
+    sigma = opt.pixel_sigma_px
+    if sigma is None:
+        sigma = seed_sigma(geom, fi, scale, seed_det, seed_lab) if large else measure_sigma(geom, fi, scale)
     fi.sig = sigma * scale
     frames = np.arange(fi.first, fi.first + fi.n_frames)
-    points = {int(f): frame_points(geom, fi, int(f)) for f in frames}
+    if large:  # points from the markers' predictions: matching every camera pair would cost too much
+        points = {}
+
+        def points_at(f, xyz, std):
+            rows = fi.rows(f)
+            p = views.projected_points(geom, fi.uv[rows], fi.sig[rows], fi.camera[rows], xyz, std)
+            return views.FramePoints(np.where(p.views >= 0, rows[np.maximum(p.views, 0)], -1), p.xyz, p.score,
+                                     p.source)
+    else:
+        points = {int(f): frame_points(geom, fi, int(f)) for f in frames}
+        empty = views.FramePoints(np.zeros((0, len(rig)), np.int64), np.zeros((0, 3)), np.zeros(0))
+
+        def points_at(f, xyz, std):
+            return points.get(int(f), empty)
     placed = seeds(geom, fi, points, seed_det, seed_lab)
+    noise_m = 0.0
     if placed:
         volume, size = tracks.extent(np.concatenate([sd.xyz for sd in placed.values()]))
-        opt = dataclasses.replace(opt, track=dataclasses.replace(opt.track, volume_m3=volume, range_m=size))
+        noise_m = float(np.median(np.concatenate([np.sqrt(np.linalg.eigvalsh(tracks.point_covariance(
+            geom, sd.xyz, sd.views, fi.sig))[:, -1]) for sd in placed.values()])))
+        opt = dataclasses.replace(opt, track=dataclasses.replace(opt.track, volume_m3=volume, range_m=size,
+                                                                 noise_m=noise_m))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     start = min(placed) if placed else int(frames[0])
-    tracks.sweep(geom, points, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track)
-    tracks.sweep(geom, points, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
-                 else {}, pairs, sw, opt.track)
+    first = _subset_points(rig, fi, seed_det) if large else None
+    tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track, first)
+    tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
+                 else {}, pairs, sw, opt.track, first)
     N = len(dets.frame)
     label, how, track = _from_sweep(sw, N)
     fixed = np.full(N, -1, np.int64)
@@ -150,15 +220,15 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     label = np.where(fixed >= 0, fixed, label)
     seeded = np.zeros((fi.n_frames, n_labels), bool)
     seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
-    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels)
+    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m)
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
     det_xyz, det_std = _detection_points(geom, fi, points)
     for _ in range(opt.rounds):
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
-        xyz, std = refine.carry(xyz, std, fps)
-        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std)
-        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels)
+        xyz, std = refine.carry(xyz, std, fps, noise_m)
+        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
     return Association(label, conf, cand, track, how, sigma, sw)
@@ -183,13 +253,13 @@ def _detection_points(geom: views.Geometry, fi: tracks.FrameDetections, points: 
 
 
 def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray, fixed: np.ndarray,
-             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int) -> np.ndarray:
+             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float) -> np.ndarray:
     """The names (N,) left where batgraph.associate.verify vouches for the marker's path; a name on a frame where
     its marker has no triangulated position stays only if the path is vouched for within 2 frames of it."""
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
-    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, learn=True)
-    keep = verify.vouched(xyz, have, seeded, seg)
+    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m)
+    keep = verify.vouched(xyz, have, seeded, seg, noise_m)
     near = keep.copy()
     for s_ in (1, 2):
         near[s_:] |= keep[:-s_]

@@ -71,7 +71,7 @@ def _std(geom: Geometry, fi: FrameDetections, rows: np.ndarray, views: np.ndarra
     return np.nanmean(m_per_px * sig, axis=0) / np.sqrt(np.maximum(n - 1, 1))
 
 
-def carry(xyz: np.ndarray, std: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+def carry(xyz: np.ndarray, std: np.ndarray, fps: float, noise_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Positions on the frames without a triangulation (see module docstring): (F, L, 3), (F, L) [m].
 
     Each marker's missing frame gets up to three estimates, combined by inverse variance: the local polynomial
@@ -103,7 +103,7 @@ def carry(xyz: np.ndarray, std: np.ndarray, fps: float) -> tuple[np.ndarray, np.
                 est.append((coef[-1], np.nanmean(std[near, m]) + 0.5 * acc * span * dt * dt))
             for anchor in (left, right):
                 if anchor is not None and abs(k - anchor) <= PATCH_GAP:
-                    shift = patch_shift(xyz, seen, m, anchor, k)
+                    shift = patch_shift(xyz, seen, m, anchor, k, noise_m)
                     if shift is not None:
                         est.append((xyz[anchor, m] + shift[0], float(np.hypot(shift[1], std[anchor, m]))))
             if est:
@@ -125,7 +125,8 @@ def _accel(x: np.ndarray, frames: np.ndarray, dt: float) -> float:
 
 
 def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray, margin: float,
-          fixed: np.ndarray, det_xyz: np.ndarray, det_std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          fixed: np.ndarray, det_xyz: np.ndarray, det_std: np.ndarray, noise_m: float = 0.0
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each detection's marker (N,) (-1: none), its confidence (N,) and, for the unnamed ones, the best candidate
     (N,) (-1: none within the gate), by matching the projected markers in every camera and frame. ``fixed`` (N,)
     holds names that stay (the seed's; -1 elsewhere). det_xyz (N, 3) [m], det_std (N,) [m]: the point of three
@@ -155,7 +156,8 @@ def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray,
             s2 = s_proj[:, None] ** 2 + fi.sig[rc][None] ** 2
             m = d2 / s2
             far = (np.linalg.norm(det_xyz[rc][None] - xyz[k, have[ok]][:, None], axis=-1)
-                   > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None]) + POINT_SLACK_M)
+                   > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None])
+                   + max(POINT_SLACK_M, 2 * noise_m))
             cost = np.where((m < CHI2_2DOF_GATE) & ~far, m + 2 * np.log(s2 / np.min(s2)), np.inf)
             r, d, mg = assign(cost, CHI2_2DOF_GATE + 2 * np.log(np.max(s2) / np.min(s2)), margin)
             best = np.where(np.isfinite(cost).any(axis=0), np.argmin(cost, axis=0), -1)

@@ -38,9 +38,12 @@ class Segments:
         return cls(np.full((n_labels, 1), -1, np.int64), np.full((n_labels, 1), np.nan), np.full((n_labels, 1), np.nan))
 
 
-def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool) -> Segments:
+def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: float = 0.0) -> Segments:
     """Segments measured on named positions X (F, L, 3) [m] (NaN where unnamed): the declared ``pairs`` (marker
-    index pairs) and, with ``learn``, the steady undeclared ones (see module docstring)."""
+    index pairs) and, with ``learn``, the steady undeclared ones (see module docstring). noise_m [m]: the points'
+    position noise; the stds' floors are at least it (twice it for a learned segment, which may be 1.5 times it)."""
+    min_sigma, learn_sigma = max(MIN_SIGMA_M, noise_m), max(LEARN_MIN_SIGMA_M, 2 * noise_m)
+    learn_std = max(LEARN_MAX_STD_M, 1.5 * noise_m)
     L = X.shape[1]
     declared = {tuple(sorted(p)) for p in pairs}
     cand = set(declared)
@@ -55,13 +58,13 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool) -> Segment
         if not len(d):
             continue
         med = float(np.median(d))
-        std = 1.4826 * float(np.median(np.abs(d - med))) if len(d) >= 3 else 2 * MIN_SIGMA_M
-        std = max(std, MIN_SIGMA_M)
+        std = 1.4826 * float(np.median(np.abs(d - med))) if len(d) >= 3 else 2 * min_sigma
+        std = max(std, min_sigma)
         is_declared = (a, b) in declared
         if not is_declared:
-            if std > LEARN_MAX_STD_M or med > LEARN_MAX_LENGTH_M:
+            if std > learn_std or med > LEARN_MAX_LENGTH_M:
                 continue
-            std = max(std, LEARN_MIN_SIGMA_M)
+            std = max(std, learn_sigma)
         per[a].append((not is_declared, std, b, med))
         per[b].append((not is_declared, std, a, med))
     keep = [[x for x in sorted(p) if not x[0]] + [x for x in sorted(p) if x[0]][:LEARN_MAX_PARTNERS] for p in per]

@@ -50,7 +50,8 @@ class TrackOptions:
     [frames]; max_std_m [m]; join_max_px: the largest projected std [px] of a prediction that may take a lone
     detection; acquire_llr: the segment evidence [nats] that places a lost marker; learn: learn steady distances
     as segments; volume_m3, range_m: the marker set's box [m^3] and size [m] (a point or a distance of no marker
-    in particular is uniform in them: the clutter the evidence is weighed against; :func:`extent`)."""
+    in particular is uniform in them: the clutter the evidence is weighed against; :func:`extent`); noise_m: the points' position noise [m] (the
+    floors of the patch predictions' and segments' stds are at least it)."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
@@ -67,6 +68,7 @@ class TrackOptions:
     volume_m3: float = 0.3 ** 3
     range_m: float = 0.3
     register: bool = False
+    noise_m: float = 0.0
     rescue: bool = False
     beta_m: float = 0.05
 
@@ -289,34 +291,39 @@ class _Frame:
         self.moved = np.zeros((L, 3))  # ... less its position on the frame before
         self.moves = np.zeros(L, bool)  # which markers have resid and moved (tracked before this frame)
         self.prior = pair_prior(pts.views)
+        self.source = pts.source
 
 
-def sweep(geom: Geometry, points: dict[int, FramePoints], dets: FrameDetections, frames: np.ndarray, dt: float,
-          seeds: dict[int, Seed], pairs: list[tuple[int, int]], out: Sweep, opt: TrackOptions) -> None:
+def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt: float, seeds: dict[int, Seed],
+          pairs: list[tuple[int, int]], out: Sweep, opt: TrackOptions, first=None) -> None:
     """Track every marker through ``frames`` (in the order given; dt [s] negative backward), starting at the seed
-    frames' placements; results go into ``out`` (see module docstring)."""
+    frames' placements; results go into ``out`` (see module docstring). points(frame, predicted xyz (L, 3) [m] (NaN:
+    none), their std (L,) [m]) -> the frame's FramePoints (views as global detection indices); first(frame): the
+    points the seeded markers' first velocities are measured on, where ``points`` needs predictions to find any.)"""
     L = out.kind.shape[1]
     F_dt = constant_velocity_F(dt)
     Q1 = constant_velocity_Q(1.0, abs(dt))
     tg = _Targets(L, opt)
     seg = _measure(out, pairs, opt)
     since = 0
+    step = 1 if dt > 0 else -1
     flow = None  # the body's velocity [m/s] from the first seed to the next frame's points (lost markers' start)
-    if len(frames) > 1 and int(frames[0]) in seeds and int(frames[1]) in points:
-        flow = bulk_velocity(seeds[int(frames[0])].xyz, points[int(frames[1])].xyz, dt)
-    for f, sd in seeds.items():  # each seeded marker starts with its neighbourhood's velocity to the next frame
-        nxt = points.get(f + (1 if dt > 0 else -1))
-        if nxt is not None:
-            sd.velocity, sd.velocity_std = initial_velocity(sd.xyz, nxt.xyz, dt, flow)
+    if len(frames) > 1 and int(frames[0]) in seeds:
+        sd = seeds[int(frames[0])]
+        guess = np.full((L, 3), np.nan)
+        guess[sd.label] = sd.xyz
+        nxt = first(int(frames[0]) + step) if first is not None else points(int(frames[0]) + step, guess,
+                                                                              np.full(L, INIT_GATE_M))
+        flow = bulk_velocity(sd.xyz, nxt.xyz, dt)
+        sd.velocity, sd.velocity_std = initial_velocity(sd.xyz, nxt.xyz, dt, flow)
     for f in frames:
         f = int(f)
         k = f - dets.first
         before = (tg.x[:, :3].copy(), tg.P[:, :3, :3].copy())
         tg.x = tg.x @ F_dt.T
         tg.P = F_dt @ tg.P @ F_dt.T + tg.q[:, None, None] * Q1
-        pts = points.get(f)
-        if pts is None:
-            pts = FramePoints(np.zeros((0, len(geom.rig)), np.int64), np.zeros((0, 3)), np.zeros(0))
+        pred = np.where(tg.alive[:, None], tg.x[:, :3], np.nan)
+        pts = points(f, pred, tg.pos_std())
         fr = _Frame(pts, point_covariance(geom, pts.xyz, pts.views, dets.sig) if len(pts.xyz) else
                     np.zeros((0, 3, 3)), L)
         if f in seeds:
@@ -338,7 +345,7 @@ def sweep(geom: Geometry, points: dict[int, FramePoints], dets: FrameDetections,
 def _measure(out: Sweep, pairs: list[tuple[int, int]], opt: TrackOptions) -> seg_mod.Segments:
     """Segments measured on the points assigned so far (kind 1)."""
     X = np.where((out.kind == 1)[..., None], out.xyz, np.nan)
-    return seg_mod.measure(X, pairs, opt.learn)
+    return seg_mod.measure(X, pairs, opt.learn, opt.noise_m)
 
 
 def _place_seed(tg: _Targets, fr: _Frame, seed: Seed, geom: Geometry, dets: FrameDetections, out: Sweep, k: int,
@@ -369,6 +376,8 @@ def _rounds(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
     """Assign the frame's points to the markers in rounds (see module docstring)."""
     x0, P0 = tg.x.copy(), tg.P.copy()
     patch = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    if fr.source is not None:
+        _take_sources(tg, fr, seg, out, k, x0, P0, before, opt, flow)
     for rnd in range(ROUNDS):
         cand = np.flatnonzero(~fr.assigned)
         steady = tg.alive & (np.abs(k - tg.last) == 1) & (tg.age >= MATURE)  # tracked up to the frame before
@@ -516,7 +525,8 @@ PATCH_FLOOR_M = 0.002  # [m] a patch prediction's least std ...
 PATCH_GROWTH_M = 0.001  # [m] ... and its growth per frame of gap (the patch deforms)
 
 
-def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int) -> tuple[np.ndarray, float] | None:
+def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int,
+                noise_m: float = 0.0) -> tuple[np.ndarray, float] | None:
     """How marker m moved from frame k_from to k_to, as the markers known on both frames near it did.
 
     Its affine coordinates alpha among those neighbours on k_from (sum 1, sum alpha_i (x_i - x_m) = 0, held near
@@ -524,7 +534,8 @@ def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int
     carried to k_to: shift = sum alpha_i (displacement_i). A wing's patch turns and bends as it flaps: the
     affine coordinates follow a turn that a mean shift would miss (a marker 3 cm from its neighbours on a wing
     turning at 80 rad/s lags them by 2 cm per frame at 120 fps). X (F, L, 3) [m] positions, known (F, L) where
-    they are. Returns (shift (3,) [m], its std [m]: PATCH_FLOOR_M + PATCH_GROWTH_M per frame of gap + half the
+    they are; noise_m [m] their noise. Returns (shift (3,) [m], its std [m]: max(PATCH_FLOOR_M, noise_m) + PATCH_GROWTH_M
+    per frame of gap + half the
     difference between the affine and the mean shift), or None without a neighbour within 2 PATCH_M."""
     nb = np.flatnonzero(known[k_from] & known[k_to])
     nb = nb[nb != m]
@@ -545,7 +556,8 @@ def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int
     rhs = np.r_[mu * np.ones(n), 1.0]
     alpha = np.linalg.lstsq(A, rhs, rcond=None)[0][:n]
     shift, mean = alpha @ disp, w @ disp
-    return shift, PATCH_FLOOR_M + PATCH_GROWTH_M * abs(k_to - k_from) + 0.5 * float(np.linalg.norm(shift - mean))
+    floor = max(PATCH_FLOOR_M, noise_m)
+    return shift, floor + PATCH_GROWTH_M * abs(k_to - k_from) + 0.5 * float(np.linalg.norm(shift - mean))
 
 
 AFFINE_M = 0.01  # [m] how far from the smooth weights the affine coordinates may go for 1 m of fit
@@ -566,7 +578,7 @@ def _patch(tg: _Targets, fr: _Frame, out: Sweep, k: int, cand: np.ndarray
         kp = int(tg.last[m])
         if not 0 < abs(k - kp) <= PATCH_GAP:
             continue
-        shift = patch_shift(X, known, int(m), kp, k)
+        shift = patch_shift(X, known, int(m), kp, k, tg.opt.noise_m)
         if shift is None:
             continue
         labs.append(m)
@@ -575,6 +587,25 @@ def _patch(tg: _Targets, fr: _Frame, out: Sweep, k: int, cand: np.ndarray
     if not labs:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
     return np.asarray(labs, np.int64), np.asarray(xs), np.asarray(Ss)
+
+
+def _take_sources(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int, x0: np.ndarray,
+                  P0: np.ndarray, before: tuple[np.ndarray, np.ndarray], opt: TrackOptions,
+                  flow: np.ndarray | None) -> None:
+    """Points found from the markers' own predictions (views.projected_points: each view already the mutual,
+    unambiguous choice in its camera) go to the marker that found them, where they lie within its gate and keep
+    its segments."""
+    src = fr.source
+    ok = ~fr.assigned[src] & tg.alive[src]
+    if not ok.any():
+        return
+    p, lab = np.flatnonzero(ok), src[ok]
+    m = mahalanobis(fr.xyz[p] - tg.x[lab, :3], tg.P[lab, :3, :3] + fr.R[p])
+    good = (m <= CHI2_3DOF_GATE) & _segments_hold(seg, lab, fr.xyz[p], fr.placed)
+    p, lab = p[good], lab[good]
+    if len(lab):
+        steady = np.abs(k - tg.last[lab]) == 1
+        _commit(tg, fr, lab, p, fr.views[p], np.full(len(p), 10.0), out, k, x0, P0, steady, before, opt, flow)
 
 
 def _disjoint(views: np.ndarray, margin: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

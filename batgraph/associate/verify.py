@@ -26,11 +26,11 @@ MAX_FAIL = 0.15
 SEGMENT_SIGMA = 4.0
 
 
-def _jumps(x: np.ndarray, have: np.ndarray) -> tuple[np.ndarray, float]:
+def _jumps(x: np.ndarray, have: np.ndarray, floor_m: float) -> tuple[np.ndarray, float]:
     """Breaks (F,) bool of one marker's path x (F, 3) (where ``have``): frame k breaks from the frame before where
     the quadratics fitted to up to JUMP_WINDOW frames on each side (the path bends as a wing flaps) disagree,
     half a frame before k, by more than the bound [m] (JUMP_SIGMA times their robust disagreement along the path,
-    at least JUMP_FLOOR_M), and more than at the neighbouring frames. A swap shows so at both ends."""
+    at least floor_m), and more than at the neighbouring frames. A swap shows so at both ends."""
     F = len(x)
     idx = np.flatnonzero(have)
     gap = np.full(F, np.nan)
@@ -45,8 +45,8 @@ def _jumps(x: np.ndarray, have: np.ndarray) -> tuple[np.ndarray, float]:
         b = np.polyfit(right - at, x[right], 2 if len(right) >= 4 else 1)[-1]
         gap[k] = float(np.linalg.norm(a - b))
     ok = np.isfinite(gap)
-    scale = 1.4826 * float(np.median(gap[ok])) if ok.sum() >= 5 else JUMP_FLOOR_M
-    bound = max(JUMP_SIGMA * scale, JUMP_FLOOR_M)
+    scale = 1.4826 * float(np.median(gap[ok])) if ok.sum() >= 5 else floor_m
+    bound = max(JUMP_SIGMA * scale, floor_m)
     g = np.nan_to_num(gap, nan=0.0)
     peak = (g >= np.r_[0.0, g[:-1]]) & (g >= np.r_[g[1:], 0.0])
     return (g > bound) & peak, bound
@@ -79,15 +79,16 @@ def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: i
     return both.sum(axis=1), bad.sum(axis=1)
 
 
-def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments) -> np.ndarray:
+def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments, noise_m: float = 0.0) -> np.ndarray:
     """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
-    seed (F, L) where the user named the marker, seg: segments with lengths (see module docstring)."""
+    seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
+    jump bound's floor is at least 3 times it; see module docstring)."""
     F, L = have.shape
     keep = np.zeros((F, L), bool)
     for m in range(L):
         if not have[:, m].any():
             continue
-        jump, bound = _jumps(X[:, m], have[:, m])
+        jump, bound = _jumps(X[:, m], have[:, m], max(JUMP_FLOOR_M, 3 * noise_m))
         parts = _stretches(have[:, m], jump)
         checks, fails = _segment_counts(X, have, seg, m)
         good = []

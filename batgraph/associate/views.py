@@ -163,8 +163,9 @@ def _extend(geom: Geometry, uv: np.ndarray, sig: np.ndarray, by_cam: list[np.nda
 
 def _drop_crowded(geom: Geometry, uv: np.ndarray, sig: np.ndarray, by_cam: list[np.ndarray], trees: list,
                   views: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """Drop the views in which a second detection lies within the gate of the point's projection: which of the
-    two is the marker is decided later, with the marker's track (batgraph.associate.refine)."""
+    """Drop the views in which a second detection lies within the gate of the point's projection and not RATIO times
+    farther than the first (plus one noise std): which of the two is the marker is decided later, with the marker's
+    track (batgraph.associate.refine)."""
     proj, _ = project(geom, xyz)
     views = views.copy()
     for c, tree in enumerate(trees):
@@ -173,7 +174,7 @@ def _drop_crowded(geom: Geometry, uv: np.ndarray, sig: np.ndarray, by_cam: list[
             continue
         r = np.sqrt(CHI2_2DOF_GATE) * float(np.max(sig[by_cam[c]]))
         d, _ = tree.query(proj[c, have], k=2, distance_upper_bound=r)
-        crowded = np.isfinite(d[:, 1])
+        crowded = np.isfinite(d[:, 1]) & (d[:, 1] < RATIO * d[:, 0] + float(np.median(sig[by_cam[c]])))
         views[np.flatnonzero(have)[crowded], c] = -1
     return views[(views >= 0).sum(axis=1) >= 2]
 
@@ -222,11 +223,13 @@ def view_llr(uv: np.ndarray, sig: np.ndarray, by_cam: list[np.ndarray], trees: l
 @dataclass
 class FramePoints:
     """The 3D points of one frame: views (P, C) index of each view's detection (-1: none), xyz (P, 3) [m],
-    score (P,) the sum of its views' log likelihood ratios less half their normalised squared errors."""
+    score (P,) the sum of its views' log likelihood ratios less half their normalised squared errors; source (P,)
+    the marker whose prediction found the point (:func:`projected_points`), or None."""
 
     views: np.ndarray
     xyz: np.ndarray
     score: np.ndarray
+    source: np.ndarray | None = None
 
     @property
     def n_views(self) -> np.ndarray:
@@ -268,7 +271,7 @@ def select(geom: Geometry, uv: np.ndarray, sig: np.ndarray, llr0: np.ndarray, ca
     heap = [(-float(sc), k, cands.views[k]) for k, sc in enumerate(cands.score) if cands.n_views[k] >= min_views]
     heapq.heapify(heap)
     used = np.zeros(len(uv), bool)
-    chosen, tie = [], len(heap)
+    chosen, tie = [], len(cands.score)
     while heap:
         _, _, v = heapq.heappop(heap)
         have = v >= 0
@@ -299,3 +302,43 @@ def free_pairs(cands: FramePoints, used: np.ndarray) -> FramePoints:
     free = ~(used[np.maximum(v, 0)] & (v >= 0)).any(axis=1)
     idx = np.flatnonzero(two)[free]
     return FramePoints(cands.views[idx], cands.xyz[idx], cands.score[idx])
+
+
+RATIO = 1.5  # a projected marker's nearest detection must be this many times closer than its second nearest
+
+
+def projected_points(geom: Geometry, uv: np.ndarray, sig: np.ndarray, camera: np.ndarray, xyz: np.ndarray,
+                     std_m: np.ndarray) -> FramePoints:
+    """Points from predicted markers instead of from epipolar pairs (for large rigs, where matching every camera
+    pair costs too much): each prediction xyz (L, 3) [m] (std std_m (L,) [m]; NaN: none) is projected into every
+    camera and takes the detection nearest its projection when it is within the gate, RATIO times nearer than the
+    second nearest, and the projection nearest to it is this marker's (mutual); markers with two such views or
+    more are triangulated and their views beyond the gate dropped. uv (n, 2), sig (n,), camera (n,): the frame's
+    detections (ideal px). Returns one point per such marker, views as indices into uv, in marker order (the
+    markers behind them are ``FramePoints.source``)."""
+    C = len(geom.rig)
+    have = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    views = np.full((len(have), C), -1, np.int64)
+    proj, depth = project(geom, xyz[have])
+    focal = np.array([c.K[0, 0] for c in geom.rig])
+    for c in range(C):
+        rc = np.flatnonzero(camera == c)
+        ok = np.flatnonzero((depth[c] > 0) & np.isfinite(proj[c, :, 0]))
+        if len(rc) < 1 or not len(ok):
+            continue
+        k = min(2, len(rc))
+        d, j = cKDTree(uv[rc]).query(proj[c, ok], k=k)
+        d, j = (d[:, None], j[:, None]) if k == 1 else (d, j)
+        s_px = np.hypot(std_m[have[ok]] * focal[c] / depth[c, ok], sig[rc[j[:, 0]]])
+        near = d[:, 0] <= np.sqrt(CHI2_2DOF_GATE) * s_px
+        alone = (d[:, 1] >= RATIO * d[:, 0]) if k == 2 else np.ones(len(ok), bool)
+        back = cKDTree(proj[c, ok]).query(uv[rc[j[:, 0]]])[1]  # the projection nearest to each chosen detection
+        mutual = back == np.arange(len(ok))
+        take = near & alone & mutual
+        views[ok[take], c] = rc[j[take, 0]]
+    two = (views >= 0).sum(axis=1) >= 2
+    views, src = views[two], have[two]
+    if not len(views):
+        return FramePoints(np.zeros((0, C), np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+    v, x, r2, kept = _prune(geom, uv, sig, np.full(len(uv), 50.0), views.copy())
+    return FramePoints(v, x, np.zeros(len(v)), src[kept])
