@@ -206,7 +206,8 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
         noise_m = float(np.median(np.concatenate([np.sqrt(np.linalg.eigvalsh(tracks.point_covariance(
             geom, sd.xyz, sd.views, fi.sig))[:, -1]) for sd in placed.values()])))
         opt = dataclasses.replace(opt, track=dataclasses.replace(opt.track, volume_m3=volume, range_m=size,
-                                                                 noise_m=noise_m))
+                                                                 noise_m=noise_m,
+                                                                 segment_lengths=_seed_lengths(placed, pairs)))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     start = min(placed) if placed else int(frames[0])
     first = _subset_points(rig, fi, seed_det) if large else None
@@ -220,7 +221,8 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     label = np.where(fixed >= 0, fixed, label)
     seeded = np.zeros((fi.n_frames, n_labels), bool)
     seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
-    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m)
+    ref = opt.track.segment_lengths
+    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
     det_xyz, det_std = _detection_points(geom, fi, points)
@@ -228,7 +230,7 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps, noise_m)
         label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
-        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
     return Association(label, conf, cand, track, how, sigma, sw)
@@ -252,13 +254,26 @@ def _detection_points(geom: views.Geometry, fi: tracks.FrameDetections, points: 
     return xyz, std
 
 
+def _seed_lengths(placed: dict[int, tracks.Seed], pairs: list[tuple[int, int]]) -> dict:
+    """{(a, b): median length [m]} of the declared segments (a < b) over the seed frames that place both markers."""
+    lengths: dict = {}
+    for sd in placed.values():
+        at = {int(m): i for i, m in enumerate(sd.label)}
+        for a, b in pairs:
+            if a in at and b in at:
+                lengths.setdefault(tuple(sorted((a, b))), []).append(
+                    float(np.linalg.norm(sd.xyz[at[a]] - sd.xyz[at[b]])))
+    return {k: float(np.median(v)) for k, v in lengths.items()}
+
+
 def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray, fixed: np.ndarray,
-             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float) -> np.ndarray:
+             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float,
+             reference: dict | None) -> np.ndarray:
     """The names (N,) left where batgraph.associate.verify vouches for the marker's path; a name on a frame where
     its marker has no triangulated position stays only if the path is vouched for within 2 frames of it."""
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
-    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m)
+    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m, reference)
     keep = verify.vouched(xyz, have, seeded, seg, noise_m)
     near = keep.copy()
     for s_ in (1, 2):

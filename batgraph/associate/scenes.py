@@ -22,8 +22,8 @@ NEAR_FRACTION = 0.5  # spurious blobs inside the bat's box in the image (reflect
 @dataclass
 class SceneOptions:
     """spurious_rate: spurious blobs per real detection; merge_px: two markers whose blobs' centres are closer than
-    this in an image give one blob at their mean (0: never); seed_frame: the frame a user labels (None: the frame
-    where the most markers are seen by two cameras or more)."""
+    this in an image give one blob at their mean (0: never); seed_frame: the frame a user labels (None:
+    :func:`seed_frame`)."""
 
     spurious_rate: float = 0.02
     merge_px: float = 3.0
@@ -87,16 +87,19 @@ def _spurious(obs: pd.DataFrame, session: Session, n: int, rng: np.random.Genera
 
 
 def seed_frame(obs: pd.DataFrame) -> int:
-    """The frame where the most markers are seen by two cameras or more (the first of equals)."""
+    """The frame a user would label: where the most markers are seen by three cameras or more (of equals, the one
+    nearest the middle of the recording)."""
     views = obs.groupby(["frame", "marker"]).size()
-    per_frame = (views >= 2).groupby(level="frame").sum()
-    return int(per_frame.idxmax())
+    per_frame = (views >= 3).groupby(level="frame").sum()
+    best = per_frame[per_frame == per_frame.max()].index.to_numpy()
+    middle = (obs["frame"].min() + obs["frame"].max()) / 2
+    return int(best[np.argmin(np.abs(best - middle))])
 
 
 def strip_labels(session: Session, seed_at: int | None = None) -> Scene:
     """A labelled session (real data: its identities are the truth) as a scene: its observations without their
-    markers, in frame order, and every observation of one frame as the seed (``seed_at``, default the frame where
-    the most markers are seen by two cameras or more)."""
+    markers, in frame order, and every observation of one frame as the seed (``seed_at``, default
+    :func:`seed_frame`)."""
     obs = session.observations
     table = pd.DataFrame({"frame": obs["frame"].to_numpy(), "camera": obs["camera"].to_numpy(),
                           "u": obs["u"].to_numpy(), "v": obs["v"].to_numpy(), "marker": obs["marker"].to_numpy(),

@@ -38,12 +38,16 @@ class Segments:
         return cls(np.full((n_labels, 1), -1, np.int64), np.full((n_labels, 1), np.nan), np.full((n_labels, 1), np.nan))
 
 
-def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: float = 0.0) -> Segments:
+def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: float = 0.0,
+            reference: dict | None = None) -> Segments:
     """Segments measured on named positions X (F, L, 3) [m] (NaN where unnamed): the declared ``pairs`` (marker
     index pairs) and, with ``learn``, the steady undeclared ones (see module docstring). noise_m [m]: the points'
-    position noise; the stds' floors are at least it (twice it for a learned segment, which may be 1.5 times it)."""
+    position noise; the stds' floors are at least it (twice it for a learned segment, which may be 1.5 times it).
+    reference: {(a, b): length [m]} measured where the user placed both markers: a declared segment's length is
+    that, not the named frames' (names carried wrongly all along would otherwise vouch for themselves)."""
     min_sigma, learn_sigma = max(MIN_SIGMA_M, noise_m), max(LEARN_MIN_SIGMA_M, 2 * noise_m)
     learn_std = max(LEARN_MAX_STD_M, 1.5 * noise_m)
+    reference = reference or {}
     L = X.shape[1]
     declared = {tuple(sorted(p)) for p in pairs}
     cand = set(declared)
@@ -56,9 +60,13 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: f
         d = np.linalg.norm(X[:, a] - X[:, b], axis=1)
         d = d[np.isfinite(d)]
         if not len(d):
-            continue
+            if (a, b) not in reference:
+                continue
+            d = np.array([reference[(a, b)]])
         med = float(np.median(d))
         std = 1.4826 * float(np.median(np.abs(d - med))) if len(d) >= 3 else 2 * min_sigma
+        if (a, b) in reference:
+            med = reference[(a, b)]
         std = max(std, min_sigma)
         is_declared = (a, b) in declared
         if not is_declared:

@@ -51,7 +51,8 @@ class TrackOptions:
     detection; acquire_llr: the segment evidence [nats] that places a lost marker; learn: learn steady distances
     as segments; volume_m3, range_m: the marker set's box [m^3] and size [m] (a point or a distance of no marker
     in particular is uniform in them: the clutter the evidence is weighed against; :func:`extent`); noise_m: the points' position noise [m] (the
-    floors of the patch predictions' and segments' stds are at least it)."""
+    floors of the patch predictions' and segments' stds are at least it); segment_lengths: {(a, b): length [m]} of the
+    declared segments where the seed placed both markers (batgraph.associate.segments.measure's reference)."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
@@ -69,6 +70,7 @@ class TrackOptions:
     range_m: float = 0.3
     register: bool = False
     noise_m: float = 0.0
+    segment_lengths: dict | None = None
     rescue: bool = False
     beta_m: float = 0.05
 
@@ -345,7 +347,7 @@ def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt:
 def _measure(out: Sweep, pairs: list[tuple[int, int]], opt: TrackOptions) -> seg_mod.Segments:
     """Segments measured on the points assigned so far (kind 1)."""
     X = np.where((out.kind == 1)[..., None], out.xyz, np.nan)
-    return seg_mod.measure(X, pairs, opt.learn, opt.noise_m)
+    return seg_mod.measure(X, pairs, opt.learn, opt.noise_m, opt.segment_lengths)
 
 
 def _place_seed(tg: _Targets, fr: _Frame, seed: Seed, geom: Geometry, dets: FrameDetections, out: Sweep, k: int,
