@@ -18,7 +18,7 @@ import numpy as np
 
 from .assignment import assign
 from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, patch_shift
-from .views import Geometry, _prune, project, triangulate
+from .views import Geometry, _prune, project
 
 MAX_REACH = 6  # frames a position is carried from its nearest triangulated frame
 POINT_SIGMA = 4.0

@@ -1,21 +1,22 @@
 """Every marker the seed names, tracked in 3D frame by frame away from the seed frame (forward, then backward):
-each frame's points (batgraph.associate.views) are assigned to the markers by their motion and their segments.
+each frame's points (batgraph.associate.views) are assigned to the markers by motion, neighbours and segments.
 
-A marker's state is a constant-velocity Kalman filter (batgraph.motion's F and Q), whose acceleration noise adapts
-to its own innovations (slow body markers get tight gates, wing tips loose ones). On each frame, in rounds:
+A marker's state is a constant-velocity Kalman filter (batgraph.motion's F and Q) whose acceleration noise adapts
+to its own innovations. On each frame, in rounds, as the joint assignment of greatest total log likelihood ratio
+against clutter (batgraph.associate.assignment):
 
-1. the markers tracked up to the frame before, whose velocity rests on MATURE points or more, are assigned by
-   motion alone (every other marker with a prediction competes for the points, but their links wait);
-2. then, repeatedly, the markers still unassigned have their predictions moved by what their assigned neighbours
-   did (a wing's markers share most of their motion: :func:`_coherent`) and are assigned by motion plus their
-   segments to the partners placed so far (batgraph.associate.segments);
+1. markers tracked up to the frame before (velocity from MATURE points) are assigned by motion alone; every other
+   marker with a prediction competes for the points, but its links wait;
+2. then, repeatedly, the rest are predicted from their neighbours (:func:`_coherent` for markers seen on the frame
+   before, :func:`patch_shift` across longer gaps: a wing's markers move together) and assigned by that plus
+   their segments to the partners placed so far (batgraph.associate.segments).
 
-each as the assignment of greatest total log likelihood ratio against clutter (batgraph.associate.assignment), a link kept only when the best assignment without it is worse by ``ambiguity`` nats or more:
-where two assignments are nearly as good, the marker is left unassigned for the frame (its track splits there)
-rather than risk a swap. A marker without a point looks, camera by camera, for free detections along its
-predicted rays when that prediction is sharp (``join_max_px``); one that finds nothing coasts, and is lost after
-``max_miss`` frames or when its position's std passes ``max_std_m``. A lost marker (or one the seed did not
-place) is found again by its segments alone (``acquire_llr``).
+A link is kept when the next-best assignment is worse by ``ambiguity`` nats and its own evidence is ``min_llr`` or
+more; where two are nearly as good the marker stays unassigned on that frame (its track splits) rather than risk a
+swap. A marker without a point takes lone detections along its predicted rays where that prediction is sharp
+(``join_max_px``); one that finds nothing coasts, and is lost after ``max_miss`` frames or when its position std
+passes ``max_std_m``; its neighbours find it again. In large rigs the points come from the markers' predictions
+(views.projected_points) and go to the marker that found them (:func:`_take_sources`).
 """
 
 from __future__ import annotations
@@ -43,16 +44,17 @@ RESEGMENT_FRAMES = 15  # segment lengths are measured again after this many fram
 
 @dataclass
 class TrackOptions:
-    """accel_psd_m2_s3: the starting acceleration noise q [m^2/s^3] (each marker then adapts its own within [q_min,
-    q_max]); speed_mps: the std of a marker's velocity when first placed [m/s], flow_std_mps when the body's motion
-    is known (:func:`bulk_velocity`); ambiguity: the least margin [nats] over the next-best assignment for a link to be made;
-    min_llr: the least log likelihood ratio against clutter [nats] of a link; max_miss
-    [frames]; max_std_m [m]; join_max_px: the largest projected std [px] of a prediction that may take a lone
-    detection; acquire_llr: the segment evidence [nats] that places a lost marker; learn: learn steady distances
-    as segments; volume_m3, range_m: the marker set's box [m^3] and size [m] (a point or a distance of no marker
-    in particular is uniform in them: the clutter the evidence is weighed against; :func:`extent`); noise_m: the points' position noise [m] (the
-    floors of the patch predictions' and segments' stds are at least it); segment_lengths: {(a, b): length [m]} of the
-    declared segments where the seed placed both markers (batgraph.associate.segments.measure's reference)."""
+    """accel_psd_m2_s3: the starting acceleration noise q [m^2/s^3] (each marker adapts its own within [q_min,
+    q_max]); speed_mps: a new marker's velocity std [m/s] (flow_std_mps when the body's motion is known,
+    :func:`bulk_velocity`); ambiguity: the least margin [nats] over the next-best assignment; min_llr: the least
+    evidence [nats] against clutter of a link; max_miss [frames], max_std_m [m]: when a coasting marker is lost;
+    join_max_px: the largest projected std [px] of a prediction that may take a lone detection; acquire_llr: the
+    segment evidence [nats] that places a marker without a prediction; learn: learn steady distances as segments;
+    volume_m3, range_m: the marker set's box [m^3] and size [m] (clutter is uniform in them, :func:`extent`);
+    noise_m: the points' position noise [m] (the floor of the predictions' and segments' stds); segment_lengths:
+    {(a, b): length [m]} of the declared segments where the seed placed both markers; register, rescue: use
+    non-rigid registration (batgraph.associate.cpd) instead of, or after, the rounds (measured worse: off);
+    beta_m: its smoothness length [m]."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
@@ -536,9 +538,9 @@ def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int
     carried to k_to: shift = sum alpha_i (displacement_i). A wing's patch turns and bends as it flaps: the
     affine coordinates follow a turn that a mean shift would miss (a marker 3 cm from its neighbours on a wing
     turning at 80 rad/s lags them by 2 cm per frame at 120 fps). X (F, L, 3) [m] positions, known (F, L) where
-    they are; noise_m [m] their noise. Returns (shift (3,) [m], its std [m]: max(PATCH_FLOOR_M, noise_m) + PATCH_GROWTH_M
-    per frame of gap + half the
-    difference between the affine and the mean shift), or None without a neighbour within 2 PATCH_M."""
+    they are; noise_m [m] their noise. Returns (shift (3,) [m], its std [m]: max(PATCH_FLOOR_M, noise_m) +
+    PATCH_GROWTH_M per frame of gap + half the difference between the affine and the mean shift), or None without a
+    neighbour within 2 PATCH_M."""
     nb = np.flatnonzero(known[k_from] & known[k_to])
     nb = nb[nb != m]
     D = X[k_from, nb] - X[k_from, m]

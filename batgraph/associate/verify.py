@@ -79,7 +79,8 @@ def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: i
     return both.sum(axis=1), bad.sum(axis=1)
 
 
-def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments, noise_m: float = 0.0) -> np.ndarray:
+def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments,
+            noise_m: float = 0.0) -> np.ndarray:
     """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
     seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
     jump bound's floor is at least 3 times it; see module docstring)."""
