@@ -93,7 +93,7 @@ def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.nd
     return sigma
 
 
-SUBSET_CAMERAS = 6  # a large rig's cameras matched pair by pair on the frames next to a seed
+SUBSET_CAMERAS = 4  # a large rig's cameras matched pair by pair on the frames next to a seed
 
 
 def _subset_points(rig: Rig, fi: tracks.FrameDetections, seed_det: np.ndarray):
@@ -226,9 +226,9 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
     det_xyz, det_std = _detection_points(geom, fi, points)
-    for _ in range(opt.rounds):
+    for _ in range(1 if large else opt.rounds):  # one round in a large rig: each costs as much as the tracking
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
-        xyz, std = refine.carry(xyz, std, fps, noise_m)
+        xyz, std = refine.carry(xyz, std, fps, noise_m, patch=not large)
         label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))

@@ -71,13 +71,15 @@ def _std(geom: Geometry, fi: FrameDetections, rows: np.ndarray, views: np.ndarra
     return np.nanmean(m_per_px * sig, axis=0) / np.sqrt(np.maximum(n - 1, 1))
 
 
-def carry(xyz: np.ndarray, std: np.ndarray, fps: float, noise_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def carry(xyz: np.ndarray, std: np.ndarray, fps: float, noise_m: float = 0.0,
+          patch: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Positions on the frames without a triangulation (see module docstring): (F, L, 3), (F, L) [m].
 
     Each marker's missing frame gets up to three estimates, combined by inverse variance: the local polynomial
     through its nearest triangulated frames (within MAX_REACH), and from its last triangulated frame before and
     its first after (within PATCH_GAP), that position moved as its neighbours triangulated on both frames moved
-    (batgraph.associate.tracks.patch_shift: a wing's markers move together, so this bridges long gaps)."""
+    (batgraph.associate.tracks.patch_shift: a wing's markers move together, so this bridges long gaps; not with
+    ``patch`` False, for a large rig, where it costs as much as the tracking)."""
     F, L = std.shape
     out, out_std = xyz.copy(), std.copy()
     dt = 1.0 / fps
@@ -101,7 +103,7 @@ def carry(xyz: np.ndarray, std: np.ndarray, fps: float, noise_m: float = 0.0) ->
                 dr = right - k if right is not None else None
                 span = dl * dr if dl is not None and dr is not None else 2 * min(x for x in (dl, dr) if x) ** 2
                 est.append((coef[-1], np.nanmean(std[near, m]) + 0.5 * acc * span * dt * dt))
-            for anchor in (left, right):
+            for anchor in (left, right) if patch else ():
                 if anchor is not None and abs(k - anchor) <= PATCH_GAP:
                     shift = patch_shift(xyz, seen, m, anchor, k, noise_m)
                     if shift is not None:

@@ -50,31 +50,31 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: f
     reference = reference or {}
     L = X.shape[1]
     declared = {tuple(sorted(p)) for p in pairs}
+    D = np.linalg.norm(X[:, :, None] - X[:, None, :], axis=-1)  # (F, L, L), NaN where either is unnamed
+    n = np.isfinite(D).sum(axis=0)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(D, axis=0)
+            mad = 1.4826 * np.nanmedian(np.abs(D - med), axis=0)
+    std = np.where(n >= 3, np.maximum(mad, min_sigma), 2 * min_sigma)
     cand = set(declared)
     if learn:
-        have = np.isfinite(X[..., 0]).astype(np.int32)
-        a, b = np.nonzero(np.triu(have.T @ have >= LEARN_MIN_FRAMES, 1))
+        a, b = np.nonzero(np.triu((n >= LEARN_MIN_FRAMES) & (std <= learn_std) & (med <= LEARN_MAX_LENGTH_M), 1))
         cand |= set(zip(a.tolist(), b.tolist(), strict=True))
     per: list[list[tuple]] = [[] for _ in range(L)]
     for a, b in cand:
-        d = np.linalg.norm(X[:, a] - X[:, b], axis=1)
-        d = d[np.isfinite(d)]
-        if not len(d):
-            if (a, b) not in reference:
-                continue
-            d = np.array([reference[(a, b)]])
-        med = float(np.median(d))
-        std = 1.4826 * float(np.median(np.abs(d - med))) if len(d) >= 3 else 2 * min_sigma
-        if (a, b) in reference:
-            med = reference[(a, b)]
-        std = max(std, min_sigma)
         is_declared = (a, b) in declared
+        if n[a, b] == 0 and (a, b) not in reference:
+            continue
+        length = reference.get((a, b), float(med[a, b]) if n[a, b] else np.nan)
+        sd = float(std[a, b]) if n[a, b] else 2 * min_sigma
         if not is_declared:
-            if std > learn_std or med > LEARN_MAX_LENGTH_M:
-                continue
-            std = max(std, learn_sigma)
-        per[a].append((not is_declared, std, b, med))
-        per[b].append((not is_declared, std, a, med))
+            sd = max(sd, learn_sigma)
+        per[a].append((not is_declared, sd, b, length))
+        per[b].append((not is_declared, sd, a, length))
     keep = [[x for x in sorted(p) if not x[0]] + [x for x in sorted(p) if x[0]][:LEARN_MAX_PARTNERS] for p in per]
     K = max([len(p) for p in keep] + [1])
     seg = Segments(np.full((L, K), -1, np.int64), np.full((L, K), np.nan), np.full((L, K), np.nan))

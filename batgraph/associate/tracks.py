@@ -548,6 +548,8 @@ def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int
     near = d < 2 * PATCH_M
     if not near.any():
         return None
+    near = np.flatnonzero(near)
+    near = near[np.argsort(d[near])[:PATCH_NEIGHBOURS]]
     D, disp = D[near], X[k_to, nb[near]] - X[k_from, nb[near]]
     w = np.exp(-0.5 * (d[near] / PATCH_M) ** 2)
     w = w / w.sum()
@@ -558,13 +560,14 @@ def patch_shift(X: np.ndarray, known: np.ndarray, m: int, k_from: int, k_to: int
     A[:n, :n] = D @ D.T + mu * np.diag(1.0 / w)
     A[:n, n] = A[n, :n] = 1.0
     rhs = np.r_[mu * np.ones(n), 1.0]
-    alpha = np.linalg.lstsq(A, rhs, rcond=None)[0][:n]
+    alpha = np.linalg.solve(A, rhs)[:n]
     shift, mean = alpha @ disp, w @ disp
     floor = max(PATCH_FLOOR_M, noise_m)
     return shift, floor + PATCH_GROWTH_M * abs(k_to - k_from) + 0.5 * float(np.linalg.norm(shift - mean))
 
 
 AFFINE_M = 0.01  # [m] how far from the smooth weights the affine coordinates may go for 1 m of fit
+PATCH_NEIGHBOURS = 8  # the nearest neighbours a patch prediction uses
 
 
 def _patch(tg: _Targets, fr: _Frame, out: Sweep, k: int, cand: np.ndarray
