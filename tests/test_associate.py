@@ -156,3 +156,23 @@ def test_write_associated_copies_the_session_files(tmp_path):
     session = read_session(out)
     assert set(session.markers) == {f"m{j}" for j in range(6)}
     assert fig.how.shape == (6, 40) and (fig.how > 0).mean() >= 0.99
+
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "pose2sim_demo_4cam_human"
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real/pose2sim_demo_4cam_human is absent")
+def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
+    """The Pose2Sim demo's OpenPose keypoints (4 cameras, 25 keypoints, 60 fps) with their names stripped and the
+    frame where most are seen three times as the seed: measured 9.3 % of the 8987 detections named correctly, 0.7 %
+    wrongly (5.3 px of keypoint noise: the tracker loses most keypoints within a few frames; docs/associate.md).
+    Bounds: at least 5 % named correctly, at most 2 % wrongly."""
+    trial = REAL / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"
+    argv = ["import", "pose2sim", *sorted(str(p) for p in (trial / "pose-associated").iterdir()), "--calibration",
+            str(REAL / "S00_Calibration" / "Calib_qualisys.toml"), "--fps", "60", "--out", str(tmp_path / "p2s")]
+    assert main(argv) == 0
+    session = read_session(tmp_path / "p2s")
+    sc = scenes.strip_labels(session)
+    scenes.write_scene(session, sc, tmp_path / "stripped")
+    r = named(tmp_path / "stripped", sc, fps=60.0, n_markers=len(session.markers))
+    assert r["real_correct"] >= 0.05 and r["real_wrong"] <= 0.02
