@@ -742,6 +742,26 @@ _RANGE_NOTE = {
 }
 
 
+# ----- associate -------------------------------------------------------------------------------
+def _add_associate(sub):
+    p = sub.add_parser("associate", help="name unlabelled marker detections (detections.csv) from a seed frame",
+                       description="Label unlabelled detections (SESSION/detections.csv: frame, camera, u, v) from "
+                                   "the markers named once in SESSION/seed_labels.csv (frame, camera, marker, u, v), "
+                                   "and write a session with observations.csv (named detections) and labels.csv "
+                                   "(every detection, its marker, track and confidence). See docs/associate.md.")
+    p.add_argument("session", metavar="SESSION", help="session folder with detections.csv and seed_labels.csv")
+    p.add_argument("--out", metavar="DIR", help="output session folder (default SESSION/associated)")
+    p.add_argument("--pixel-sigma", type=positive_float, metavar="PX",
+                   help="detection noise std [px] (default: session.toml [noise] pixel_sigma_px, else measured)")
+
+    def run(args) -> int:
+        from .associate.command import run as associate
+
+        return associate(args)
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
@@ -753,6 +773,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_calibrate(sub)
     _add_export(sub)
     _add_view(sub)
+    _add_associate(sub)
     return parser
 
 

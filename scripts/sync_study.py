@@ -112,7 +112,7 @@ def mcsc() -> None:
         e = np.linalg.norm(errors(run, "reference")[0], axis=1)
         e = e[np.isfinite(e)] * 1e3
         refined = run.estimates["smoother"].info.get("rig_refined") or {}
-        offs = ", ".join(f"{v['time_offset_s'] * 1e3:.2f} +- {v['time_offset_sd_s'] * 1e3:.2f}"
+        offs = ", ".join(f"{v.get('time_offset_s', 0.0) * 1e3:.2f} +- {v.get('time_offset_sd_s', 0.0) * 1e3:.2f}"
                          for v in refined.values()) or "-"
         print(f"| {case} | {offs} | {np.median(e):.1f} / {np.percentile(e, 90):.1f} ({len(e)} points) | "
               f"{sec:.1f} |", flush=True)

@@ -1,0 +1,12 @@
+"""Correspondence: unlabelled marker detections from many cameras -> named markers, the step before every estimator.
+
+``associate_session(folder)`` is the entry point (batgraph.associate.session); the stages are the detections'
+input (.detections), cross-view matching per frame (.views), tracking the seeded markers through time (.tracks,
+with .segments and .assignment), naming every detection by where its marker is (.refine), the whole on arrays
+(.core), and test scenes with their scoring (.scenes, .score).
+"""
+
+from .core import AssociateOptions
+from .session import Figures, associate_session, write_associated
+
+__all__ = ["AssociateOptions", "Figures", "associate_session", "write_associated"]

@@ -1,0 +1,27 @@
+"""The ``associate`` command: parse-free glue between the CLI's arguments and :func:`associate_session`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from .core import AssociateOptions
+from .session import associate_session, write_associated
+
+
+def run(args) -> int:
+    """``batgraph associate SESSION --out DIR [--pixel-sigma PX]``: name the detections, write DIR, print a summary."""
+    folder = Path(args.session)
+    out = Path(args.out) if args.out else folder / "associated"
+    opt = AssociateOptions(pixel_sigma_px=args.pixel_sigma)
+    obs, labels, fig = associate_session(folder, opt)
+    if not len(obs):
+        raise InputError(f"{folder}: no detection could be named from the seed (check that seed_labels.csv's clicks "
+                         "are on this session's frames and that the markers are seen by two cameras there)")
+    write_associated(folder, out, obs, labels, fig)
+    s = fig.summary
+    print(f"{folder}: named {s['named']} of {s['detections']} detections ({100 * s['named_fraction']:.1f} %), "
+          f"pixel noise {s['pixel_sigma_px']:.2f} px, {s['suspected_switches']} suspected identity switch(es)")
+    print(f"wrote observations.csv, labels.csv and association.json to {out} "
+          f"(`batgraph reconstruct {out}` takes it as it is)")
+    return 0

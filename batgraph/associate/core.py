@@ -1,0 +1,303 @@
+"""Association end to end on arrays: detections -> 3D points per frame (batgraph.associate.views) -> the seeded
+markers tracked away from the seed (batgraph.associate.tracks) -> every detection named by where its marker is
+(batgraph.associate.refine). No files (batgraph.associate.session).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Rig
+from . import refine, segments, tracks, verify, views
+from .detections import Detections
+
+PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
+SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
+SIGMA_START_PX = 2.0  # the noise assumed while measuring it
+HOW = ("", "seed", "tracked", "ray", "reprojection")
+"""How a detection got its name: not named, the user's seed, a point the tracker assigned to its marker, a lone
+detection the tracker joined along its marker's predicted ray, or matched to where its marker is (refine)."""
+
+
+@dataclass
+class AssociateOptions:
+    """pixel_sigma_px: the detections' noise [px] (None: measured from points seen by 4 cameras or more);
+    margin: the least extra cost (chi-square units) for a detection's name to be kept (4.6: confidence 0.9);
+    rounds: matching rounds (batgraph.associate.refine); track: the tracker's options."""
+
+    pixel_sigma_px: float | None = None
+    margin: float = 4.6
+    rounds: int = 2
+    track: tracks.TrackOptions = field(default_factory=tracks.TrackOptions)
+
+
+@dataclass
+class Association:
+    """Per detection (in the order of ``Detections``): label (N,) marker index (-1: unnamed), confidence (N,),
+    candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
+    an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker."""
+
+    label: np.ndarray
+    confidence: np.ndarray
+    candidate: np.ndarray
+    track: np.ndarray
+    how: np.ndarray
+    pixel_sigma_px: float
+    sweep: tracks.Sweep
+
+
+def frame_index(dets: Detections, ideal: np.ndarray, sig: np.ndarray) -> tracks.FrameDetections:
+    """The detections by frame, over every frame from the first to the last."""
+    first, last = int(dets.frame[0]), int(dets.frame[-1])
+    start = np.searchsorted(dets.frame, np.arange(first, last + 2))
+    return tracks.FrameDetections(dets.frame, dets.camera, ideal, sig, first, start)
+
+
+def frame_points(geom: views.Geometry, fi: tracks.FrameDetections, f: int) -> views.FramePoints:
+    """One frame's points: those of three views or more chosen, then every two-view candidate on the detections
+    they left (batgraph.associate.views), views as global detection indices."""
+    rows = fi.rows(f)
+    uv, sig, cam = fi.uv[rows], fi.sig[rows], fi.camera[rows]
+    cands, llr = views.candidates(geom, uv, sig, cam)
+    chosen = views.select(geom, uv, sig, llr, cands)
+    used = np.zeros(len(rows), bool)
+    used[chosen.views[chosen.views >= 0]] = True
+    pairs = views.free_pairs(cands, used)
+    v = np.concatenate([chosen.views, pairs.views])
+    return views.FramePoints(np.where(v >= 0, rows[np.maximum(v, 0)], -1), np.concatenate([chosen.xyz, pairs.xyz]),
+                             np.concatenate([chosen.score, pairs.score]))
+
+
+def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray) -> float:
+    """The detections' noise [px] from the reprojection errors of points seen by 4 cameras or more on up to
+    SIGMA_SAMPLE_FRAMES frames: a view's squared error is sigma^2 (1 - 3 / (2 n)) chi-square(2) for n views, so
+    sigma^2 = median(e^2 / (1 - 3 / (2 n))) / (2 ln 2). Measured twice, the second time with the first's gates."""
+    frames = fi.first + np.unique(np.linspace(0, fi.n_frames - 1, min(fi.n_frames, SIGMA_SAMPLE_FRAMES)).astype(int))
+    sigma = SIGMA_START_PX
+    for _ in range(2):
+        fi.sig = sigma * scale
+        e2 = []
+        for f in frames:
+            p = frame_points(geom, fi, int(f))
+            n = p.n_views
+            four = n >= 4
+            if four.any():
+                r2 = views.residuals(geom, fi.uv, scale, p.views[four], p.xyz[four])
+                e2.append((r2 / (1 - 3 / (2 * n[four]))[:, None])[p.views[four] >= 0])
+        if not e2:
+            return sigma
+        sigma = float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
+    return sigma
+
+
+SUBSET_CAMERAS = 4  # a large rig's cameras matched pair by pair on the frames next to a seed
+
+
+def _subset_points(rig: Rig, fi: tracks.FrameDetections, seed_det: np.ndarray):
+    """For a large rig: frame -> its points from the SUBSET_CAMERAS cameras that saw the most seeded detections,
+    matched pair by pair (frame_points): where the seeded markers went on the frame next to the seed, before
+    their velocities are known (the predictions that find points in a large rig need them)."""
+    counts = np.bincount(fi.camera[seed_det], minlength=len(rig))
+    cams = np.sort(np.argsort(-counts, kind="stable")[:SUBSET_CAMERAS])
+    sub = views.geometry(Rig([rig[int(c)] for c in cams], world_mirror=rig.world_mirror))
+    where = np.full(len(rig), -1, np.int64)
+    where[cams] = np.arange(len(cams))
+
+    def at(f: int) -> views.FramePoints:
+        rows = fi.rows(f)
+        rows = rows[where[fi.camera[rows]] >= 0]
+        part = tracks.FrameDetections(fi.frame[rows], where[fi.camera[rows]], fi.uv[rows], fi.sig[rows], f,
+                                      np.array([0, len(rows)]))
+        p = frame_points(sub, part, f)
+        v = np.full((len(p.views), len(rig)), -1, np.int64)
+        v[:, cams] = np.where(p.views >= 0, rows[np.maximum(p.views, 0)], -1)
+        return views.FramePoints(v, p.xyz, p.score)
+    return at
+
+
+def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
+               seed_lab: np.ndarray) -> float:
+    """The detections' noise [px] from the seed: the reprojection errors of the seeded markers clicked in 4
+    cameras or more, as :func:`measure_sigma` reads them (SIGMA_START_PX where there are none)."""
+    e2 = []
+    C = len(geom.rig)
+    for f in np.unique(fi.frame[seed_det]):
+        on = fi.frame[seed_det] == f
+        labs = np.unique(seed_lab[on])
+        v = np.full((len(labs), C), -1, np.int64)
+        for i, lab in enumerate(labs):
+            ds = seed_det[on & (seed_lab == lab)]
+            v[i, fi.camera[ds]] = ds
+        n = (v >= 0).sum(axis=1)
+        v = v[n >= 4]
+        if len(v):
+            r2 = views.residuals(geom, fi.uv, scale, v, views.triangulate(geom, fi.uv, v))
+            e2.append((r2 / (1 - 3 / (2 * (v >= 0).sum(axis=1)))[:, None])[v >= 0])
+    if not e2:
+        return SIGMA_START_PX
+    return float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
+
+
+def seeds(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints],
+          seed_det: np.ndarray, seed_lab: np.ndarray) -> dict[int, tracks.Seed]:
+    """The user's clicks as 3D placements per frame: a marker clicked in two cameras or more is triangulated from
+    its clicks; one clicked in one camera takes the point that holds that detection, if any."""
+    out = {}
+    C = len(geom.rig)
+    for f in np.unique(fi.frame[seed_det]):
+        on = fi.frame[seed_det] == f
+        labs, v, xyz = [], [], []
+        for lab in np.unique(seed_lab[on]):
+            ds = seed_det[on & (seed_lab == lab)]
+            row = np.full(C, -1, np.int64)
+            row[fi.camera[ds]] = ds
+            if len(ds) >= 2:
+                x = views.triangulate(geom, fi.uv, row[None])[0]
+            else:
+                pts = points.get(int(f))
+                hit = np.flatnonzero((pts.views == ds[0]).any(axis=1)) if pts is not None else []
+                if not len(hit):
+                    continue
+                x, row = pts.xyz[hit[0]], pts.views[hit[0]]
+            if np.isfinite(x).all():
+                labs.append(lab)
+                v.append(row)
+                xyz.append(x)
+        if labs:
+            out[int(f)] = tracks.Seed(np.array(labs), np.array(xyz), np.array(v))
+    return out
+
+
+def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.ndarray, n_labels: int,
+              pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions | None = None) -> Association:
+    """Name every detection (see module docstring). seed_det (S,) detection indices the user named, seed_lab (S,)
+    their marker indices; pairs: declared segments as marker index pairs; fps [Hz]."""
+    opt = opt or AssociateOptions()
+    geom = views.geometry(rig)
+    ideal, scale = views.undistort(rig, dets.camera, dets.uv_px)
+    fi = frame_index(dets, ideal, scale)
+    large = len(rig) > PAIRS_UP_TO_CAMERAS
+    sigma = opt.pixel_sigma_px
+    if sigma is None:
+        sigma = seed_sigma(geom, fi, scale, seed_det, seed_lab) if large else measure_sigma(geom, fi, scale)
+    fi.sig = sigma * scale
+    frames = np.arange(fi.first, fi.first + fi.n_frames)
+    if large:  # points from the markers' predictions: matching every camera pair would cost too much
+        points = {}
+
+        def points_at(f, xyz, std):
+            rows = fi.rows(f)
+            p = views.projected_points(geom, fi.uv[rows], fi.sig[rows], fi.camera[rows], xyz, std)
+            return views.FramePoints(np.where(p.views >= 0, rows[np.maximum(p.views, 0)], -1), p.xyz, p.score,
+                                     p.source)
+    else:
+        points = {int(f): frame_points(geom, fi, int(f)) for f in frames}
+        empty = views.FramePoints(np.zeros((0, len(rig)), np.int64), np.zeros((0, 3)), np.zeros(0))
+
+        def points_at(f, xyz, std):
+            return points.get(int(f), empty)
+    placed = seeds(geom, fi, points, seed_det, seed_lab)
+    noise_m = 0.0
+    if placed:
+        volume, size = tracks.extent(np.concatenate([sd.xyz for sd in placed.values()]))
+        noise_m = float(np.median(np.concatenate([np.sqrt(np.linalg.eigvalsh(tracks.point_covariance(
+            geom, sd.xyz, sd.views, fi.sig))[:, -1]) for sd in placed.values()])))
+        opt = dataclasses.replace(opt, track=dataclasses.replace(opt.track, volume_m3=volume, range_m=size,
+                                                                 noise_m=noise_m,
+                                                                 segment_lengths=_seed_lengths(placed, pairs)))
+    sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
+    start = min(placed) if placed else int(frames[0])
+    first = _subset_points(rig, fi, seed_det) if large else None
+    tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track, first)
+    tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
+                 else {}, pairs, sw, opt.track, first)
+    N = len(dets.frame)
+    label, how, track = _from_sweep(sw, N)
+    fixed = np.full(N, -1, np.int64)
+    fixed[seed_det] = seed_lab
+    label = np.where(fixed >= 0, fixed, label)
+    seeded = np.zeros((fi.n_frames, n_labels), bool)
+    seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
+    ref = opt.track.segment_lengths
+    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
+    swept = label.copy()
+    conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
+    det_xyz, det_std = _detection_points(geom, fi, points)
+    for _ in range(1 if large else opt.rounds):  # one round in a large rig: each costs as much as the tracking
+        xyz, std, label = refine.positions(geom, fi, label, n_labels)
+        xyz, std = refine.carry(xyz, std, fps, noise_m, patch=not large)
+        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
+    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
+    track = np.where((label >= 0) & (label == swept), track, -1)
+    return Association(label, conf, cand, track, how, sigma, sw)
+
+
+def _detection_points(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Per detection the point of three views or more it is in (N, 3) [m] and that point's std (N,) [m] (the
+    largest axis of its first-order covariance); NaN where none."""
+    N = len(fi.frame)
+    xyz, std = np.full((N, 3), np.nan), np.full(N, np.nan)
+    for p in points.values():
+        three = p.n_views >= 3
+        if not three.any():
+            continue
+        v, x = p.views[three], p.xyz[three]
+        s = np.sqrt(np.linalg.eigvalsh(tracks.point_covariance(geom, x, v, fi.sig))[:, -1])
+        has = v >= 0
+        xyz[v[has]] = np.broadcast_to(x[:, None], v.shape + (3,))[has]
+        std[v[has]] = np.broadcast_to(s[:, None], v.shape)[has]
+    return xyz, std
+
+
+def _seed_lengths(placed: dict[int, tracks.Seed], pairs: list[tuple[int, int]]) -> dict:
+    """{(a, b): median length [m]} of the declared segments (a < b) over the seed frames that place both markers."""
+    lengths: dict = {}
+    for sd in placed.values():
+        at = {int(m): i for i, m in enumerate(sd.label)}
+        for a, b in pairs:
+            if a in at and b in at:
+                lengths.setdefault(tuple(sorted((a, b))), []).append(
+                    float(np.linalg.norm(sd.xyz[at[a]] - sd.xyz[at[b]])))
+    return {k: float(np.median(v)) for k, v in lengths.items()}
+
+
+def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray, fixed: np.ndarray,
+             seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float,
+             reference: dict | None) -> np.ndarray:
+    """The names (N,) left where batgraph.associate.verify vouches for the marker's path; a name on a frame where
+    its marker has no triangulated position stays only if the path is vouched for within 2 frames of it."""
+    xyz, std, label = refine.positions(geom, fi, label, n_labels)
+    have = np.isfinite(std)
+    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m, reference)
+    keep = verify.vouched(xyz, have, seeded, seg, noise_m)
+    near = keep.copy()
+    for s_ in (1, 2):
+        near[s_:] |= keep[:-s_]
+        near[:-s_] |= keep[s_:]
+    k = fi.frame - fi.first
+    lab = np.maximum(label, 0)
+    ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
+    return np.where(fixed >= 0, fixed, np.where((label >= 0) & ok, label, -1))
+
+
+def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per detection: the marker the tracker gave it (-1), how (HOW index) and its track: a run of consecutive
+    frames on which the tracker placed the marker (a frame without splits it)."""
+    F, L = sw.kind.shape
+    label, how, track = np.full(N, -1, np.int64), np.zeros(N, np.int64), np.full(N, -1, np.int64)
+    on = sw.kind > 0
+    starts = on & ~np.vstack([np.zeros((1, L), bool), on[:-1]])
+    run = np.cumsum(starts.T.ravel()).reshape(L, F).T - 1  # run number, counted marker by marker
+    k, lab = np.nonzero(on)
+    v = sw.views[k, lab]  # (n, C)
+    has = v >= 0
+    det = v[has]
+    label[det] = np.broadcast_to(lab[:, None], v.shape)[has]
+    how[det] = np.broadcast_to(np.where(sw.kind[k, lab] == 1, 2, 3)[:, None], v.shape)[has]
+    track[det] = np.broadcast_to(run[k, lab][:, None], v.shape)[has]
+    return label, how, track

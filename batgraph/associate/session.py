@@ -1,0 +1,155 @@
+"""Association of a session folder: read its detections, seed and rig, name every detection, and write a session
+every estimator takes as it is (observations.csv with the named detections, labels.csv with all of them).
+
+``associate_session`` is the library entry (the ``associate`` command and, for a session holding detections.csv
+instead of observations.csv, ``reconstruct`` call it); ``write_associated`` writes the result folder.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import atomic, inputs
+from ..errors import InputError
+from ..formats.csv_text import write_csv
+from ..session import OBS_COLUMNS
+from .core import HOW, AssociateOptions, Association, associate
+from .detections import Detections, SessionSetup, read_inputs, read_seed
+
+SEED_FILE = "seed_labels.csv"
+LABEL_COLUMNS = ["frame", "camera", "u", "v", "marker", "track", "confidence", "how"]
+OUTPUT_FILES = ("observations.csv", "labels.csv", "association.json")
+NOT_COPIED = ("detections.csv", "detections.parquet", "observations.csv", "observations.parquet", SEED_FILE)
+
+
+@dataclass
+class Figures:
+    """What the report shows of an association: ``how`` (M, F) int8 per marker and frame the HOW index by which
+    most of its detections got its name (0: none), over ``frames`` (F,) and ``markers`` (M); ``switches``: a table
+    (frame, marker, confidence) of the places where a marker's track splits and its name is carried on with a
+    confidence below ``suspect_below``: the suspected identity switches; ``summary``: counts and figures."""
+
+    frames: np.ndarray
+    markers: list[str]
+    how: np.ndarray
+    switches: pd.DataFrame
+    summary: dict
+    suspect_below: float = 0.99
+
+
+def _markers(setup: SessionSetup, seed: pd.DataFrame, path: Path) -> list[str]:
+    """The marker names: session.toml's [markers] names, else the seed's in order of first click."""
+    if setup.marker_names:
+        return list(setup.marker_names)
+    names = list(dict.fromkeys(seed["marker"].tolist()))
+    if not names:
+        raise InputError(f"{path}: names no marker (and session.toml has no [markers] names)")
+    return names
+
+
+def associate_session(folder: str | Path, options: AssociateOptions | None = None
+                      ) -> tuple[pd.DataFrame, pd.DataFrame, Figures]:
+    """Name the detections of a session folder holding detections.csv (or .parquet) and seed_labels.csv.
+
+    Returns (observations, labels, figures): observations in observations.csv's layout (frame, camera, marker, u,
+    v, weight; the named detections only, weight = the detector's score where it has one in (0, 1], else 1);
+    labels with one row per detection (LABEL_COLUMNS; marker empty where unnamed, track -1 where in no track);
+    figures for the report (:class:`Figures`). InputError for bad input (see batgraph.associate.detections).
+    """
+    folder = Path(folder)
+    setup, rig, dets, det_path = read_inputs(folder)
+    seed_path = folder / SEED_FILE
+    if not seed_path.exists():
+        raise InputError(f"{seed_path}: file not found; name the markers once: frame, camera, marker, u, v for the "
+                         "markers of one frame (or a few clicks)")
+    seed = read_seed(seed_path, rig, dets, setup.marker_names)
+    markers = _markers(setup, seed, seed_path)
+    index = {m: i for i, m in enumerate(markers)}
+    pairs = [(index[a], index[b]) for a, b in dict.fromkeys(setup.rigid + setup.skeleton) if a in index and b in index]
+    opt = options or AssociateOptions()
+    if opt.pixel_sigma_px is None and setup.pixel_sigma_px is not None:
+        opt = AssociateOptions(setup.pixel_sigma_px, opt.margin, opt.rounds, opt.track)
+    res = associate(rig, dets, seed["detection"].to_numpy(), seed["marker"].map(index).to_numpy(), len(markers),
+                    pairs, setup.fps, opt)
+    labels = _labels_table(dets, rig.names, markers, res)
+    named = labels[labels["marker"] != ""]
+    weight = np.ones(len(named))
+    if dets.score is not None:
+        score = dets.score[named.index.to_numpy()]
+        weight = np.where((score > 0) & (score <= 1), score, 1.0)
+    obs = pd.DataFrame({"frame": named["frame"].to_numpy(), "camera": named["camera"].to_numpy(),
+                        "marker": named["marker"].to_numpy(), "u": named["u"].to_numpy(), "v": named["v"].to_numpy(),
+                        "weight": weight})
+    obs = obs.sort_values(["frame", "camera", "marker"], kind="stable").reset_index(drop=True)
+    return obs, labels, _figures(dets, markers, res, det_path)
+
+
+def _labels_table(dets: Detections, cameras: list[str], markers: list[str], res: Association) -> pd.DataFrame:
+    """One row per detection in the file's order (see LABEL_COLUMNS)."""
+    names = np.array(markers + [""], dtype=object)
+    out = pd.DataFrame({
+        "frame": dets.frame, "camera": np.asarray(cameras, dtype=object)[dets.camera], "u": dets.uv_px[:, 0],
+        "v": dets.uv_px[:, 1], "marker": names[np.where(res.label >= 0, res.label, -1)],
+        "track": res.track, "confidence": np.round(np.where(res.label >= 0, res.confidence, 0.0), 4),
+        "how": np.asarray(HOW, dtype=object)[res.how]})
+    if dets.size is not None:
+        out["size"] = dets.size
+    if dets.score is not None:
+        out["score"] = dets.score
+    out.index = dets.row  # the file's row of each detection
+    return out.sort_index()
+
+
+def _figures(dets: Detections, markers: list[str], res: Association, det_path: Path,
+             suspect_below: float = 0.99) -> Figures:
+    """The marker x frame map of how names were obtained, and the suspected switches (see :class:`Figures`)."""
+    first = int(dets.frame.min())
+    F = int(dets.frame.max()) - first + 1
+    M = len(markers)
+    how = np.zeros((M, F), np.int8)
+    named = res.label >= 0
+    if named.any():
+        key = pd.DataFrame({"m": res.label[named], "k": dets.frame[named] - first, "h": res.how[named]})
+        best = key.groupby(["m", "k"])["h"].agg(lambda h: h.value_counts().idxmax())
+        how[best.index.get_level_values(0), best.index.get_level_values(1)] = best.to_numpy()
+    sw = res.sweep
+    starts = (sw.kind[1:] > 0) & (sw.kind[:-1] == 0)  # a marker placed again after a frame without it
+    k, m = np.nonzero(starts)
+    conf = sw.conf[k + 1, m]
+    suspect = conf < suspect_below
+    switches = pd.DataFrame({"frame": first + k[suspect] + 1, "marker": np.asarray(markers, dtype=object)[m[suspect]],
+                             "confidence": conf[suspect]})
+    n = len(dets.frame)
+    summary = {"detections": n, "named": int(named.sum()), "named_fraction": float(named.mean()) if n else 0.0,
+               "pixel_sigma_px": res.pixel_sigma_px, "tracks": int(res.track.max()) + 1 if n else 0,
+               "suspected_switches": int(suspect.sum()), "detections_file": str(det_path)}
+    for i, h in enumerate(HOW):
+        summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
+    return Figures(np.arange(first, first + F), markers, how, switches, summary, suspect_below)
+
+
+def write_associated(folder: str | Path, out: str | Path, observations: pd.DataFrame, labels: pd.DataFrame,
+                     figures: Figures) -> Path:
+    """Write the associated session into ``out`` (atomically, as one result): the session's other files copied
+    (session.toml, calibration.toml, truth.csv, ...; not the detections, the seed or an earlier observations.csv),
+    observations.csv, labels.csv and association.json (figures.summary)."""
+    import json
+
+    folder, out = Path(folder), Path(out)
+    if out.resolve() == folder.resolve():
+        raise InputError(f"{out}: is the session folder itself; give another --out (inputs are never modified)")
+    inputs.check_output_dir(out)
+    copied = [p for p in sorted(folder.iterdir()) if p.is_file() and p.name not in NOT_COPIED]
+    with atomic.result_folder(out, [p.name for p in copied] + list(OUTPUT_FILES)) as stage:
+        for p in copied:
+            shutil.copy2(p, stage / p.name)
+        cols = OBS_COLUMNS + (["weight"] if not np.allclose(observations["weight"], 1.0) else [])
+        write_csv(stage / "observations.csv", observations[cols], "%.6f")
+        write_csv(stage / "labels.csv", labels.reset_index(drop=True), "%.6f")
+        (stage / "association.json").write_text(json.dumps(figures.summary, indent=2) + "\n")
+    return out

@@ -1,0 +1,128 @@
+"""Checks of named 3D paths: a marker's name is kept only on the stretches of its path that its segments or its
+continuity with the seed vouch for. A swap shows as a jump in the path (its ends) or as segment lengths gone
+wrong (its middle); where the evidence cannot tell, the name is dropped (flagged, not guessed).
+
+Per marker: frames whose position leaves the local quadratic through its neighbours on both sides (within
+JUMP_WINDOW frames) by more than JUMP_SIGMA times the path's own scatter (a robust scale, at least
+JUMP_FLOOR_M) are jumps; they and gaps of more than MAX_GAP frames cut the path into stretches. A stretch is
+vouched for when it holds a seed frame, or when at least MIN_CHECKS of its distances to segment partners were
+checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (batgraph.associate.segments),
+or when it meets a vouched stretch across a gap without a jump (its end, extrapolated linearly, lands within
+the jump bound of the other's start): a name carried by continuity from the seed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import segments as seg_mod
+
+JUMP_WINDOW = 5
+JUMP_SIGMA = 3.5
+JUMP_FLOOR_M = 0.006
+MAX_GAP = 8
+MIN_CHECKS = 4
+MAX_FAIL = 0.15
+SEGMENT_SIGMA = 4.0
+
+
+def _jumps(x: np.ndarray, have: np.ndarray, floor_m: float) -> tuple[np.ndarray, float]:
+    """Breaks (F,) bool of one marker's path x (F, 3) (where ``have``): frame k breaks from the frame before where
+    the quadratics fitted to up to JUMP_WINDOW frames on each side (the path bends as a wing flaps) disagree,
+    half a frame before k, by more than the bound [m] (JUMP_SIGMA times their robust disagreement along the path,
+    at least floor_m), and more than at the neighbouring frames. A swap shows so at both ends."""
+    F = len(x)
+    idx = np.flatnonzero(have)
+    gap = np.full(F, np.nan)
+    for j in range(1, len(idx)):
+        k = idx[j]
+        left = idx[max(0, j - JUMP_WINDOW):j]
+        right = idx[j:j + JUMP_WINDOW]
+        if len(left) < 3 or len(right) < 3 or k - left[0] > 2 * JUMP_WINDOW or right[-1] - k > 2 * JUMP_WINDOW:
+            continue
+        at = k - 0.5
+        a = np.polyfit(left - at, x[left], 2 if len(left) >= 4 else 1)[-1]
+        b = np.polyfit(right - at, x[right], 2 if len(right) >= 4 else 1)[-1]
+        gap[k] = float(np.linalg.norm(a - b))
+    ok = np.isfinite(gap)
+    scale = 1.4826 * float(np.median(gap[ok])) if ok.sum() >= 5 else floor_m
+    bound = max(JUMP_SIGMA * scale, floor_m)
+    g = np.nan_to_num(gap, nan=0.0)
+    peak = (g >= np.r_[0.0, g[:-1]]) & (g >= np.r_[g[1:], 0.0])
+    return (g > bound) & peak, bound
+
+
+def _stretches(have: np.ndarray, jump: np.ndarray) -> list[np.ndarray]:
+    """Runs of frames with a position, cut before each break and at gaps of more than MAX_GAP frames."""
+    idx = np.flatnonzero(have)
+    out, cur = [], []
+    for k in idx:
+        if cur and (k - cur[-1] > MAX_GAP or jump[k]):
+            out.append(np.array(cur))
+            cur = []
+        cur.append(k)
+    if cur:
+        out.append(np.array(cur))
+    return out
+
+
+def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (F,) how many of marker m's segment distances were checked and how many failed."""
+    part = seg.partner[m]
+    ok = part >= 0
+    part, length, sigma = part[ok], seg.length[m][ok], seg.sigma[m][ok]
+    if not len(part):
+        return np.zeros(len(X), int), np.zeros(len(X), int)
+    d = np.linalg.norm(X[:, part] - X[:, m, None], axis=-1)  # (F, K)
+    both = have[:, part] & have[:, m, None]
+    bad = both & (np.abs(d - length) > SEGMENT_SIGMA * sigma)
+    return both.sum(axis=1), bad.sum(axis=1)
+
+
+def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments,
+            noise_m: float = 0.0) -> np.ndarray:
+    """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
+    seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
+    jump bound's floor is at least 3 times it; see module docstring)."""
+    F, L = have.shape
+    keep = np.zeros((F, L), bool)
+    for m in range(L):
+        if not have[:, m].any():
+            continue
+        jump, bound = _jumps(X[:, m], have[:, m], max(JUMP_FLOOR_M, 3 * noise_m))
+        parts = _stretches(have[:, m], jump)
+        checks, fails = _segment_counts(X, have, seg, m)
+        good = []
+        for p in parts:
+            n, bad = int(checks[p].sum()), int(fails[p].sum())
+            good.append(bool(seed[p, m].any()) or (n >= MIN_CHECKS and bad <= MAX_FAIL * n))
+        changed = True
+        while changed:  # continuity carries a name from a vouched stretch to its neighbours
+            changed = False
+            for i, p in enumerate(parts):
+                if good[i]:
+                    continue
+                for j in (i - 1, i + 1):
+                    later = parts[max(i, j)] if 0 <= j < len(parts) else None
+                    if (later is not None and not jump[later[0]] and good[j]
+                            and _continues(X[:, m], parts[j], p, bound)):
+                        good[i] = changed = True
+                        break
+        for p, g in zip(parts, good, strict=True):
+            keep[p, m] = g
+    return keep
+
+
+def _continues(x: np.ndarray, a: np.ndarray, b: np.ndarray, bound: float) -> bool:
+    """Whether stretch b follows stretch a (or precedes it) without a jump: a's nearest end extrapolated linearly
+    over the gap lands within bound (plus 2 mm per frame of gap) of b's nearest end."""
+    if a[-1] < b[0]:
+        end, start, gap = a[-2:] if len(a) >= 2 else a[-1:], b[0], b[0] - a[-1]
+    else:
+        end, start, gap = a[:2][::-1] if len(a) >= 2 else a[:1], b[-1], a[0] - b[-1]
+    if len(end) == 2:
+        v = (x[end[1]] - x[end[0]]) / (end[1] - end[0])
+        guess = x[end[1]] + v * (start - end[1])
+    else:
+        guess = x[end[0]]
+    return float(np.linalg.norm(x[start] - guess)) <= bound + 0.002 * gap

@@ -1,0 +1,81 @@
+#!/usr/bin/env python3
+"""Association on real labelled data with its identities stripped: how many detections get their own name back.
+
+* Pose2Sim demo (4 cameras, OpenPose keypoints of a balancing human, 60 fps): ``batgraph import pose2sim``.
+* Caliscope (4 webcams, ChArUco corners of a board moved by hand; its frames are sync indices, not every one
+  of which holds corners): a session from its corners and calibration (tests/real_dlt.py's loader).
+
+Each: the observations without their markers become detections.csv, the frame where the most markers are seen by
+three cameras or more (nearest the middle) is the seed, ``associate_session`` names the rest; printed: the scores
+of batgraph.associate.score. Needs ../shared/data/real. Usage: ``python scripts/associate_real.py [--out DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+REAL = ROOT.parent / "shared" / "data" / "real"
+
+
+def pose2sim(out: Path) -> Path:
+    from batgraph.cli import main
+
+    base = REAL / "pose2sim_demo_4cam_human"
+    trial = base / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"
+    argv = ["import", "pose2sim", *sorted(str(p) for p in (trial / "pose-associated").iterdir()), "--calibration",
+            str(base / "S00_Calibration" / "Calib_qualisys.toml"), "--fps", "60", "--out", str(out), "--force"]
+    assert main(argv) == 0
+    return out
+
+
+def caliscope(out: Path) -> Path:
+    import real_dlt
+
+    from batgraph.session import Session, write_session
+
+    rig, obs, _ = real_dlt.load_caliscope()
+    write_session(Session("caliscope", 30.0, rig, obs, pixel_sigma_px=None), out)
+    return out
+
+
+def relabel(labelled: Path, work: Path) -> dict:
+    from batgraph.associate import associate_session, scenes, score
+    from batgraph.session import read_session
+
+    session = read_session(labelled)
+    sc = scenes.strip_labels(session)
+    scenes.write_scene(session, sc, work)
+    t0 = time.perf_counter()
+    _, labels, fig = associate_session(work)
+    wall = time.perf_counter() - t0
+    r = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), session.fps,
+                    len(session.markers))
+    return {"seconds": wall, "pixel_sigma_px": fig.summary["pixel_sigma_px"], **r}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", help="keep the sessions here (default: a temporary folder)")
+    args = p.parse_args(argv)
+    if not REAL.is_dir():
+        print(f"{REAL}: not found", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.out) if args.out else Path(tmp)
+        for name, make in (("pose2sim", pose2sim), ("caliscope", caliscope)):
+            r = relabel(make(work / name), work / f"{name}_stripped")
+            print(name, " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()),
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

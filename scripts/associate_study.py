@@ -1,0 +1,101 @@
+#!/usr/bin/env python3
+"""Association measured on simulated scenes with known labels: both generators, several seeds.
+
+Per case: a simulated session (batgraph.simulate.simulate_flight or batgraph.wingbeat.simulate_wingbeat) becomes a
+detections session (batgraph.associate.scenes: labels stripped, spurious blobs, merged blobs, one seed frame),
+``batgraph associate`` names it, the names are scored against the truth (batgraph.associate.score), and
+``batgraph reconstruct --methods smoother`` runs on the recovered labels and on the true labels (the real, unmerged
+detections), for the RMSE on observed points against truth.csv. Prints one line per case and the medians.
+
+Usage: ``python scripts/associate_study.py [--scenes flight24,wingbeat] [--seeds 0,1,2] [--out DIR]
+[--no-smoother]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from batgraph.associate import associate_session, scenes, score, write_associated  # noqa: E402
+from batgraph.cli import main  # noqa: E402
+from batgraph.session import write_session  # noqa: E402
+from batgraph.simulate import simulate_flight  # noqa: E402
+from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
+
+
+def simulate(scene: str, seed: int):
+    """The simulated session of a case: 'flightN' (N markers, 160 frames) or 'wingbeat' (14 markers, 72 frames)."""
+    rng = np.random.default_rng(seed)
+    if scene.startswith("flight"):
+        return simulate_flight(rng, n_markers=int(scene[6:] or 14), n_frames=160, pixel_sigma_px=1.0)
+    return simulate_wingbeat(rng, pixel_sigma_px=1.0)
+
+
+def smoother_rmse(session_dir: Path, out: Path) -> float:
+    """The smoother's RMSE on observed points against truth.csv [m]."""
+    rc = main(["reconstruct", str(session_dir), "--methods", "smoother", "--viewer", "none", "--quiet", "--out",
+               str(out)])
+    if rc != 0:
+        return float("nan")
+    return json.loads((out / "summary.json").read_text())["methods"]["smoother"]["truth"]["rmse_m"]["observed"]
+
+
+def run_case(scene: str, seed: int, work: Path, with_smoother: bool) -> dict:
+    session = simulate(scene, seed)
+    sc = scenes.make_scene(session, np.random.default_rng(1000 + seed), scenes.SceneOptions())
+    case = work / f"{scene}_{seed}"
+    scenes.write_scene(session, sc, case / "input")
+    t0 = time.perf_counter()
+    obs, labels, fig = associate_session(case / "input")
+    wall = time.perf_counter() - t0
+    write_associated(case / "input", case / "associated", obs, labels, fig)
+    figures = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), session.fps,
+                          len(session.marker_names))
+    row = {"scene": scene, "seed": seed, "associate_s": wall, **figures}
+    if with_smoother:
+        real = (sc.truth["kind"] == "marker").to_numpy()
+        true_obs = sc.detections[real].assign(marker=sc.truth["marker"][real].to_numpy(), weight=1.0)
+        session.observations = true_obs[["frame", "camera", "marker", "u", "v", "weight"]].reset_index(drop=True)
+        write_session(session, case / "true_labels")
+        row["rmse_true_mm"] = 1e3 * smoother_rmse(case / "true_labels", case / "true_labels" / "out")
+        row["rmse_recovered_mm"] = 1e3 * smoother_rmse(case / "associated", case / "associated" / "out")
+        row["rmse_ratio"] = row["rmse_recovered_mm"] / row["rmse_true_mm"]
+    return row
+
+
+def main_study(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", default="flight24,wingbeat")
+    p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--out", help="keep the case folders here (default: a temporary folder)")
+    p.add_argument("--no-smoother", action="store_true", help="skip the two reconstructs per case")
+    args = p.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.out) if args.out else Path(tmp)
+        for scene in args.scenes.split(","):
+            for seed in (int(s) for s in args.seeds.split(",")):
+                row = run_case(scene, seed, work, not args.no_smoother)
+                rows.append(row)
+                print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+                      flush=True)
+    table = pd.DataFrame(rows)
+    cols = [c for c in ("real_correct", "real_wrong", "real_unnamed", "switches_per_100_marker_s", "spurious_unnamed",
+                        "merged_unnamed", "rmse_ratio", "associate_s") if c in table]
+    print("\nmedians over seeds:")
+    print(table.groupby("scene")[cols].median().to_string(float_format=lambda x: f"{x:.4g}"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_study())
