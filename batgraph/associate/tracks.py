@@ -52,9 +52,7 @@ class TrackOptions:
     segment evidence [nats] that places a marker without a prediction; learn: learn steady distances as segments;
     volume_m3, range_m: the marker set's box [m^3] and size [m] (clutter is uniform in them, :func:`extent`);
     noise_m: the points' position noise [m] (the floor of the predictions' and segments' stds); segment_lengths:
-    {(a, b): length [m]} of the declared segments where the seed placed both markers; register, rescue: use
-    non-rigid registration (batgraph.associate.cpd) instead of, or after, the rounds (measured worse: off);
-    beta_m: its smoothness length [m]."""
+    {(a, b): length [m]} of the declared segments where the seed placed both markers."""
 
     accel_psd_m2_s3: float = 50.0
     q_min: float = 1.0
@@ -70,11 +68,8 @@ class TrackOptions:
     learn: bool = True
     volume_m3: float = 0.3 ** 3
     range_m: float = 0.3
-    register: bool = False
     noise_m: float = 0.0
     segment_lengths: dict | None = None
-    rescue: bool = False
-    beta_m: float = 0.05
 
 
 @dataclass
@@ -332,10 +327,7 @@ def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt:
                     np.zeros((0, 3, 3)), L)
         if f in seeds:
             _place_seed(tg, fr, seeds[f], geom, dets, out, k, opt, flow)
-        if opt.register:
-            _register(tg, fr, seg, out, k, before, opt, flow)
-        else:
-            _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
+        _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
         used = np.concatenate([fr.views[fr.taken].ravel(), out.views[k][fr.assigned].ravel()])
         joined = _join(geom, tg, fr, dets, f, used[used >= 0], out, k, opt)
         idle = tg.alive & ~fr.assigned & ~joined
@@ -406,8 +398,6 @@ def _rounds(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
                         flow)
         if rnd > 0 and not len(lab):
             break
-    if opt.rescue:
-        _rescue(tg, fr, seg, out, k, x0, P0, before, opt, flow, patch)
     idle = ~fr.assigned  # a marker left unassigned keeps its corrected position but not the shrunk covariance
     tg.P[idle] = P0[idle]
     anchored = patch[0][tg.alive[patch[0]] & idle[patch[0]]]  # ... and a coasting one follows its neighbours
@@ -416,84 +406,6 @@ def _rounds(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
         tg.update(anchored, patch[1][at], patch[2][at], x0[anchored], P0[anchored], np.zeros(len(anchored), bool))
 
 
-def _rescue(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int, x0: np.ndarray, P0: np.ndarray,
-            before: tuple[np.ndarray, np.ndarray], opt: TrackOptions, flow: np.ndarray | None,
-            patch: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
-    """The markers the rounds left unassigned, found by registering the whole configuration to the frame's points
-    (non-rigid Coherent Point Drift, batgraph.associate.cpd): the assigned markers sit on their points and pin the
-    field, the others start where their patch or filter puts them (a lost one where it was last). Then the least
-    cost hard assignment of those to the free points at their registered positions, a link kept when the next-best
-    assignment is worse by 2 ambiguity in chi-square and no segment to a placed partner is off by more than
-    SEGMENT_SIGMA stds."""
-    from .cpd import register
-
-    rest = np.flatnonzero(~fr.assigned & (tg.last > -10 ** 8))
-    free = np.flatnonzero(~fr.taken)
-    if not len(rest) or not len(free):
-        return
-    anchor = np.flatnonzero(fr.assigned)
-    start = tg.x[rest, :3].copy()
-    at = {int(m): i for i, m in enumerate(patch[0])}
-    for j, m in enumerate(rest):
-        if int(m) in at:
-            start[j] = patch[1][at[int(m)]]
-    Y = np.concatenate([fr.placed[anchor], start])
-    X = np.concatenate([fr.placed[anchor], fr.xyz[free]])
-    R = fr.R[free]
-    noise2 = float(np.median(np.trace(R, axis1=1, axis2=2))) / 3
-    weight = np.r_[np.ones(len(anchor)), np.minimum(np.exp(fr.prior[free] + PAIR_PRIOR / 2), 1.0)]
-    reg = register(Y, X, opt.beta_m, min_sigma2=noise2 + REGISTER_FLOOR_M ** 2, weight=weight)
-    moved = reg.moved[len(anchor):]
-    m = mahalanobis(fr.xyz[free][None] - moved[:, None], reg.sigma2 * np.eye(3)[None, None] + R[None])
-    rows, cols, margin = assign(np.where(m < CHI2_3DOF_GATE, m, np.inf), CHI2_3DOF_GATE, 2 * opt.ambiguity, True)
-    sure = np.flatnonzero(margin >= 2 * opt.ambiguity)
-    sure, views = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
-    lab = rest[rows[sure]]
-    ok = _segments_hold(seg, lab, fr.xyz[free[cols[sure]]], fr.placed)
-    if ok.any():
-        sure, views, lab = sure[ok], views[ok], lab[ok]
-        steady = tg.alive[lab] & (np.abs(k - tg.last[lab]) == 1)
-        _commit(tg, fr, lab, free[cols[sure]], views, margin[sure] / 2, out, k, x0, P0, steady, before, opt, flow)
-
-
-def _register(tg: _Targets, fr: _Frame, seg: seg_mod.Segments, out: Sweep, k: int,
-              before: tuple[np.ndarray, np.ndarray], opt: TrackOptions, flow: np.ndarray | None) -> None:
-    """Assign the frame's points to the markers by registering the predicted configuration to them (non-rigid
-    Coherent Point Drift, batgraph.associate.cpd), then the least-cost hard assignment at the registered positions
-    (a link kept when the next-best assignment is worse by 2 ambiguity in chi-square and no segment to an assigned
-    partner is off by more than SEGMENT_SIGMA stds); a marker left without a point follows the field."""
-    from .cpd import register
-
-    act = np.flatnonzero(tg.alive & ~fr.assigned)
-    free = np.flatnonzero(~fr.taken)
-    if not len(act) or not len(free):
-        return
-    x0, P0 = tg.x.copy(), tg.P.copy()
-    z, R = fr.xyz[free], fr.R[free]
-    noise2 = float(np.median(np.trace(R, axis1=1, axis2=2))) / 3 if len(R) else 1e-6
-    weight = np.exp(fr.prior[free] + PAIR_PRIOR / 2)
-    weight = np.minimum(weight, 1.0)
-    reg = register(tg.x[act, :3], z, opt.beta_m, min_sigma2=noise2 + REGISTER_FLOOR_M ** 2, weight=weight)
-    S = reg.sigma2 * np.eye(3)[None, None] + R[None]
-    m = mahalanobis(z[None] - reg.moved[:, None], S)
-    gate = CHI2_3DOF_GATE
-    rows, cols, margin = assign(np.where(m < gate, m, np.inf), gate, 2 * opt.ambiguity, True)
-    sure = np.flatnonzero(margin >= 2 * opt.ambiguity)
-    sure, views = _disjoint(fr.views[free[cols[sure]]], margin[sure], sure)
-    lab = act[rows[sure]]
-    ok = _segments_hold(seg, lab, z[cols[sure]], fr.placed)
-    sure, views, lab = sure[ok], views[ok], lab[ok]
-    if len(lab):
-        steady = np.abs(k - tg.last[lab]) == 1
-        _commit(tg, fr, lab, free[cols[sure]], views, margin[sure] / 2, out, k, x0, P0, steady, before, opt, flow)
-    rest = np.setdiff1d(act, lab)
-    if len(rest):  # a marker without a point follows the field (a pseudo-measurement: the filter stays anchored)
-        at = np.searchsorted(act, rest)
-        tg.update(rest, reg.moved[at], np.tile(reg.sigma2 * np.eye(3), (len(rest), 1, 1)) + P0[rest, :3, :3] * 0.25,
-                  x0[rest], P0[rest], np.zeros(len(rest), bool))
-
-
-REGISTER_FLOOR_M = 0.002  # [m] the registration's least std above the points' own noise
 SEGMENT_SIGMA = 4.0
 
 
