@@ -695,6 +695,9 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     if not obs_path.exists() and (folder / "observations.parquet").exists():
         obs_path = folder / "observations.parquet"
     if not obs_path.exists():
+        if any((folder / f"detections.{ext}").exists() for ext in ("csv", "parquet")):
+            raise InputError(f"{obs_path}: file not found; the folder holds unlabelled detections: name them first "
+                             f"with `batgraph associate {folder}` (docs/associate.md)")
         raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
     observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path))
     sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})

@@ -55,6 +55,8 @@ def test_spurious_blobs_stay_unnamed(tmp_path):
 
 def test_cli_associate_writes_a_session_reconstruct_takes(tmp_path, capsys):
     folder, sc = detections_folder(tmp_path)
+    assert main(["reconstruct", str(folder), "--viewer", "none", "--quiet"]) == 2  # unlabelled: associate first
+    assert "batgraph associate" in capsys.readouterr().err
     out = tmp_path / "associated"
     assert main(["associate", str(folder), "--out", str(out)]) == 0
     labels = pd.read_csv(out / "labels.csv", keep_default_na=False)
