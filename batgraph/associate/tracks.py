@@ -3,20 +3,14 @@ each frame's points (batgraph.associate.views) are assigned to the markers by mo
 
 A marker's state is a constant-velocity Kalman filter (batgraph.motion's F and Q) whose acceleration noise adapts
 to its own innovations. On each frame, in rounds, as the joint assignment of greatest total log likelihood ratio
-against clutter (batgraph.associate.assignment):
-
-1. markers tracked up to the frame before (velocity from MATURE points) are assigned by motion alone; every other
-   marker with a prediction competes for the points, but its links wait;
-2. then, repeatedly, the rest are predicted from their neighbours (:func:`_coherent` for markers seen on the frame
-   before, :func:`patch_shift` across longer gaps: a wing's markers move together) and assigned by that plus
-   their segments to the partners placed so far (batgraph.associate.segments).
-
+against clutter (batgraph.associate.assignment): first the markers tracked up to the frame before, by motion
+alone; then, repeatedly, the rest, predicted from their neighbours (:func:`_coherent`, :func:`patch_shift`: a
+wing's markers move together) and their segments to the partners placed so far (batgraph.associate.segments).
 A link is kept when the next-best assignment is worse by ``ambiguity`` nats and its own evidence is ``min_llr`` or
-more; where two are nearly as good the marker stays unassigned on that frame (its track splits) rather than risk a
-swap. A marker without a point takes lone detections along its predicted rays where that prediction is sharp
-(``join_max_px``); one that finds nothing coasts, and is lost after ``max_miss`` frames or when its position std
-passes ``max_std_m``; its neighbours find it again. In large rigs the points come from the markers' predictions
-(views.projected_points) and go to the marker that found them (:func:`_take_sources`).
+more; else the marker stays unassigned on that frame (its track splits) rather than risk a swap. A marker without a
+point takes lone detections along its predicted rays where that prediction is sharp (``join_max_px``); one that
+finds nothing coasts, and is lost after ``max_miss`` frames or past ``max_std_m``. In large rigs the points come
+from the markers' predictions (views.projected_points) and go to the marker that found them.
 """
 
 from __future__ import annotations

@@ -8,8 +8,7 @@
 4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds solve only
    the markers whose exclusions changed, with their segment groups). The first starts from a solve with the
    segments SEGMENT_RELAX times softer: from the segment-free solution a single-view track end can lie nearer
-   the far one of the two depths a segment allows, and stiff segments hold it there (flight seed 2: 24 mm off
-   on frames seen twice, their views rejected as outliers).
+   the far one of the two depths a segment allows, where stiff segments would hold it.
 5. The covariances where the data do not pin a point (batgraph.solver.ends); flags |r|^2 > 13.8155.
 Variables shared by every marker (``--sync estimate``, ``--refine-rig``, pose covariances; batgraph.solver.shared)
 are first estimated at the cleaning solve, steps 2-4 run with them, and the last solve estimates them jointly.

@@ -9,10 +9,9 @@ Segments join markers, so a connected group of markers is solved as one column: 
 members' states stacked (n = g d values), block tridiagonal in frames with block-diagonal sub-diagonal blocks
 (each member's own motion), and the s lengths border it, H = [[T, C], [C^T, E]]. The step is the Schur complement
 on the lengths, [z, W] = T^-1 [r_x, C], dL = (E - C^T W)^-1 (r_L - C^T z), dx = z - W dL; the marginals stay exact,
-Sigma_x = T^-1 + W S^-1 W^T (diagonal blocks), cov(L) = S^-1, log det H = log det T + log det S. The exact
-curvature (an accepted step's next) adds |p_a - p_b|'s own, (r / sigma) (I - u u^T) / |p_a - p_b|, which
-Gauss-Newton leaves out: across the segment it is all the curvature a single-view marker at a track end has
-besides its weak motion prior (without it the last iterations converge linearly).
+Sigma_x = T^-1 + W S^-1 W^T (diagonal blocks), cov(L) = S^-1, log det H = log det T + log det S. Near the minimum
+the curvature adds |p_a - p_b|'s own, (r / sigma) (I - u u^T) / |p_a - p_b| (Gauss-Newton leaves it out; for a
+single-view marker at a track end it is all the curvature across the segment besides the weak motion prior).
 """
 
 from __future__ import annotations
