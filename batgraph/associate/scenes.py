@@ -9,11 +9,13 @@ click it. All randomness comes from the ``np.random.Generator`` passed in. Score
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from ..session import Session
+from ..formats.csv_text import write_csv
+from ..session import Session, write_session
 
 BLOB_AREA_PX2 = 8.0  # a marker blob of ~3 px across (5 mm at 1 m, 640 px focal length)
 NEAR_FRACTION = 0.5  # spurious blobs inside the bat's box in the image (reflections on it); the rest anywhere
@@ -135,11 +137,6 @@ def write_scene(session: Session, scene: Scene, folder) -> None:
     """A session folder of the scene as a user would have it: session.toml, calibration.toml, detections.csv,
     seed_labels.csv, truth.csv (the 3D truth) and truth_labels.csv (each detection's true marker and kind, in
     detections.csv's order)."""
-    from pathlib import Path
-
-    from ..formats.csv_text import write_csv
-    from ..session import write_session
-
     folder = Path(folder)
     write_session(session, folder)
     (folder / "observations.csv").unlink()
