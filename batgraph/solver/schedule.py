@@ -107,7 +107,8 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     t0 = time.perf_counter()
     motion = motion_choice(session, options)
     fps, rig = session.fps, session.rig
-    p_init, v_init, estimated = initial_track(dlt_points(rig, ideal), fps)
+    triangulated = dlt_points(rig, ideal)
+    p_init, v_init, estimated = initial_track(triangulated, fps)
     C, F, M = ideal.seen.shape
     reject = options.outlier_rejection and options.robust != "none"
     info = {"solver": backend.name, "motion_model": motion.name, "robust": options.robust, "robust_k": options.robust_k,
@@ -124,8 +125,8 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
         cleaning_q = causal_accel_psd(session.motion, fps)
         excluded, start, theta, spec, info["cleaning"] = _clean(base, backend, motion, cleaning_q, spec, reject)
         setup = shared.applied(base, spec, theta)
-    models, levels, start, figures = _choose(setup.without(excluded), backend, motion, start, options.progress,
-                                             dense.markers)
+    models, levels, start, figures = _choose(setup.without(excluded), backend, motion, start,
+                                             flapping_floor(triangulated, fps), options.progress, dense.markers)
     info.update(figures)
     fit, excluded, rounds, stable = _final(setup, backend, models, levels, start, excluded, reject)
     if spec.n:
@@ -161,12 +162,13 @@ def shared_variables(session: Session, options: Options) -> shared.Shared:
 
 
 def flapping_floor(xyz_m: np.ndarray, fps: float) -> float:
-    """The least constant-velocity q [m^2/s^3] of a marker on an animal that flaps (0 when the tracks (F, M, 3) [m]
-    do not move periodically, batgraph.motion.wingbeat_peak): that of the heave of a body whose lift swings by one
-    body weight over the stroke, amplitude g / w^2 at the wingbeat w = 2 pi f, whose acceleration taken as white
-    over a band ~w wide gives q ~ (g / w^2)^2 w^3 = g^2 / w (3.8 at 4 Hz, 1.0 at 15 Hz). A body bobbing by less
-    than the pixel noise otherwise gets a straight track whose ellipsoids miss it (the ablation's dorsal scene:
-    observed points 97.0 % covered with it, 81.4 % without)."""
+    """The least constant-velocity q [m^2/s^3] of a marker on an animal that flaps (0 when the triangulated tracks
+    (F, M, 3) [m], NaN where not triangulated, do not move periodically, batgraph.motion.wingbeat_peak; the
+    smoother's own tracks, extrapolated through gaps and ends, hid the peak of a dorsal-marker scene): that of the
+    heave of a body whose lift swings by one body weight over the stroke, amplitude g / w^2 at the wingbeat
+    w = 2 pi f, whose acceleration taken as white over a band ~w wide gives q ~ (g / w^2)^2 w^3 = g^2 / w (3.8 at
+    4 Hz, 1.0 at 15 Hz). A body bobbing by less than the pixel noise otherwise gets a straight track whose
+    ellipsoids miss it (the dorsal scene: observed points 97.0 % covered with it, 81.4 % without)."""
     peak = wingbeat_peak(xyz_m, fps)
     if peak is None or peak[1] < WINGBEAT_PROMINENCE:
         return 0.0
@@ -278,8 +280,9 @@ class _NoCovariances:
         return self.backend.fit(setup, models, levels, start, lm.LOOSE, False, False)
 
 
-def _choose(setup, backend, motion, start, progress, names) -> tuple:
-    """Step 3: (models (M,), levels (M,), the final solves' start, figures for summary.json)."""
+def _choose(setup, backend, motion, start, floor, progress, names) -> tuple:
+    """Step 3: (models (M,), levels (M,), the final solves' start, figures for summary.json); floor: the least
+    constant-velocity q chosen from the data [m^2/s^3] (:func:`flapping_floor`)."""
     name, sigma_m, q = motion
     estimated = setup.estimated
     M = len(estimated)
@@ -292,11 +295,10 @@ def _choose(setup, backend, motion, start, progress, names) -> tuple:
     groups = [members for members, _ in segments.groups(setup.pairs, estimated)]
     choice = backend.choose(setup, start, candidates, groups, progress)
     models = np.where(estimated, choice.model, None)
-    figures = _choice_figures(choice, models, names, candidates)
-    floor = flapping_floor(start[0], setup.fps)
     raised = (models == "constant_velocity") & (choice.level < floor)
+    choice.level[raised] = floor
+    figures = _choice_figures(choice, models, names, candidates)
     if raised.any():
-        choice.level[raised] = floor
         figures["accel_psd_floor"] = {"accel_psd_m2_s3": floor, "markers": [names[m] for m in np.flatnonzero(raised)]}
     x = np.full(start[0].shape[:2] + (9,), np.nan)
     for n in candidates:  # the search's solutions at the chosen models and levels: the final solves' start
