@@ -956,6 +956,13 @@ def _camera_table_section(r: _Report) -> str:
            + _paper_table(experiment) if experiment else ""))
 
 
+def _ms95(value_s, sd_s) -> str:
+    """A time [s] and its standard deviation as "x.xx ± 1.96 sd" in ms; "—" when the check could not tell."""
+    if value_s is None or sd_s is None or not np.isfinite(value_s) or not np.isfinite(sd_s):
+        return "—"
+    return f"{value_s * 1e3:+.2f} ± {1.96 * sd_s * 1e3:.2f}"
+
+
 def _rig_section(summary: Summary) -> str | None:
     """The timing and poses the smoother estimated (--sync estimate, --refine-rig), and the timing self-check;
     None when the run has neither."""
@@ -977,9 +984,10 @@ def _rig_section(summary: Summary) -> str | None:
                    + _table(["camera", "time offset [ms]", "readout [ms]", "rotation moved [deg]",
                              "translation moved [mm]"], rows))
     if checked:
-        rows = [[html.escape(str(c["camera"])), f"{c['step_s'] * 1e3:+.2f} ± {1.96 * c['step_sd_s'] * 1e3:.2f}",
-                 f"{c['readout_s'] * 1e3:.2f} ± {1.96 * c['readout_sd_s'] * 1e3:.2f}",
-                 "out of step" if c["flagged"] else ("rolling shutter" if c["rolling"] else "")] for c in checked]
+        rows = [[html.escape(str(c["camera"])), _ms95(c.get("step_s"), c.get("step_sd_s")),
+                 _ms95(c.get("readout_s"), c.get("readout_sd_s")),
+                 "out of step" if c.get("flagged") else ("rolling shutter" if c.get("rolling") else "")]
+                for c in checked]
         out.append('<p class="note">The timing self-check (no estimation): each camera\'s residuals regressed on '
                    "the markers' image velocity, against the median camera (its step) and growing with the image "
                    "row (a readout beyond calibration.toml's), ± 95 %. A camera named here warns: run with --sync "
