@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install demo test bench study coverage realdata samples lint clean
+.PHONY: install demo test bench ablation study coverage realdata samples lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -32,8 +32,12 @@ bench: install
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
 	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib
 
-## study: the accuracy study (writes docs/accuracy.md)
-study: install
+## ablation: the smoother's post-solve steps and floors switched off one at a time (writes docs/ablation.md)
+ablation: install
+	$(BIN)/python scripts/ablation.py
+
+## study: the ablation, then the accuracy study (writes docs/accuracy.md, with the ablation's summary)
+study: ablation
 	$(BIN)/python scripts/accuracy_study.py
 
 ## coverage: the default smoother's 95 % coverage by status and span pooled over seeds 1-10 (docs/coverage_seeds.md)
