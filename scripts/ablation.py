@@ -69,6 +69,10 @@ def _no_view_floor(solve, setup, fit, rays, u, units) -> np.ndarray:
     return np.zeros(len(u))
 
 
+def _exclude_none(rejected: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    return np.zeros_like(rejected)
+
+
 def _no_widening(setup, backend, models, levels, fit) -> tuple[np.ndarray, dict]:
     return fit.cov, {}
 
@@ -96,6 +100,8 @@ VARIANTS = (
             ((ends, "_no_view_variances", _no_view_floor),)),
     Variant("no_rejection", "5. no outlier-rejection schedule (Options.outlier_rejection=False)",
             options=(("outlier_rejection", False),)),
+    Variant("no_exclusion", "5'. the rejection schedule's cleaning solve kept, nothing excluded (schedule.to_exclude "
+            "returns none)", ((schedule, "to_exclude", _exclude_none),)),
     Variant("no_segment_relax", "6. no softer first solve with the segments (schedule.SEGMENT_RELAX = 1)",
             ((schedule, "SEGMENT_RELAX", 1.0),)),
     Variant("bare", "7. steps 2-4 off together (ends.widen returns the solve's covariances)",
@@ -345,7 +351,7 @@ SCENES = (
           lambda s: simulate_flight(np.random.default_rng(s), n_cameras=5)),
     Scene("flight5_out", "`simulate_flight(n_cameras=5, outlier_rate=0.05)` (same seeds as flight5)",
           lambda s: simulate_flight(np.random.default_rng(s), n_cameras=5, outlier_rate=0.05),
-          ("default", "no_rejection", "no_segment_relax")),
+          ("default", "no_rejection", "no_exclusion", "no_segment_relax")),
     Scene("wingbeat", "`simulate_wingbeat(flight=\"straight\", n_cameras=5, fps=120, n_frames=72, flap_hz=10, "
           "pixel_sigma_px=1)`", _wb(flight="straight", n_cameras=5, fps=120.0, n_frames=72, flap_hz=10.0,
                                     pixel_sigma_px=1.0)),
