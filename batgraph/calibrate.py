@@ -846,10 +846,15 @@ def gauge_note(gauge_name: str, ref_name: str, scale_source: str) -> str:
             f"pose_covariance: relative to camera {ref_name!r}")
 
 
+def aligned_rig(rig: Rig, target: Rig) -> Rig:
+    """``rig`` moved onto ``target`` by the similarity fit over camera centres and orientations: what the images
+    cannot observe (world frame and scale) taken from ``target``, to compare two rigs or a rig with the truth."""
+    return _transform_rig(rig, *rig_gauge.fit_similarity(*_rig_arrays(rig), *_rig_arrays(target)))
+
+
 def _aligned_errors(rig: Rig, truth: Rig) -> list[tuple[float, float]]:
     """(position [mm], rotation [deg]) error of every camera after a similarity fit of ``rig`` to ``truth``."""
-    s, R, t = rig_gauge.fit_similarity(*_rig_arrays(rig), *_rig_arrays(truth))
-    moved = _transform_rig(Rig([Camera(c.name, c.size_wh, c.K, c.dist, c.rvec, c.tvec) for c in rig]), s, R, t)
+    moved = aligned_rig(rig, truth)
     return [(1000 * float(np.linalg.norm(a.center_world - b.center_world)), _angle_deg(a.R, b.R))
             for a, b in zip(moved, truth, strict=True)]
 

@@ -10,10 +10,11 @@ first moved onto the true rig by the similarity fit over camera centres and orie
 ``batgraph.geometry.gauge`` defines (images cannot observe the world frame and scale); "aligned pts" moves
 the smoother's observed points onto the truth by a similarity as well. Pose errors: every camera of a rig
 after the same similarity fit to the true rig. The same with the true rig as the written calibration
-(an exact input must not be made worse). Prints markdown tables; takes ~25 min on 2 cores.
+(an exact input must not be made worse). The same for `reconstruct --refine-rig` (the poses refined jointly with
+the trajectories; its OUT/rig.toml against the true rig). Prints markdown tables; takes ~30 min on 2 cores.
 
     python scripts/calibration_study.py [--seeds 1 2 3] [--generators wingbeat flight] [--work DIR]
-        [--rot-deg 0.5] [--trans-mm 5] [--frames 72] [--json FILE] [--tables FILE]
+        [--rot-deg 0.5] [--trans-mm 5] [--frames 72] [--refine-rig-only] [--json FILE] [--tables FILE]
 """
 
 from __future__ import annotations
@@ -33,9 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from batgraph import evaluate  # noqa: E402
-from batgraph.calibrate import write_calibration  # noqa: E402
-from batgraph.camera import Camera, Rig  # noqa: E402
-from batgraph.geometry import gauge, pose  # noqa: E402
+from batgraph.calibrate import aligned_rig, write_calibration  # noqa: E402
+from batgraph.camera import Rig  # noqa: E402
+from batgraph.geometry import pose  # noqa: E402
 from batgraph.session import read_calibration, write_session  # noqa: E402
 from batgraph.simulate import perturb_rig, simulate_flight  # noqa: E402
 from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
@@ -66,31 +67,16 @@ def cli(*args) -> subprocess.CompletedProcess:
     return r
 
 
-def arrays(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
-    return np.stack([c.R for c in rig]), np.stack([c.tvec for c in rig])
-
-
-def aligned(rig: Rig, truth: Rig) -> Rig:
-    """``rig`` moved by the similarity fit of its cameras onto ``truth``'s (covariances scaled along)."""
-    s, R, t = gauge.fit_similarity(*arrays(rig), *arrays(truth))
-    cams = []
-    for c in rig:
-        Rc, tc = pose.similarity_cam_from_world(c.R, c.tvec, s, R, t)
-        cov = None if c.pose_cov is None else pose.similarity_pose_cov(c.pose_cov, s)
-        cams.append(Camera(c.name, c.size_wh, c.K, c.dist, pose.rvec_from_R(Rc), tc, cov))
-    return Rig(cams)
-
-
 def pose_errors(rig: Rig, truth: Rig) -> tuple[list[float], list[float]]:
-    a = aligned(rig, truth)
+    a = aligned_rig(rig, truth)
     return ([1000 * float(np.linalg.norm(x.center_world - y.center_world)) for x, y in zip(a, truth, strict=True)],
             [float(np.degrees(pose.rotation_angle(x.R, y.R))) for x, y in zip(a, truth, strict=True)])
 
 
-def smoother_rmse(folder: Path, calibration: Path, out: Path) -> dict:
+def smoother_rmse(folder: Path, calibration: Path, out: Path, *extra: str) -> dict:
     """RMSE on observed points [mm] from summary.json, after a point similarity too, and per-camera RMS px."""
     cli("reconstruct", folder, "--calibration", calibration, "--methods", "smoother", "--viewer", "none",
-        "--out", out, "--quiet")
+        "--out", out, "--quiet", *extra)
     m = json.loads((out / "summary.json").read_text())["methods"]["smoother"]
     est = pd.read_csv(out / "trajectories.csv")
     est = est[(est["method"] == "smoother") & (est["status"] == "observed")]
@@ -108,22 +94,35 @@ def smoother_rmse(folder: Path, calibration: Path, out: Path) -> dict:
             "reproj_ratio": max(rms) / min(rms)}
 
 
-def measure(generator: str, seed: int, work: Path) -> dict:
+def measure_refine_rig(s, folder: Path, tag: str, work: Path, row: dict) -> None:
+    """`reconstruct --refine-rig` (the poses refined jointly with the trajectories): the smoother's scores in the
+    user's frame and points aligned, and the poses of OUT/rig.toml against the truth."""
+    out = work / f"out_{folder.name}_refine_rig"
+    row[f"{tag}_joint"] = smoother_rmse(folder, folder / "calibration.toml", out, "--refine-rig")
+    row[f"{tag}_joint"]["pose"] = pose_errors(read_calibration(out / "rig.toml"), s.true_rig)
+
+
+def measure(generator: str, seed: int, work: Path, calibrate: bool = True) -> dict:
     row = {"generator": generator, "seed": seed}
     for exact in (False, True):
         s = scene(generator, seed, exact)
         tag = "exact" if exact else "wrong"
         folder = work / f"{generator}{seed}_{tag}"
         write_session(s, folder)
+        if not exact:
+            row["pose_before"] = pose_errors(s.rig, s.true_rig)
+            for label, cal in (("input", folder / "calibration.toml"), ("true", folder / "calibration_true.toml")):
+                row[label] = smoother_rmse(folder, cal, work / f"out_{generator}{seed}_{label}")
+        measure_refine_rig(s, folder, tag, work, row)
+        if not calibrate:
+            continue
         refined = folder / "refined.toml"
         r = cli("calibrate", folder, "--out", refined, "--quiet")
         row[f"{tag}_kept"] = "input rig, unchanged" in r.stdout
         written = read_calibration(refined)
         if not exact:
-            row["pose_before"], row["pose_after"] = pose_errors(s.rig, s.true_rig), pose_errors(written, s.true_rig)
-            for label, cal in (("input", folder / "calibration.toml"), ("true", folder / "calibration_true.toml")):
-                row[label] = smoother_rmse(folder, cal, work / f"out_{generator}{seed}_{label}")
-        write_calibration(folder / "refined_aligned.toml", aligned(written, s.true_rig))
+            row["pose_after"] = pose_errors(written, s.true_rig)
+        write_calibration(folder / "refined_aligned.toml", aligned_rig(written, s.true_rig))
         row[f"{tag}_refined"] = smoother_rmse(folder, folder / "refined_aligned.toml",
                                               work / f"out_{generator}{seed}_{tag}_refined")
     return row
@@ -134,8 +133,37 @@ def _median_row(rows: list[dict], cells) -> str:
     return " | ".join(f"{v:.2f}" for v in np.median(vals, axis=0))
 
 
+def joint_tables(rows: list[dict]) -> str:
+    """Markdown: `reconstruct --refine-rig`'s smoother RMSE (user's frame; points aligned), pose errors, exact
+    input."""
+    def cells(r):
+        t, j, e = r["true"], r["wrong_joint"], r["exact_joint"]
+        (pb, rb), (pa, ra) = r["pose_before"], j["pose"]
+        return [r["input"]["rmse_mm"], t["rmse_mm"], j["rmse_mm"], t["rmse_pts_mm"], j["rmse_pts_mm"],
+                j["rmse_pts_mm"] / t["rmse_pts_mm"], j["reproj_ratio"], np.median(np.divide(pb, pa)),
+                np.median(np.divide(rb, ra)), e["rmse_mm"] / t["rmse_mm"], e["rmse_pts_mm"] / t["rmse_pts_mm"]]
+
+    out = ["| scene | seed | input rig mm | true rig mm | --refine-rig mm | true, points aligned mm | --refine-rig, "
+           "points aligned mm | ratio | per-camera RMS worst / best | pose error ratio input / refined: position "
+           "| rotation | exact input: ratio | points aligned |", "|---|---|" + "---|" * 11]
+    for g in dict.fromkeys(r["generator"] for r in rows):
+        sub = [r for r in rows if r["generator"] == g]
+        for r in sub:
+            out.append(f"| {g} | {r['seed']} | " + " | ".join(f"{v:.2f}" for v in cells(r)) + " |")
+        out.append(f"| {g} | median | {_median_row(sub, cells)} |")
+    out += ["", "| scene | seed | position error mm, input -> --refine-rig | rotation error deg |", "|---|---|---|---|"]
+    for r in rows:
+        (pb, rb), (pa, ra) = r["pose_before"], r["wrong_joint"]["pose"]
+        out.append(f"| {r['generator']} | {r['seed']} | "
+                   + ", ".join(f"{a:.1f}->{b:.1f}" for a, b in zip(pb, pa, strict=True)) + " | "
+                   + ", ".join(f"{a:.2f}->{b:.2f}" for a, b in zip(rb, ra, strict=True)) + " |")
+    return "\n".join(out)
+
+
 def tables(rows: list[dict]) -> str:
     """Markdown: the smoother's RMSE (rig aligned by cameras; points aligned), pose errors, exact input."""
+    if "wrong_refined" not in rows[0]:
+        return joint_tables(rows)
     def rmse(r):
         i, t, f = r["input"], r["true"], r["wrong_refined"]
         return [i["rmse_mm"], t["rmse_mm"], f["rmse_mm"], f["rmse_mm"] / t["rmse_mm"], t["rmse_pts_mm"],
@@ -164,7 +192,7 @@ def tables(rows: list[dict]) -> str:
         out.append(f"| {r['generator']} | {r['seed']} | {'input' if r['exact_kept'] else 'refined'} | "
                    f"{r['exact_refined']['rmse_mm']:.2f} | {r['true']['rmse_mm']:.2f} | "
                    f"{r['exact_refined']['rmse_mm'] / r['true']['rmse_mm']:.3f} |")
-    return "\n".join(out)
+    return "\n".join(out) + "\n\n" + joint_tables(rows)
 
 
 def main() -> int:
@@ -177,6 +205,7 @@ def main() -> int:
     ap.add_argument("--rot-deg", type=float, default=ERROR["rot_deg"], help="cameras 2-5 turned by [deg]")
     ap.add_argument("--trans-mm", type=float, default=ERROR["trans_mm"], help="cameras 2-5 moved by [mm]")
     ap.add_argument("--frames", type=int, default=ERROR["frames"])
+    ap.add_argument("--refine-rig-only", action="store_true", help="only `reconstruct --refine-rig`, no calibrate")
     args = ap.parse_args()
     ERROR.update(rot_deg=args.rot_deg, trans_mm=args.trans_mm, frames=args.frames)
     if args.tables:
@@ -186,7 +215,7 @@ def main() -> int:
     rows = []
     for g in args.generators:
         for seed in args.seeds:
-            rows.append(measure(g, seed, work))
+            rows.append(measure(g, seed, work, calibrate=not args.refine_rig_only))
             print(f"{g} seed {seed}: done", file=sys.stderr, flush=True)
             if args.json:
                 args.json.write_text(json.dumps(rows, indent=1))

@@ -14,6 +14,7 @@ import pytest
 import real_dlt  # tests/real_dlt.py: the real data sets read once for every test
 
 from batgraph.calibrate import (
+    aligned_rig,
     calibrate_session,
     camera_pose_from_rigid,
     fit_five_parameter,
@@ -24,7 +25,6 @@ from batgraph.calibrate import (
 )
 from batgraph.camera import Camera, Rig
 from batgraph.errors import InputError
-from batgraph.geometry import gauge, pose
 from batgraph.measurement import ideal_observations
 from batgraph.session import Session, dense_observations, read_calibration
 from batgraph.simulate import simulate_flight
@@ -183,17 +183,6 @@ def test_flight_calibration_balances_cameras_and_recovers_poses(flight_5cam):
     assert 0.8 < rep["pixel_sigma_px"] < 1.2
 
 
-def _aligned(rig: Rig, truth: Rig) -> Rig:
-    """``rig`` moved onto ``truth`` by the similarity fit over camera centres and orientations (the gauge)."""
-    arrays = [np.stack([c.R for c in r]) for r in (rig, truth)], [np.stack([c.tvec for c in r]) for r in (rig, truth)]
-    s, R, t = gauge.fit_similarity(arrays[0][0], arrays[1][0], arrays[0][1], arrays[1][1])
-    cams = []
-    for c in rig:
-        Rc, tc = pose.similarity_cam_from_world(c.R, c.tvec, s, R, t)
-        cov = None if c.pose_cov is None else pose.similarity_pose_cov(c.pose_cov, s)
-        cams.append(Camera(c.name, c.size_wh, c.K, c.dist, pose.rvec_from_R(Rc), tc, cov))
-    return Rig(cams)
-
 
 def test_flight_calibration_restores_triangulation_accuracy(flight_5cam):
     """Triangulation RMSE with the calibrated rig, moved onto the true rig by a similarity (the world frame and
@@ -203,7 +192,7 @@ def test_flight_calibration_restores_triangulation_accuracy(flight_5cam):
     dense = dense_observations(s)
     truth = _truth_array(s, dense)
     rmse_true = _rmse_m(triangulate(s.true_rig, dense, 1.0)[0], truth)
-    rmse_cal = _rmse_m(triangulate(_aligned(rig, s.true_rig), dense, 1.0)[0], truth)
+    rmse_cal = _rmse_m(triangulate(aligned_rig(rig, s.true_rig), dense, 1.0)[0], truth)
     rmse_wrong = _rmse_m(triangulate(s.rig, dense, 1.0)[0], truth)
     assert rmse_cal < 1.1 * rmse_true
     assert rmse_wrong > 2 * rmse_true
@@ -216,7 +205,7 @@ def test_flight_covariances_are_written_and_plausible(flight_5cam, tmp_path):
     """
     s, rig, rep = flight_5cam
     assert rep["gauge"]["origin_axes"] == "input" and not rep["kept_input"]
-    for cam, cam_true in zip(_aligned(rig, s.true_rig), s.true_rig, strict=True):
+    for cam, cam_true in zip(aligned_rig(rig, s.true_rig), s.true_rig, strict=True):
         assert np.all(np.linalg.eigvalsh(cam.pose_cov) > 0)
         rot_err = cv2.Rodrigues(cam.R.T @ cam_true.R)[0].ravel()  # world_from_cam body-frame error
         assert np.abs(rot_err).max() < 4 * np.sqrt(np.diag(cam.pose_cov)[:3]).max()

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from batgraph.calibrate import calibrate_session
+from batgraph.calibrate import aligned_rig, calibrate_session
 from batgraph.camera import Camera, Rig
 from batgraph.errors import InputError
 from batgraph.geometry import gauge, pose
@@ -23,16 +23,6 @@ from batgraph.wingbeat import simulate_wingbeat
 def _arrays(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([c.R for c in rig]), np.stack([c.tvec for c in rig])
 
-
-def _aligned(rig: Rig, truth: Rig) -> Rig:
-    """``rig`` moved onto ``truth`` by the similarity fit over camera centres and orientations."""
-    s, R, t = gauge.fit_similarity(*_arrays(rig), *_arrays(truth))
-    cams = []
-    for c in rig:
-        Rc, tc = pose.similarity_cam_from_world(c.R, c.tvec, s, R, t)
-        cov = None if c.pose_cov is None else pose.similarity_pose_cov(c.pose_cov, s)
-        cams.append(Camera(c.name, c.size_wh, c.K, c.dist, pose.rvec_from_R(Rc), tc, cov))
-    return Rig(cams)
 
 
 def _wingbeat(seed: int, exact: bool = False) -> Session:
@@ -73,7 +63,7 @@ def test_gauge_free_covariances_are_honest():
         t = rep["assessment"]["poses"]
         assert t["dof"] == 23 and t["chi2"] < t["bound"]
         chi2.append(t["chi2"])
-        for cam, true in zip(_aligned(rig, s.true_rig), s.true_rig, strict=True):
+        for cam, true in zip(aligned_rig(rig, s.true_rig), s.true_rig, strict=True):
             d = gauge.rig_difference(*_arrays(Rig([cam])), *_arrays(Rig([true])))
             m2.append(float(d @ np.linalg.solve(cam.pose_cov, d)))
     assert 0.7 * 23 < np.mean(chi2) < 1.4 * 23
@@ -196,7 +186,7 @@ def test_mcsc_led_self_calibration_reproduces_the_published_points(seed):
     dense = dense_observations(sess)
     xyz_pub, cov_pub = triangulate(published, dense, sigma)
     for label, r in (("start", start), ("written", rig)):
-        xyz, _ = triangulate(_aligned(r, published), dense, sigma)
+        xyz, _ = triangulate(aligned_rig(r, published), dense, sigma)
         d, cov = (xyz - xyz_pub)[:, 0], cov_pub[:, 0]
         m2 = np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d)
         rms, precision = np.sqrt((d**2).sum(-1).mean()), np.sqrt(np.trace(cov, axis1=1, axis2=2).mean())
