@@ -42,7 +42,8 @@ MAX_FRAME = 10_000_000
 
 MAX_FRAME_GAP = 100_000
 """Largest jump between consecutive observed frames (14 minutes at 120 Hz): every frame in between is
-allocated and estimated, so a larger gap is refused; split such a recording into sessions."""
+allocated (and estimated unless a gap longer than [session] take_gap_s splits the takes), so a larger gap is
+refused; split such a recording into sessions."""
 
 MISSING = ("", "nan", "NaN", "NA", "None")
 """Cell texts that mean "no value" in a numeric column."""

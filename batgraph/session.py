@@ -73,6 +73,7 @@ SESSION_KEYS = {
     "noise": frozenset({"pixel_sigma_px"}),
     "markers": frozenset({"names", "skeleton", "rigid", "rigid_sigma_m"}),
     "sync": frozenset({"estimate"}),
+    "paper": frozenset({"experiment"}),
     "wand": frozenset({"ends", "length_m"}),
     # written by batgraph itself, free-form provenance: their keys are not checked
     "simulation": None, "wingbeat": None, "import": None,

@@ -7,7 +7,7 @@ detections session (batgraph.associate.scenes: labels stripped, spurious blobs, 
 ``batgraph reconstruct --methods smoother`` runs on the recovered labels and on the true labels (the real, unmerged
 detections), for the RMSE on observed points against truth.csv. Prints one line per case and the medians.
 
-Usage: ``python scripts/associate_study.py [--scenes flight24,wingbeat] [--seeds 0,1,2] [--out DIR]
+Usage: ``python scripts/associate_study.py [--scenes flight14,flight24,wingbeat] [--seeds 0,1,2] [--out DIR]
 [--no-smoother]``.
 """
 
@@ -75,7 +75,7 @@ def run_case(scene: str, seed: int, work: Path, with_smoother: bool) -> dict:
 
 def main_study(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", default="flight24,wingbeat")
+    p.add_argument("--scenes", default="flight14,flight24,wingbeat")
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--out", help="keep the case folders here (default: a temporary folder)")
     p.add_argument("--no-smoother", action="store_true", help="skip the two reconstructs per case")

@@ -151,6 +151,13 @@ def test_session_unknown_keys_and_tables(session_folder):
     assert "did you mean [motion]" in _error(session_folder)
 
 
+def test_the_paper_table_is_a_known_one(session_folder):
+    """[paper] experiment (docs/formats.md) is read by the summary, so it loads without a warning."""
+    _edit(session_folder / "session.toml", lambda d: d.__setitem__("paper", {"experiment": "flight"}))
+    s = read_session(session_folder)
+    assert not any("paper" in w for w in s.warnings) and s.extra_toml["paper"]["experiment"] == "flight"
+
+
 def test_no_timing_no_change(session_folder):
     """Without timing keys the observations are the file's and the dense arrays carry no timing."""
     s = read_session(session_folder)

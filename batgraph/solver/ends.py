@@ -3,7 +3,7 @@
 Beyond a marker's span (its first to last frame seen by >= 2 cameras) the smoother extrapolates with its motion
 model, whose white-noise acceleration (or jerk) takes a wing's persistent stroke for noise, so its covariance there
 grows too slowly (alone, single-view points outside a span were covered 70-84 % and unobserved ones 74 % on three
-scenes; the ablation in docs/accuracy.md). Three steps, each kept by that ablation (the estimates never move):
+scenes; docs/ablation.md). Three steps, each needed in that ablation (the estimates never move):
 1. The backtest: on up to BACKTEST_MARKERS markers with a span of >= MIN_SPAN_FRAMES, hide the first and last
    BACKTEST_FRAMES span frames, solve again, and find the least c >= 0 with the 95th percentile of
    d2 / (1 + c h) at chi-square's (3 DOF), d2 the hidden frames' squared error against their triangulation over both

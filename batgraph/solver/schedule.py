@@ -163,8 +163,8 @@ def shared_variables(session: Session, options: Options) -> shared.Shared:
 
 def flapping_floor(xyz_m: np.ndarray, fps: float) -> float:
     """The least constant-velocity q [m^2/s^3] of a marker on an animal that flaps (0 when the triangulated tracks
-    (F, M, 3) [m], NaN where not triangulated, do not move periodically, batgraph.motion.wingbeat_peak; the
-    smoother's own tracks, extrapolated through gaps and ends, hid the peak of a dorsal-marker scene): that of the
+    (F, M, 3) [m], NaN where not triangulated, do not move periodically, batgraph.motion.wingbeat_peak; tracks
+    extrapolated through gaps and ends can hide the peak): that of the
     heave of a body whose lift swings by one body weight over the stroke, amplitude g / w^2 at the wingbeat
     w = 2 pi f, whose acceleration taken as white over a band ~w wide gives q ~ (g / w^2)^2 w^3 = g^2 / w (3.8 at
     4 Hz, 1.0 at 15 Hz). A body bobbing by less than the pixel noise otherwise gets a straight track whose

@@ -335,7 +335,7 @@ MAX_STEP_FRAMES = 0.25  # a step moves a capture time by at most this fraction o
 
 def _limited(step: np.ndarray, shared: Shared, fps: float) -> np.ndarray:
     """``step`` scaled down so that no capture time moves by more than MAX_STEP_FRAMES: beyond that the rows'
-    linearisation no longer predicts them (a first step of 13 ms from 0 was rejected three times)."""
+    linearisation no longer predicts them."""
     d_off, d_ro, _ = shared.split(step)
     most = float(np.max(np.abs(d_off) + np.abs(d_ro), initial=0.0)) * fps
     return step * min(1.0, MAX_STEP_FRAMES / most) if most > 0 else step
