@@ -36,7 +36,8 @@ class Method:
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("smoother", "#1f77b4", "-", False,
            "factor-graph smoother: every frame uses every other (Levenberg-Marquardt over the whole recording)"),
-    Method("filter", "#ff7f0e", "-.", True, "factor-graph filter: frame k uses frames <= k (the same model, one frame at a time)"),
+    Method("filter", "#ff7f0e", "-.", True,
+           "factor-graph filter: frame k uses frames <= k (the same model, one frame at a time)"),
     Method("ekf", "#d62728", "--", True, "the paper's extended Kalman filter"),
     Method("ukf", "#2ca02c", "-", True, "the paper's unscented Kalman filter"),
     Method("triangulate", "#7f7f7f", ":", False, "per-frame linear multi-view triangulation (DLT), no motion model"),
