@@ -966,9 +966,14 @@ def _ms95(value_s, sd_s) -> str:
 def _rig_section(summary: Summary) -> str | None:
     """The timing and poses the smoother estimated (--sync estimate, --refine-rig), and the timing self-check;
     None when the run has neither."""
-    refined = ((summary.methods.get("smoother") or {}).get("info") or {}).get("rig_refined")
+    info = (summary.methods.get("smoother") or {}).get("info") or {}
+    refined, poses = info.get("rig_refined"), (info.get("cleaning") or {}).get("poses")
     checked = (summary.checks or {}).get("timing")
     out = []
+    if poses and poses["kept_as_given"]:
+        out.append(f'<p class="note">The camera poses are kept as calibration.toml gives them: the markers do not '
+                   f"show the rig moved (the move's chi-square {poses['chi2']:.1f} for {poses['dof']} degrees of "
+                   f"freedom; log Bayes factor {poses['log_bayes_factor']:+.1f} for the poses as given).</p>")
     if refined:
         ms = lambda v, sd: f"{v * 1e3:.3f} ± {1.96 * sd * 1e3:.3f}" if sd else f"{v * 1e3:.3f}"  # noqa: E731
         rows = [[html.escape(cam),

@@ -5,13 +5,13 @@
 2. Exclude the observations with |r|^2 > 25 at that solution (:func:`to_exclude`).
 3. Each marker's model ("auto") and noise level by the marginal likelihood (batgraph.solver.search) on the rest,
    without the segments; a constant-velocity q at least :func:`flapping_floor`.
-4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds solve only
-   the markers whose exclusions changed, with their segment groups). The first starts from a solve with the
-   segments SEGMENT_RELAX times softer: from the segment-free solution a single-view track end can lie nearer
-   the far one of the two depths a segment allows, where stiff segments would hold it.
+4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds only the
+   markers whose exclusions changed). The first starts from one with the segments SEGMENT_RELAX times softer: from
+   the segment-free solution a single-view end can lie nearer the far one of a segment's two depths.
 5. The covariances where the data do not pin a point (batgraph.solver.ends); flags |r|^2 > 13.8155.
 Variables shared by every marker (``--sync estimate``, ``--refine-rig``, pose covariances; batgraph.solver.shared)
-are first estimated at the cleaning solve, steps 2-4 run with them, and the last solve estimates them jointly.
+are first estimated at the cleaning solve (what the data do not show is kept as given: :func:`_shown`), steps 2-4
+run with them, and the last solve estimates them jointly.
 """
 
 from __future__ import annotations
@@ -119,11 +119,13 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     base = fit_mod.Setup(ideal, rig, fps, Loss(options.robust, options.robust_k), p_init,
                          segments.pairs_of(session.rigid, dense.markers), session.rigid_sigma_m)
     spec = shared_variables(session, options)
+    poses_asked = bool(spec.pose.any())
     excluded, start = np.zeros((C, F, M), bool), (p_init, v_init, None)
     theta, setup = np.zeros(spec.n), base
     if reject or spec.n:
         cleaning_q = causal_accel_psd(session.motion, fps)
-        excluded, start, theta, spec, info["cleaning"] = _clean(base, backend, motion, cleaning_q, spec, reject)
+        excluded, start, theta, spec, info["cleaning"] = _clean(base, backend, motion, cleaning_q, spec, reject,
+                                                                options.refine_rig)
         setup = shared.applied(base, spec, theta)
     models, levels, start, figures = _choose(setup.without(excluded), backend, motion, start,
                                              flapping_floor(triangulated, fps), options.progress, dense.markers)
@@ -143,6 +145,8 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     est = Estimate("smoother", fit.xyz, fit.cov, flags, time.perf_counter() - t0, info)
     if spec.n:
         est.rig = rig_used(rig, spec, theta, cov_theta)
+    elif poses_asked:  # the poses kept as given: OUT/rig.toml is still the rig to reuse
+        est.rig = rig
     return est
 
 
@@ -224,10 +228,10 @@ def _rig_figures(spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, rig) -
     return out
 
 
-def _clean(setup, backend, motion, cleaning_q, spec, reject) -> tuple:
+def _clean(setup, backend, motion, cleaning_q, spec, reject, refine_rig) -> tuple:
     """Steps 1-2 (and the shared variables' first estimate) at constant velocity with a given q, else
     ``cleaning_q`` [m^2/s^3] (the random walk at its sigma): (excluded (C, F, M), the next solves' start, theta,
-    spec (readouts the data do not show dropped), figures)."""
+    spec (what the data do not show dropped, :func:`_shown`; the poses only with ``refine_rig``), figures)."""
     est = setup.estimated
     name, sigma_m, q = motion
     clean_name, level = ("random_walk", sigma_m) if name == "random_walk" else (
@@ -237,15 +241,17 @@ def _clean(setup, backend, motion, cleaning_q, spec, reject) -> tuple:
     cleaning = replace(setup, loss=loss)
     fit = backend.fit(cleaning, models, levels, (setup.p_init, None, None), lm.LOOSE, covariances=False,
                       with_segments=False)
-    theta = np.zeros(spec.n)
+    theta, shown = np.zeros(spec.n), {}
     if spec.n:
+        first = fit
         fit, theta, cov, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
                                              (fit.xyz, fit.velocity, None), spec)
-        kept = _significant_readouts(spec, theta, cov)
-        if not (kept == spec.readout).all():  # a rolling shutter the data do not show is not estimated
-            spec = replace(spec, readout=kept)
-            fit, theta, _, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
-                                               (fit.xyz, fit.velocity, None), spec)
+        kept, shown = _shown(setup.rig, spec, theta, cov, refine_rig)
+        if (kept.readout != spec.readout).any() or (kept.pose != spec.pose).any():
+            spec, theta, fit = kept, np.zeros(kept.n), first if not kept.n else fit
+            if spec.n:
+                fit, theta, _, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
+                                                   (fit.xyz, fit.velocity, None), spec)
     at = shared.applied(setup, spec, theta)
     excluded = np.zeros(setup.ideal.seen.shape, bool)
     if reject:
@@ -253,8 +259,23 @@ def _clean(setup, backend, motion, cleaning_q, spec, reject) -> tuple:
                               setup.ideal.seen)
     v = fit.velocity if clean_name != "random_walk" else gradient(setup.p_init, setup.fps)
     figures = {"loss": loss.name, "robust_k": setup.loss.k, "iterations": int(fit.iterations.max()),
-               "n_flagged": int(excluded.sum()), mm.LEVEL_NAME[clean_name]: level}
+               "n_flagged": int(excluded.sum()), mm.LEVEL_NAME[clean_name]: level, **shown}
     return excluded, (fit.xyz, v, None), theta, spec, figures
+
+
+def _shown(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, judge_poses: bool) -> tuple:
+    """The shared variables the data show, and figures: a readout READOUT_SIGNIFICANCE standard deviations from the
+    known one; with ``judge_poses`` (--refine-rig), the poses moved only where the evidence favours the move
+    (shared.poses_evidence: an exact rig would otherwise take on the solve's noise, and the world frame with it).
+    Poses that are variables only for their calibrated covariance stay variables: their uncertainty is wanted."""
+    kept = replace(spec, readout=_significant_readouts(spec, theta, cov))
+    if not (judge_poses and spec.pose.any()):
+        return kept, {}
+    evidence = shared.poses_evidence(rig, spec, theta, cov)
+    as_given = evidence["log_bayes_factor"] > 0
+    if as_given:
+        kept = replace(kept, pose=np.zeros_like(spec.pose))
+    return kept, {"poses": {**evidence, "kept_as_given": bool(as_given)}}
 
 
 READOUT_SIGNIFICANCE = 5.0  # standard deviations: a readout estimated nearer to the known one is left at it

@@ -341,6 +341,24 @@ def _limited(step: np.ndarray, shared: Shared, fps: float) -> np.ndarray:
     return step * min(1.0, MAX_STEP_FRAMES / most) if most > 0 else step
 
 
+def poses_evidence(rig: Rig, shared: Shared, theta: np.ndarray, cov: np.ndarray) -> dict:
+    """How much more probable the data make the poses as given than the poses moved under their prior: the log
+    Bayes factor (Savage-Dickey: the posterior density of no move over its prior density, in the directions the
+    images determine) with the chi-square of the move and its degrees of freedom. theta (n,) and cov (n, n) from
+    :func:`solve`. Positive: keep the poses as given; the prior's width is the price of moving them (Occam's
+    factor), so a move of a few standard deviations in each direction does not pay for it."""
+    cols = shared.columns["pose"]
+    idx = np.concatenate([np.arange(k, k + 6) for k in cols if k >= 0])
+    G = gauge_basis(rig, shared)[idx]
+    Z = _complement(G, len(idx))
+    u = Z.T @ theta[idx]
+    post = np.linalg.inv(Z.T @ cov[np.ix_(idx, idx)] @ Z)
+    prior = Z.T @ shared.prior_info()[np.ix_(idx, idx)] @ Z
+    chi2 = float(u @ post @ u)
+    occam = 0.5 * (np.linalg.slogdet(post)[1] - np.linalg.slogdet(prior)[1])
+    return {"log_bayes_factor": -0.5 * chi2 + float(occam), "chi2": chi2, "dof": int(len(u))}
+
+
 def _complement(G: np.ndarray, n: int) -> np.ndarray:
     """An orthonormal basis (n, n - g) of the complement of G's columns (n, g)."""
     if not G.shape[1]:
