@@ -134,8 +134,10 @@ def reprojection_tables(session: Session, dense: DenseObservations, estimates: l
     uv = dense.uv_px[ci, fi, mi]  # (n, 2) raw pixels
     uv_hat, outlier = [], []
     for est in estimates:
+        rig = est.rig if est.rig is not None else session.rig  # the rig the estimate was made with
         for c, f, m in parts:  # camera by camera, as the rows are
-            uv_hat.append(session.rig[c].project(est.xyz_m[f, m]))
+            tau = _capture_frames(session.rig[c], rig[c], dense, c, f, m, session.fps)
+            uv_hat.append(rig[c].project(est.xyz_m[f, m] if tau is None else at_time(est.xyz_m, f, m, tau)))
             outlier.append(est.outlier[c, f, m])
     uv_hat = np.concatenate(uv_hat)
     k = len(estimates)
@@ -148,6 +150,35 @@ def reprojection_tables(session: Session, dense: DenseObservations, estimates: l
         "u": uv_all[:, 0], "v": uv_all[:, 1], "u_hat": uv_hat[:, 0], "v_hat": uv_hat[:, 1],
         "err_px": np.linalg.norm(uv_hat - uv_all, axis=1), "outlier": np.concatenate(outlier),
     })
+
+
+def _capture_frames(given, used, dense: DenseObservations, c: int, f: np.ndarray, m: np.ndarray, fps: float):
+    """Each observation's capture time after its frame [frames] (n,) with camera ``used``'s timing (the given
+    camera's as the observations hold it, moved by the difference in offset and readout), or None when all are 0."""
+    base = np.zeros(len(f)) if dense.time_frac is None else dense.time_frac[c, f, m]
+    row = np.zeros(len(f)) if dense.row_frac is None else dense.row_frac[c, f, m]
+    tau = base + fps * ((used.time_offset_s - given.time_offset_s) + (used.readout_s - given.readout_s) * row)
+    return tau if np.any(tau != 0) else None
+
+
+def at_time(xyz_m: np.ndarray, f: np.ndarray, m: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Positions (n, 3) of markers m at frames f + tau [frames] from a track (F, M, 3): Catmull-Rom (cubic,
+    through the frames around) inside the frames, straight on from the end frames' step beyond them (as the
+    motion models extrapolate), and the frame's own value where the frames needed are not estimated."""
+    F = len(xyz_m)
+    t = np.clip(f + tau, 0, F - 1)
+    k = np.clip(np.floor(t).astype(np.int64), 0, max(F - 2, 0))
+    u = (t - k)[:, None]
+    p = [xyz_m[np.clip(k + j, 0, F - 1), m] for j in (-1, 0, 1, 2)]
+    out = 0.5 * (2 * p[1] + (p[2] - p[0]) * u + (2 * p[0] - 5 * p[1] + 4 * p[2] - p[3]) * u**2
+                 + (3 * p[1] - p[0] - 3 * p[2] + p[3]) * u**3)
+    if F > 1:
+        beyond = (f + tau - t)[:, None]  # frames past the first (< 0) or last (> 0) frame
+        step = np.where(beyond < 0, xyz_m[1, m] - xyz_m[0, m], xyz_m[F - 1, m] - xyz_m[F - 2, m])
+        out = out + beyond * step
+    bad = ~np.isfinite(out).all(axis=1)
+    out[bad] = xyz_m[f[bad], m[bad]]
+    return out
 
 
 def method_rows(table: pd.DataFrame) -> dict[str, slice | np.ndarray]:
