@@ -140,12 +140,12 @@ def joint_tables(rows: list[dict]) -> str:
         t, j, e = r["true"], r["wrong_joint"], r["exact_joint"]
         (pb, rb), (pa, ra) = r["pose_before"], j["pose"]
         return [r["input"]["rmse_mm"], t["rmse_mm"], j["rmse_mm"], t["rmse_pts_mm"], j["rmse_pts_mm"],
-                j["rmse_pts_mm"] / t["rmse_pts_mm"], j["reproj_ratio"], np.median(np.divide(pb, pa)),
+                j["rmse_pts_mm"] / t["rmse_pts_mm"], t["reproj_ratio"], j["reproj_ratio"], np.median(np.divide(pb, pa)),
                 np.median(np.divide(rb, ra)), e["rmse_mm"] / t["rmse_mm"], e["rmse_pts_mm"] / t["rmse_pts_mm"]]
 
     out = ["| scene | seed | input rig mm | true rig mm | --refine-rig mm | true, points aligned mm | --refine-rig, "
-           "points aligned mm | ratio | per-camera RMS worst / best | pose error ratio input / refined: position "
-           "| rotation | exact input: ratio | points aligned |", "|---|---|" + "---|" * 11]
+           "points aligned mm | ratio | per-camera RMS worst / best, true rig | --refine-rig | pose error ratio "
+           "input / refined: position | rotation | exact input: ratio | points aligned |", "|---|---|" + "---|" * 12]
     for g in dict.fromkeys(r["generator"] for r in rows):
         sub = [r for r in rows if r["generator"] == g]
         for r in sub:
