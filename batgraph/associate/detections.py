@@ -116,12 +116,7 @@ def read_detections(path: Path, rig: Rig, calibration_name: str = "calibration.t
         i = int(back[0]) + 1
         raise InputError(f"{path} {inputs.row_name(i, is_csv)}: frame {frame[i]} comes after frame {frame[i - 1]}; "
                          "detections must be in frame order (sort the file by frame)")
-    camera = inputs.label_codes(df, "camera", path, is_csv)
-    cam = camera.positions(rig.names)
-    if (cam < 0).any():
-        i = int(np.argmax(cam < 0))
-        raise InputError(f"{path} {inputs.row_name(i, is_csv)}: camera {camera.names[camera.codes[i]]!r} is not in "
-                         f"{calibration_name} (cameras: {', '.join(rig.names)})")
+    cam = _camera_positions(df, rig, path, is_csv, calibration_name)
     u = inputs.numeric_column(df, "u", path, is_csv, allow_missing=False)
     v = inputs.numeric_column(df, "v", path, is_csv, allow_missing=False)
     extra = {}
@@ -156,13 +151,8 @@ def read_seed(path: Path, rig: Rig, detections: Detections, marker_names: list[s
     """
     df, is_csv = inputs.read_table(path, SEED_COLUMNS, "seed labels")
     frame = inputs.frame_column(df, path, is_csv)
-    camera = inputs.label_codes(df, "camera", path, is_csv)
+    cam = _camera_positions(df, rig, path, is_csv, "the rig")
     marker = inputs.label_codes(df, "marker", path, is_csv)
-    cam = camera.positions(rig.names)
-    if (cam < 0).any():
-        i = int(np.argmax(cam < 0))
-        raise InputError(f"{path} {inputs.row_name(i, is_csv)}: camera {camera.names[camera.codes[i]]!r} is not in "
-                         f"the rig (cameras: {', '.join(rig.names)})")
     names = marker.names[marker.codes]
     if marker_names:
         unknown = ~np.isin(names, marker_names)
@@ -213,3 +203,15 @@ def read_inputs(folder: Path, calibration: Path | None = None) -> tuple[SessionS
     rig = read_calibration(cal)
     path = find_detections(folder)
     return setup, rig, read_detections(path, rig, cal.name), path
+
+
+def _camera_positions(df, rig, path, is_csv: bool, rig_name: str) -> np.ndarray:
+    """Each row's camera as its position in ``rig`` (n,); InputError naming the first row whose camera the rig
+    (called ``rig_name`` in the message) does not have."""
+    camera = inputs.label_codes(df, "camera", path, is_csv)
+    cam = camera.positions(rig.names)
+    if (cam < 0).any():
+        i = int(np.argmax(cam < 0))
+        raise InputError(f"{path} {inputs.row_name(i, is_csv)}: camera {camera.names[camera.codes[i]]!r} is not in "
+                         f"{rig_name} (cameras: {', '.join(rig.names)})")
+    return cam
