@@ -95,3 +95,24 @@ def test_errors_by_method_is_each_methods_join():
     for m in ("m", "n"):
         want = errors_against(traj[traj["method"] == m].assign(span="inside"), truth)
         pd.testing.assert_frame_equal(got[m], want, check_exact=True)
+
+
+def test_at_time_interpolates_between_frames_and_extrapolates_straight_beyond():
+    """evaluate.at_time (a detection's position at its capture time): Catmull-Rom's slopes are central differences,
+    exact for a quadratic, so a quadratic track comes back exactly between interior frames; beyond the last frame
+    the track goes straight on with its last step; a marker whose neighbouring frames are not estimated keeps its
+    frame's value."""
+    from batgraph.evaluate import at_time
+
+    F = 10
+    t = np.arange(F, dtype=float)
+    track = np.stack([0.1 + 0.02 * t - 0.003 * t**2, 0.5 * t, np.ones(F)], axis=-1)[:, None, :]  # (F, 1, 3)
+    track = np.concatenate([track, np.full((F, 1, 3), np.nan)], axis=1)
+    track[4, 1] = [1.0, 2.0, 3.0]  # marker 1 estimated on one frame only
+    f, m = np.array([2, 5, 7, 9, 4]), np.array([0, 0, 0, 0, 1])
+    tau = np.array([0.3, -0.45, 0.9, 0.5, 0.25])
+    got = at_time(track, f, m, tau)
+    s = (f + tau)[:3]
+    np.testing.assert_allclose(got[:3, 0], 0.1 + 0.02 * s - 0.003 * s**2, atol=1e-12)
+    np.testing.assert_allclose(got[3], track[9, 0] + 0.5 * (track[9, 0] - track[8, 0]), atol=1e-12)
+    np.testing.assert_allclose(got[4], [1.0, 2.0, 3.0])
