@@ -49,7 +49,7 @@ class TrackOptions:
     {(a, b): length [m]} of the declared segments where the seed placed both markers."""
 
     accel_psd_m2_s3: float = 50.0
-    q_min: float = 1.0
+    q_min: float = 10.0
     q_max: float = 1e5
     speed_mps: float = 3.0
     flow_std_mps: float = 1.0
