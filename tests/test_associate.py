@@ -178,3 +178,30 @@ def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
     scenes.write_scene(session, sc, tmp_path / "stripped")
     r = named(tmp_path / "stripped", sc, fps=60.0, n_markers=len(session.markers))
     assert r["real_correct"] >= 0.05 and r["real_wrong"] <= 0.02
+
+
+def test_a_marker_tracked_point_to_point_becomes_steady():
+    """A placed marker given MATURE points of its own (not yet steady: its q does not adapt on them) is steady
+    after them: its own filter predicts it and its q adapts from then on (it counted only adapted updates, so a
+    marker never matured and every marker was predicted by its neighbours)."""
+    from batgraph.associate import tracks
+    from batgraph.associate.views import FramePoints
+
+    opt = tracks.TrackOptions()
+    tg = tracks._Targets(1, opt)
+    lab, R = np.array([0]), np.eye(3)[None] * 1e-6
+    tg.place(lab, np.zeros((1, 3)), R, np.array([[1.0, 0.0, 0.0]]), 0.5)
+    out = tracks.Sweep.empty(tracks.MATURE + 1, 1, 2)
+    dt = 0.01
+    F = np.eye(6) + np.eye(6, k=3) * dt
+    for k in range(1, tracks.MATURE + 1):
+        tg.x, tg.P = tg.x @ F.T, F @ tg.P @ F.T
+        x0, P0 = tg.x.copy(), tg.P.copy()
+        pts = FramePoints(np.array([[2 * k, 2 * k + 1]]), np.array([[k * dt, 0.0, 0.0]]), np.zeros(1))
+        fr = tracks._Frame(pts, R.copy(), 1)
+        steady = tg.alive & (tg.age >= tracks.MATURE)
+        before = (x0[:, :3] - x0[:, 3:] * dt, P0[:, :3, :3])
+        tracks._commit(tg, fr, lab, np.array([0]), pts.views, np.array([10.0]), out, k, x0, P0, steady, before,
+                       opt, None)
+    assert tg.age[0] >= tracks.MATURE
+    assert tg.q[0] == opt.accel_psd_m2_s3  # not adapted while young

@@ -49,7 +49,7 @@ class TrackOptions:
     {(a, b): length [m]} of the declared segments where the seed placed both markers."""
 
     accel_psd_m2_s3: float = 50.0
-    q_min: float = 1.0
+    q_min: float = 10.0
     q_max: float = 1e5
     speed_mps: float = 3.0
     flow_std_mps: float = 1.0
@@ -120,7 +120,8 @@ class Seed:
 
 
 class _Targets:
-    """The markers' filter states (L, ...): x (6,), P (6, 6), q, NIS average, age (updates), miss, alive."""
+    """The markers' filter states (L, ...): x (6,), P (6, 6), q, NIS average, age (points and ray joins of its
+    own since placed), miss, alive."""
 
     def __init__(self, L: int, opt: TrackOptions):
         self.x = np.zeros((L, 6))
@@ -170,12 +171,12 @@ class _Targets:
         self.x[t] = x + K @ r
         self.P[t] = Pt - K @ H @ Pt
         self._adapt(np.array([t]), np.array([float(r @ np.linalg.solve(S, r))]), 2.0)
+        self.age[t] += 1
 
     def _adapt(self, lab: np.ndarray, nis: np.ndarray, dof: float) -> None:
         self.nis[lab] = 0.7 * self.nis[lab] + 0.3 * nis * 3.0 / dof
         self.q[lab] = np.clip(self.q[lab] * np.clip(np.sqrt(self.nis[lab] / 3.0), 0.7, 1.5), self.opt.q_min,
                               self.opt.q_max)
-        self.age[lab] += 1
         self.miss[lab] = 0
 
     def pos_std(self) -> np.ndarray:
@@ -570,6 +571,7 @@ def _commit(tg: _Targets, fr: _Frame, lab: np.ndarray, p: np.ndarray, views: np.
     fr.moved[u] = z[alive] - before[0][u]
     fr.moves[u] = steady[alive]
     tg.update(u, z[alive], R[alive], x0[u], P0[u], steady[alive])
+    tg.age[u] += 1  # a point of its own: after MATURE of them the marker is steady
     a = lab[~alive]
     if len(a):
         near = _neighbour_velocity(z[~alive], fr, x0)
