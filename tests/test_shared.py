@@ -65,8 +65,8 @@ def test_sync_estimate_recovers_the_timing(generator):
     assert np.abs(ro).max() < 0.5e-3, ro
     assert _observed_rmse(estimated) < 1.2 * _observed_rmse(given)
     # reprojection.csv projects each point at its capture time through the timing it was estimated with: per camera
-    # as with the timing given (measured ratio 1.00 on both; at the frame's time, the hold-out bat's seed 2 gave
-    # 8.9-20 px per camera against 1.1-1.6 px)
+    # as with the timing given (measured ratio 1.00 on both; projected at the frame's time instead, the hold-out bat's
+    # seed 2 gives 8.9-20 px per camera against 1.1-1.6 px)
     assert max(_camera_rms(estimated.reprojection) / _camera_rms(given.reprojection)) < 1.5
 
 
@@ -88,8 +88,8 @@ def test_refine_rig_writes_a_reusable_rig(tmp_path):
     assert main([*args, "--calibration", str(tmp_path / "refined" / "rig.toml"), "--out", str(tmp_path / "again")]) == 0
     err = {k: _aligned_rmse(tmp_path / k, s.truth) for k in ("bumped", "refined", "again")}
     assert err["refined"] < err["bumped"] / 3 and err["again"] < 1.2 * err["refined"], err
-    # reprojection.csv goes through the refined rig (measured 1.29-1.35 px per camera, as with the true rig; through
-    # the bumped rig 1.73-2.80 px)
+    # reprojection.csv goes through the refined rig (measured 1.29-1.35 px per camera, as with the true rig; the
+    # bumped rig gives 1.73-2.80 px)
     rms = {k: _camera_rms(pd.read_csv(tmp_path / k / "reprojection.csv")) for k in ("refined", "again")}
     assert np.allclose(rms["refined"], rms["again"], rtol=0.1) and rms["refined"].max() < 1.2 * rms["refined"].min()
 
@@ -99,9 +99,9 @@ def test_refine_rig_writes_a_reusable_rig(tmp_path):
     lambda: simulate_wingbeat(np.random.default_rng(2), n_cameras=5, n_frames=72, pixel_sigma_px=1.0)])
 def test_refine_rig_keeps_an_exact_rig(make):
     """An exact rig with --refine-rig: the evidence favours the poses as given (log Bayes factor measured +92 / +88
-    on these scenes, the move's chi-square 20.6 / 36 for 23 degrees of freedom; a rig bumped by 0.5 deg and 5 mm:
-    -26,000 and less), so the smoother's points are those without --refine-rig and rig.toml's poses the input's;
-    without that judgement the refined rig's noise moved the points 1.08-1.87x the input rig's RMSE."""
+    on these scenes, the move's chi-square 20.6 / 31.3 for 23 degrees of freedom; a rig bumped by 0.5 deg and 5 mm:
+    -18,000 and less), so the smoother's points are those without --refine-rig and rig.toml's poses the input's
+    (refined regardless, an exact rig's noise moves the points to 1.08-1.87x the input rig's RMSE)."""
     s = make()
     plain = run_methods(s, ["smoother"], Options(progress=False))
     refined = run_methods(s, ["smoother"], Options(progress=False, refine_rig=True))
