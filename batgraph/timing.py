@@ -92,35 +92,36 @@ def _solve(r, J, Sinv, x, wgt, ref: int, block: int):
     WS = wgt[..., None, None] * Sinv
     used = (wgt > 0) & ((wgt > 0).sum(0) >= 2)[None]  # a point one camera sees says nothing
     WS = np.where(used[..., None, None], WS, 0.0)
-    JtWS = np.einsum("cfmji,cfmjk->cfmik", J, WS)  # (C, F, M, 3, 2)
-    A = np.einsum("cfmik,cfmkj->fmij", JtWS, J)
+    JtWS = np.swapaxes(J, -1, -2) @ WS  # (C, F, M, 3, 2); batched matmul: einsum of three operands is slow here
+    XtWS = np.swapaxes(x, -1, -2) @ WS  # (C, F, M, 2, 2)
+    A = (JtWS @ J).sum(axis=0)  # (F, M, 3, 3)
     pts = used.any(0)
     Ainv = np.zeros_like(A)
     Ainv[pts] = np.linalg.inv(A[pts])
-    U = np.einsum("cfmik,cfmkp->fmicp", JtWS, x).reshape(*A.shape[:2], 3, 2 * C)  # (F, M, 3, 2C)
-    g = np.einsum("cfmik,cfmk->fmi", JtWS, r)
-    D = np.einsum("cfmkp,cfmkl,cfmlq->cpq", x, WS, x)
+    U = np.moveaxis(JtWS @ x, 0, 3).reshape(*A.shape[:2], 3, 2 * C)  # (F, M, 3, 2C)
+    g = (JtWS @ r[..., None])[..., 0].sum(axis=0)  # (F, M, 3)
+    D = (XtWS @ x).sum(axis=(1, 2))  # (C, 2, 2)
     N = np.zeros((2 * C, 2 * C))
     for c in range(C):
         N[2 * c:2 * c + 2, 2 * c:2 * c + 2] = D[c]
-    Z = np.einsum("fmij,fmjp->fmip", Ainv, U)
+    Z = Ainv @ U
     N -= U.reshape(-1, 2 * C).T @ Z.reshape(-1, 2 * C)
-    b = np.einsum("cfmkp,cfmkl,cfml->cp", x, WS, r).reshape(-1) - U.reshape(-1, 2 * C).T @ (
-        np.einsum("fmij,fmj->fmi", Ainv, g).reshape(-1))
+    b = (XtWS @ r[..., None])[..., 0].sum(axis=(1, 2)).reshape(-1) - U.reshape(-1, 2 * C).T @ (
+        (Ainv @ g[..., None]).reshape(-1))
     free = np.ones(2 * C, bool)
     free[2 * ref] = False
     free &= np.diag(N) > 1e-9 * max(np.diag(N).max(), 1e-300)
     theta = np.zeros(2 * C)
     Ninv = np.linalg.pinv(N[np.ix_(free, free)], rcond=1e-12)
     theta[free] = Ninv @ b[free]
-    delta = np.einsum("fmij,fmj->fmi", Ainv, g - (U @ theta))  # point corrections with the timing removed
-    res = r - np.einsum("cfmij,fmj->cfmi", J, delta) - np.einsum("cfmkp,cp->cfmk", x, theta.reshape(C, 2))
-    e2 = np.einsum("cfmk,cfmkl,cfml->cfm", res, np.where(used[..., None, None], Sinv, 0.0), res)
+    delta = (Ainv @ (g - U @ theta)[..., None])[..., 0]  # point corrections with the timing removed
+    res = r - (J @ delta[None, ..., None])[..., 0] - (x @ theta.reshape(C, 1, 1, 2, 1))[..., 0]
+    e2 = (res[..., None, :] @ np.where(used[..., None, None], Sinv, 0.0) @ res[..., None])[..., 0, 0]
     n_pts, n_obs = int(pts.sum()), int(used.sum())
     dof = max(2 * n_obs - 3 * n_pts - int(free.sum()), 1)
     s2 = float((wgt * e2)[used].sum()) / dof
     cov = np.full((2 * C, 2 * C), np.nan)
-    scores = np.einsum("cfmkp,cfmkl,cfml->fmcp", x, WS, res).reshape(*res.shape[1:3], 2 * C)[..., free]
+    scores = np.moveaxis((XtWS @ res[..., None])[..., 0], 0, 2).reshape(*res.shape[1:3], 2 * C)[..., free]
     cov[np.ix_(free, free)] = _cluster_cov(scores, Ninv, block, s2)
     cov[2 * ref, :] = cov[:, 2 * ref] = 0.0
     return theta.reshape(C, 2), cov, np.sqrt(e2 / max(s2, 1e-300)), used

@@ -15,7 +15,7 @@ from batgraph.motion import constant_acceleration_Q, constant_velocity_Q
 from batgraph.result import Options
 from batgraph.session import dense_observations
 from batgraph.simulate import Timing, simulate_flight
-from batgraph.solver import backends, chains, fit, kernels, lm, reference, schedule, search, shared
+from batgraph.solver import backends, chains, fit, kernels, lm, reference, schedule, search, shared, threads
 from batgraph.solver import model as mm
 from batgraph.solver.problem import Loss, start_state
 from batgraph.triangulate import dlt_points
@@ -235,3 +235,23 @@ def test_segments_first_solve_starts_relaxed(monkeypatch):
         est = schedule.run_smoother(pre.session, dense, pre.ideal, Options(progress=False))
         worst[relax] = np.linalg.norm(est.xyz_m - truth, axis=-1)[dense.n_views >= 2].max()
     assert worst[relaxed] < 0.01 and worst[1.0] > 0.02, worst
+
+
+def test_threads_never_change_the_answer(monkeypatch):
+    """The smoother on one thread and on three, its compiled loops split into many small parts and the motion models'
+    noise searches side by side (batgraph.solver.threads): bit-identical positions, covariances and choices."""
+    s = simulate_flight(np.random.default_rng(4), n_cameras=5, n_frames=40)
+    dense = dense_observations(s)
+    pre = checks.preflight(s, dense)
+    monkeypatch.setattr(kernels, "MIN_PART_BLOCKS", 16)
+    monkeypatch.setattr(kernels, "MIN_PART_ROWS", 16)
+    answers = []
+    for n in (1, 3):
+        threads.set_threads(n)
+        answers.append(schedule.run_smoother(pre.session, dense, pre.ideal, Options(progress=False)))
+    threads.set_threads(threads._default())
+    one, many = answers
+    assert np.array_equal(one.xyz_m, many.xyz_m, equal_nan=True)
+    assert np.array_equal(one.cov_m2, many.cov_m2, equal_nan=True)
+    assert str(one.info) == str(many.info)
+    assert threads.side_by_side([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]

@@ -16,8 +16,8 @@ from numba import njit
 from .threads import split
 
 ROBUST_CODE = {"none": 0, "huber": 1, "cauchy": 2}
-MIN_PART_ROWS = 4096  # the fewest observation rows worth handing to another thread
-MIN_PART_BLOCKS = 2048  # the fewest (frame, marker) blocks of a sweep worth handing to another thread
+MIN_PART_ROWS = 1024  # the fewest observation rows worth handing to another thread
+MIN_PART_BLOCKS = 512  # the fewest (frame, marker) blocks of a sweep worth handing to another thread
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")

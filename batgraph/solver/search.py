@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from . import chains, lm
 from . import model as mm
 from .kernels import tridiagonal
 from .problem import Problem, derivatives, gradient, log_det_units, start_state
+from .threads import side_by_side
 
 # log10 of each model's level searched: q from a gliding body (0.01) to a wing tip's extreme; j from a body
 # changing its acceleration by ~1 m/s^2 in a second to a 15 Hz wing tip (~1e9)
@@ -50,8 +52,9 @@ def choose(template: Problem, start: tuple, candidates: tuple[str, ...], groups:
     model and level: both are replaced); start: (p, v, a) (F, M, 3) [m, m/s, m/s^2] (a may be None), the first
     solves' start; groups: marker index arrays that must share one model (segment groups: their summed evidence)."""
     M = template.n_markers
-    found = {name: choose_level(replace(template, model=name, rows=template.rows.placed(name, template.n_frames)),
-                                start, progress) for name in candidates}
+    jobs = [partial(choose_level, replace(template, model=name, rows=template.rows.placed(name, template.n_frames)),
+                    start, progress) for name in candidates]
+    found = dict(zip(candidates, side_by_side(jobs), strict=True))  # the models' searches are independent
     ev = np.stack([np.where(np.isfinite(found[n][1]), found[n][1], -np.inf) for n in candidates])
     won = np.argmax(ev, axis=0)
     for members in groups:

@@ -62,6 +62,18 @@ def split(n_items: int, min_part: int, run) -> None:
         f.result()
 
 
+def side_by_side(jobs: list) -> list:
+    """Call each of ``jobs`` (functions of no argument) and return their results in order, the first on the calling
+    thread and the others each on a thread of its own when :func:`threads` > 1. For independent work whose own
+    compiled loops are too small to split (e.g. one noise search per motion model); a job may call :func:`split`."""
+    if _state["n"] == 1 or len(jobs) < 2:
+        return [job() for job in jobs]
+    with ThreadPoolExecutor(max_workers=len(jobs) - 1, thread_name_prefix="batgraph-job") as pool:
+        futures = [pool.submit(job) for job in jobs[1:]]
+        first = jobs[0]()
+        return [first] + [f.result() for f in futures]
+
+
 @contextmanager
 def one_blas_thread():
     """BLAS held to one thread while the solver runs (re-entrant): its linear algebra is small blocks, where more
