@@ -19,10 +19,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import pycolmap
 
 from . import atomic
 from .camera import Camera, Rig
@@ -33,6 +33,9 @@ from .geometry import pose
 from .geometry.pose import pose_cov_gtsam_from_colmap as pose_cov_gtsam_from_colmap  # re-exported
 from .session import DenseObservations, Session, calibration_toml, dense_observations
 from .triangulate import triangulate
+
+if TYPE_CHECKING:
+    import pycolmap
 
 CHI2_2DOF_999 = 13.8155  # |r|^2 / sigma^2 threshold: 99.9 % of inlier 2D residuals fall below it
 RAYLEIGH_MEDIAN = math.sqrt(2 * math.log(2))  # median of |r| / sigma for a 2D Gaussian residual
@@ -84,6 +87,8 @@ def wand_from_session(session: Session) -> Wand | None:
 # ==================================================================================================
 def rigid_from_camera(cam: Camera) -> pycolmap.Rigid3d:
     """batgraph's cam_from_world (rvec, tvec) -> COLMAP's Rigid3d (also cam_from_world: same pose)."""
+    import pycolmap  # imported where used: a reconstruct never needs it
+
     return pycolmap.Rigid3d(pycolmap.Rotation3d(cam.R), cam.tvec.copy())
 
 
@@ -178,6 +183,8 @@ def _image_id(c: int, ref: int, n_cams: int) -> int:
 def _build_reconstruction(rig: Rig, prob: _Problem, keep: np.ndarray, xyz: np.ndarray,
                           ref: int) -> tuple[pycolmap.Reconstruction, np.ndarray]:
     """pycolmap reconstruction of the kept observations. Returns (rec, point3D id per point, -1 if dropped)."""
+    import pycolmap
+
     rec = pycolmap.Reconstruction()
     C = len(rig)
     n_per_point = np.bincount(prob.point_idx[keep], minlength=len(xyz))
@@ -230,6 +237,8 @@ def _solve(rec: pycolmap.Reconstruction, *, refine_focal: bool, refine_pp: bool,
            refine_distortion: bool, loss: str, loss_scale_px: float, max_iterations: int,
            covariance: bool) -> tuple[pycolmap.CeresBundleAdjuster, object]:
     """One bundle adjustment: reference camera constant, scale fixed by one coordinate of another camera."""
+    import pycolmap
+
     opts = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=refine_focal, refine_principal_point=refine_pp, refine_extra_params=refine_distortion,
         print_summary=False)

@@ -6,15 +6,31 @@ User errors (:class:`batgraph.errors.InputError`) print one line and exit with c
 
 from __future__ import annotations
 
+# isort: off
+from . import _blas_threads  # noqa: F401  (first: one BLAS thread unless set, before numpy loads)
+# isort: on
 import argparse
 import gc
 import math
 import os
 import sys
+import warnings
 from pathlib import Path
 
-from . import _blas_threads  # noqa: F401  (first of batgraph's: one BLAS thread unless set, before numpy loads)
+import numpy as np
+import pandas as pd
+from numba.core.errors import NumbaWarning
+
+from .associate.command import run as associate
+from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
+from .calibrate import calibrate_session, write_calibration
+from .camera import Rig
 from .errors import InputError
+from .formats.anipose import import_anipose
+from .formats.c3d_trc import write_c3d, write_table, write_trc
+from .formats.deeplabcut import import_deeplabcut
+from .formats.dltdv import export_dltdv, import_dltdv, point_names
+from .formats.pose2sim import import_pose2sim
 from .inputs import (
     angle_deg,
     check_output_dir,
@@ -31,7 +47,16 @@ from .inputs import (
     probability,
     read_json_object,
 )
+from .intrinsics import Board, calibrate_intrinsics
 from .methods import help_text as methods_help
+from .pipeline import DEFAULT_METHODS, parse_methods, read_result_tables, reconstruct
+from .result import Options
+from .session import read_session, write_session
+from .simulate import Timing, simulate_ear, simulate_flight, simulate_wand
+from .solver import kernels
+from .summary import terminal_lines
+from .validation_table import COLUMNS, format_table
+from .viewer import display_available, open_recording
 
 
 class _Parser(argparse.ArgumentParser):
@@ -94,8 +119,6 @@ def _add_reconstruct(sub):
 
 def summary_lines(summary: dict) -> list[str]:
     """The end-of-run text (batgraph.summary.terminal_lines): reads summary.json's figures; computes none."""
-    from .summary import terminal_lines
-
     return terminal_lines(summary)
 
 
@@ -104,7 +127,6 @@ def _compile_note(args) -> None:
     so that a minute of silence after an install is explained; also with --quiet (a silent minute looks hung)."""
     if args.solver != "fast":
         return
-    from .solver import kernels
 
     if kernels.needs_compiling():
         print("batgraph: compiling its inner loops for this machine, once after an install or update "
@@ -129,10 +151,6 @@ def _check_not_a_result(session: str | Path) -> None:
 
 
 def _cmd_reconstruct(args) -> int:
-    from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
-    from .pipeline import parse_methods, reconstruct
-    from .result import Options
-
     for session in args.sessions:
         _check_not_a_result(session)
     methods = parse_methods(args.methods, args.compare)
@@ -144,7 +162,6 @@ def _cmd_reconstruct(args) -> int:
         check_output_dir(args.out if args.out is not None else Path(args.sessions[0]) / "out")
     viewer = args.viewer
     if viewer is None:
-        from .viewer import display_available
         viewer = "spawn" if display_available() and not batch else "save"
     if batch:
         _compile_note(args)
@@ -211,10 +228,6 @@ def _add_validate(sub):
 
 def validation_lines(validation: dict) -> list[str]:
     """The terminal's validation table (from summary.json's "validation" section) and its verdict."""
-    import pandas as pd
-
-    from .validation_table import COLUMNS, format_table
-
     table = pd.DataFrame(validation.get("table") or [], columns=COLUMNS)
     lines = ["leave-one-camera-out: error [px] of each method's 3D projected into the held-out camera "
              "(status without that camera; common = points every method estimates)"]
@@ -224,9 +237,6 @@ def validation_lines(validation: dict) -> list[str]:
 
 
 def _cmd_validate(args) -> int:
-    from .pipeline import DEFAULT_METHODS, parse_methods, reconstruct
-    from .result import Options
-
     _check_not_a_result(args.session)
     if args.out is not None or Path(args.session).is_dir():
         check_output_dir(args.out if args.out is not None else Path(args.session) / "out")
@@ -295,8 +305,6 @@ def _numbers(text: str) -> list[float]:
 
 def _timing(args, n_cameras: int):
     """The simulate command's timing flags as a batgraph.simulate.Timing (None without any); InputError if bad."""
-    from .simulate import Timing
-
     if args.time_offsets_ms is None and args.readout_ms is None and args.camera_fps is None:
         if args.timing_known:
             raise InputError("--timing-known: give the timing (--time-offsets-ms, --readout-ms, --camera-fps)")
@@ -321,11 +329,6 @@ def _timing(args, n_cameras: int):
 
 
 def _cmd_simulate(args) -> int:
-    import numpy as np
-
-    from .session import write_session
-    from .simulate import simulate_ear, simulate_flight, simulate_wand
-
     out = _check_new_session_folder(args.out, args.force)
     if not 0 <= args.outlier_rate < 1:
         raise InputError(f"--outlier-rate: must be in [0, 1), got {args.outlier_rate}")
@@ -445,19 +448,13 @@ def _cmd_import_keypoints(args) -> int:
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
     if args.format == "deeplabcut":
-        from .formats.deeplabcut import import_deeplabcut
-
         session = import_deeplabcut(args.files, args.calibration, args.fps, args.out, camera_names=args.camera_names,
                                     threshold=args.threshold, individual=args.individual, units=args.units)
     elif args.format == "anipose":
-        from .formats.anipose import import_anipose
-
         session = import_anipose(args.project, args.fps, args.out, calibration=args.calibration,
                                  threshold=args.threshold, trial=args.trial, cam_regex=args.cam_regex,
                                  units=args.units)
     else:
-        from .formats.pose2sim import import_pose2sim
-
         session = import_pose2sim(args.json_dirs, args.calibration, args.fps, args.out, keypoints=args.keypoints,
                                   threshold=args.threshold, camera_names=args.camera_names, person=args.person,
                                   reference_trc=args.reference_trc, pixel_sigma_px=args.pixel_sigma,
@@ -468,8 +465,6 @@ def _cmd_import_keypoints(args) -> int:
 
 
 def _cmd_import_dltdv(args) -> int:
-    from .formats.dltdv import import_dltdv
-
     _check_new_session_folder(args.out, args.force)
     if args.fps <= 0:
         raise InputError(f"--fps: must be > 0, got {args.fps}")
@@ -537,9 +532,6 @@ def _add_calibrate(sub):
 
 
 def _cmd_calibrate(args) -> int:
-    from .calibrate import calibrate_session, write_calibration
-    from .session import read_session
-
     _check_not_a_result(args.session)
     if args.out is not None or Path(args.session).is_dir():
         check_output_file(args.out if args.out is not None else Path(args.session) / "out" / "calibration.toml",
@@ -622,10 +614,6 @@ def calibration_lines(report: dict, truth: bool) -> list[str]:
 
 
 def _cmd_calibrate_intrinsics(args) -> int:
-    from .calibrate import write_calibration
-    from .camera import Rig
-    from .intrinsics import Board, calibrate_intrinsics
-
     check_output_file(args.out, "calibration file (--out)")
     board = Board(args.board, args.cols, args.rows, args.square_m, args.marker_m, args.dictionary)
     cam, report = calibrate_intrinsics(args.sources, board, name=args.name, dist_model=args.dist_model,
@@ -643,8 +631,6 @@ def _add_view(sub):
 
 
 def _cmd_view(args) -> int:
-    from .viewer import open_recording
-
     open_recording(args.out_dir)
     return 0
 
@@ -676,8 +662,6 @@ def _add_export(sub):
 
 
 def _cmd_export(args) -> int:
-    from .pipeline import read_result_tables
-
     out = Path(args.out_dir)
     traj, reproj = read_result_tables(out)
     methods = list(dict.fromkeys(traj["method"]))
@@ -694,8 +678,6 @@ def _cmd_export(args) -> int:
     facts = read_json_object(summary) if summary.is_file() else {}
     keep = args.range_ or "span"
     if args.format == "dltdv":
-        from .formats.dltdv import export_dltdv, point_names
-
         imported = facts.get("import", {})
         units = args.units or (imported.get("units", "m") if isinstance(imported, dict) else "m")
         if units not in ("m", "cm", "mm"):
@@ -707,16 +689,12 @@ def _cmd_export(args) -> int:
             print(f"note: points numbered pt1..ptN in the order of trajectories.csv, not named: {why}",
                   file=sys.stderr)
     elif args.format in ("csv", "parquet"):
-        from .formats.c3d_trc import write_table
-
         dest = Path(args.to or out / f"{'all_methods' if every else method}.{args.format}")
         if dest.suffix != f".{args.format}":
             raise InputError(f"{dest}: an {args.format} export needs a .{args.format} file name")
         check_output_file(dest)
         paths = [write_table(dest, traj, units=args.units or "m", keep=keep, method=None if every else method)]
     else:
-        from .formats.c3d_trc import write_c3d, write_trc
-
         fps = args.fps
         if fps is None:
             if "fps" not in facts:
@@ -755,8 +733,6 @@ def _add_associate(sub):
                    help="detection noise std [px] (default: session.toml [noise] pixel_sigma_px, else measured)")
 
     def run(args) -> int:
-        from .associate.command import run as associate
-
         return associate(args)
 
     p.set_defaults(func=run)
@@ -815,11 +791,7 @@ def _library_noise_off(command: str) -> None:
     later inherit both."""
     if command not in _COMPUTING:
         return
-    import warnings
-
     os.environ.setdefault("RUST_LOG", "off")  # read once, when Rerun's bindings load (lazily, later)
-    from numba.core.errors import NumbaWarning
-
     warnings.simplefilter("ignore", NumbaWarning)
 
 

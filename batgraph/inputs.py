@@ -26,16 +26,12 @@ import math
 import os
 import tomllib
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
+import pandas as pd
 
 from .errors import InputError
-
-if TYPE_CHECKING:  # pandas is imported where a table is read: `batgraph --help` and the option checks need none
-    import pandas as pd
-
-    from .labels import Labels
+from .labels import Labels, factorize
 
 MAX_FRAME = 10_000_000
 """Largest frame number accepted (a day at 115 Hz); larger is a typo or an overflowed counter."""
@@ -295,8 +291,6 @@ def read_csv(path: str | os.PathLike, header: bool = True, what: str = "a table"
     Column names are stripped. InputError for an empty file, a ragged row (naming its line), other
     separators, and a column named twice. Read by pyarrow where that gives pandas' table (:func:`_arrow_cells`).
     """
-    import pandas as pd
-
     path = Path(path)
     data = read_bytes(path)
     text = decode_text(data, path)
@@ -325,8 +319,6 @@ def read_csv(path: str | os.PathLike, header: bool = True, what: str = "a table"
 
 def read_parquet(path: str | os.PathLike) -> pd.DataFrame:
     """A Parquet file as a DataFrame; InputError naming the file for anything unreadable."""
-    import pandas as pd
-
     path = check_readable(path)
     try:
         return pd.read_parquet(path)
@@ -367,8 +359,6 @@ def row_name(i: int, is_csv: bool) -> str:
 
 def numeric_column(df: pd.DataFrame, col: str, path, is_csv: bool, allow_missing: bool) -> np.ndarray:
     """Column ``col`` as float (NaN where missing if ``allow_missing``); InputError naming the bad row."""
-    import pandas as pd
-
     raw = df[col]
     values = _arrow_floats(raw)
     if values is None:
@@ -396,8 +386,6 @@ def _arrow_floats(raw: pd.Series) -> np.ndarray | None:
     cell to a Python str and float: 0.14 -> 0.02 s for the four columns of a 530k-row observations.csv), or None
     for another column or a cell the cast refuses (the caller parses those as before). The cast accepts a
     subset of the texts Python's float() does, with the same correctly rounded values (tests/test_inputs_csv.py)."""
-    import pandas as pd
-
     if not (isinstance(raw.dtype, pd.StringDtype) and raw.dtype.storage == "pyarrow"):
         return None
     import pyarrow as pa
@@ -457,8 +445,6 @@ def check_frame_gaps(frames: np.ndarray, path, is_csv: bool, rows: np.ndarray | 
 def label_codes(df: pd.DataFrame, col: str, path, is_csv: bool) -> Labels:
     """Column ``col`` as stripped, non-empty labels (batgraph.labels: codes into the distinct names);
     InputError naming the first empty row (a missing cell, or text that is blank or "nan")."""
-    from .labels import factorize
-
     labels = factorize(df[col], strip=True)
     empty = labels.rows_where(np.isin(labels.names, ["", "nan"])) | (labels.codes < 0)
     if empty.any():
@@ -469,8 +455,6 @@ def label_codes(df: pd.DataFrame, col: str, path, is_csv: bool) -> Labels:
 
 def label_column(df: pd.DataFrame, col: str, path, is_csv: bool) -> pd.Series:
     """Column ``col`` as stripped, non-empty str (:func:`label_codes`); InputError naming the first empty row."""
-    import pandas as pd
-
     return pd.Series(label_codes(df, col, path, is_csv).column(), index=df.index)
 
 

@@ -7,7 +7,6 @@ group of gated pairs with scipy's linear_sum_assignment.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -104,6 +103,8 @@ def _mutual_best(cost: np.ndarray, gate: float, compete_only: bool) -> tuple[np.
 
 def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
     """Least-cost assignment with a miss / birth of cost gate / 2 for each row / column left out."""
+    from scipy.optimize import linear_sum_assignment  # 40 ms to import: only associate needs it
+
     R, K = sub.shape
     full = np.full((R + K, K + R), BIG)
     full[:R, :K] = np.where(np.isfinite(sub), sub, BIG)

@@ -17,7 +17,6 @@ import heapq
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..camera import Rig
 from ..geometry import pose
@@ -239,6 +238,8 @@ class FramePoints:
 def candidates(geom: Geometry, uv: np.ndarray, sig: np.ndarray, camera: np.ndarray) -> tuple[FramePoints, np.ndarray]:
     """Every candidate point of one frame's detections (uv (n, 2) ideal px, sig (n,) ideal px, camera (n,)),
     duplicates removed, each with >= 2 views within the gate; and each detection's log likelihood ratio (n,)."""
+    from scipy.spatial import cKDTree  # 50 ms to import: only associate needs it
+
     C = len(geom.rig)
     by_cam = [np.flatnonzero(camera == c) for c in range(C)]
     trees = [cKDTree(uv[b]) if len(b) else None for b in by_cam]
@@ -316,6 +317,8 @@ def projected_points(geom: Geometry, uv: np.ndarray, sig: np.ndarray, camera: np
     more are triangulated and their views beyond the gate dropped. uv (n, 2), sig (n,), camera (n,): the frame's
     detections (ideal px). Returns one point per such marker, views as indices into uv, in marker order (the
     markers behind them are ``FramePoints.source``)."""
+    from scipy.spatial import cKDTree  # 50 ms to import: only associate needs it
+
     C = len(geom.rig)
     have = np.flatnonzero(np.isfinite(xyz).all(axis=1))
     views = np.full((len(have), C), -1, np.int64)

@@ -17,7 +17,6 @@ orientations two cameras suffice.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from . import pose
 
@@ -25,6 +24,8 @@ from . import pose
 def _log(R: np.ndarray) -> np.ndarray:
     """SO(3) log of rotation matrices (..., 3, 3) -> (..., 3) [rad], accurate near the identity
     (OpenCV's Rodrigues returns 0 below 1e-5 rad)."""
+    from scipy.spatial.transform import Rotation  # 50 ms to import: only calibrate needs it
+
     R = np.asarray(R, float)
     return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-1])
 
