@@ -11,6 +11,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -87,18 +88,20 @@ def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", option
     in_place = session_dir is not None and Path(os.path.realpath(out_dir)) in (
         Path(os.path.realpath(session_dir)), *Path(os.path.realpath(session_dir)).parents)
     with atomic.result_folder(out_dir, OUTPUT_FILES, in_place=in_place) as stage:
-        files = _write_files(result, stage, viewer, options, report or report_standby())
+        files = _write_files(result, stage, viewer, options, report or report_standby(viewer))
         if validation_table is not None:
             validation_mod.write_csv(validation_table, stage / validation_mod.CSV_NAME)
             files.append(stage / validation_mod.CSV_NAME)
     return [out_dir / p.name for p in files]
 
 
-def _report_writer():
-    """The report child's preparation: imports Rerun (1.4 s, while the estimators run; a missing rerun-sdk says so
-    when the recording is written) and returns the writer of report.html and, when given a path, recording.rrd."""
-    with contextlib.suppress(InputError):
-        preload_rerun()
+def _report_writer(recording: bool = True):
+    """The report child's preparation: imports Rerun when a recording will be written (0.2-1.4 s, while the
+    estimators run; a missing rerun-sdk says so when the recording is written) and returns the writer of report.html
+    and, when given a path, recording.rrd."""
+    if recording:
+        with contextlib.suppress(InputError):
+            preload_rerun()
 
     def write(report_path, session, trajectories, reprojection, summary, recording_path=None, dense=None):
         report_mod.write_report(report_path, session, trajectories, reprojection, summary)
@@ -108,10 +111,11 @@ def _report_writer():
     return write
 
 
-def report_standby() -> forked.Standby:
-    """A child process that imports the report's and the viewer's modules now and draws report.html (and writes
-    recording.rrd) when :func:`write_outputs` hands it the result (batgraph.forked.Standby). Cancel it if unused."""
-    return forked.Standby(_report_writer, "report")
+def report_standby(viewer: str = "save") -> forked.Standby:
+    """A child process that prepares now (Rerun imported unless ``viewer`` is "none") and draws report.html (and
+    writes recording.rrd) when :func:`write_outputs` hands it the result (batgraph.forked.Standby). Cancel it if
+    unused."""
+    return forked.Standby(partial(_report_writer, viewer != "none"), "report")
 
 
 def _write_files(result: Run, out_dir: Path, viewer: str, options: Options | None,
@@ -171,7 +175,7 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
     # the report's child, forked before the estimators' memory grows; cancelled on failure
-    with report_standby() as report:
+    with report_standby(viewer) as report:
         session = read_session(session_dir, calibration)
         methods = list(methods or DEFAULT_METHODS)
         if viewer == "spawn":
