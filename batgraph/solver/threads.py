@@ -9,6 +9,7 @@ use); batgraph.batch gives each worker process its share.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
@@ -21,11 +22,14 @@ def _default() -> int:
 
 
 _state: dict = {"n": _default(), "pool": None}
+_POOL_LOCK = threading.Lock()
 
 
 def _forget_pool() -> None:
     """A forked child has none of the pool's threads (fork copies the calling thread only): start afresh."""
+    global _POOL_LOCK
     _state["pool"] = None
+    _POOL_LOCK = threading.Lock()
 
 
 if hasattr(os, "register_at_fork"):
@@ -53,8 +57,9 @@ def split(n_items: int, min_part: int, run) -> None:
     if k == 1:
         run(0, n_items)
         return
-    if _state["pool"] is None:
-        _state["pool"] = ThreadPoolExecutor(max_workers=_state["n"] - 1, thread_name_prefix="batgraph-kernel")
+    with _POOL_LOCK:  # side_by_side's jobs may split at the same moment
+        if _state["pool"] is None:
+            _state["pool"] = ThreadPoolExecutor(max_workers=_state["n"] - 1, thread_name_prefix="batgraph-kernel")
     cuts = [(j * n_items) // k for j in range(k + 1)]
     futures = [_state["pool"].submit(run, cuts[j], cuts[j + 1]) for j in range(1, k)]
     run(cuts[0], cuts[1])
