@@ -5,8 +5,8 @@ Sections (each prints a markdown table; medians of jobs run in turn, ratios roun
   reconstruct runs it; the same on the baseline's cost (random walk at the paper's sigma, no robust loss, no
   segments: positions must agree with GTSAM's); the baseline, a GTSAM graph of the paper's random walk built in a
   Python loop (TriangulationFactorCal3_S2 on ideal pixels with the fixed cameras, BetweenFactorPoint3, a prior per
-  marker) solved by GTSAM's default Levenberg-Marquardt, then gtsam.Marginals of every point; the smoother's steps
-  called one by one (triangulation, cleaning, noise search, final rounds); the filter method.
+  marker) solved by GTSAM's default Levenberg-Marquardt, then gtsam.Marginals of every point; the filter method.
+  The smoother method's steps are timed where its schedule calls them.
 - command: ``python -m batgraph reconstruct data/samples/flight_5cam --out X`` with --viewer none and save, and the
   same with --methods triangulate (start-up and outputs), warm, fresh processes.
 - first-run: that command with an empty numba cache (NUMBA_CACHE_DIR a new folder), the compile step ``python -m
@@ -16,6 +16,7 @@ Sections (each prints a markdown table; medians of jobs run in turn, ratios roun
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import sys
@@ -31,15 +32,13 @@ from benchproc import SAMPLE, alternate, batgraph, machine, median, run, table, 
 
 from batgraph.evaluate import dense_from_table  # noqa: E402
 from batgraph.measurement import ideal_observations  # noqa: E402
-from batgraph.motion import causal_accel_psd, random_walk_sigma_m  # noqa: E402
+from batgraph.motion import random_walk_sigma_m  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
 from batgraph.solver import filter as filter_method  # noqa: E402
-from batgraph.solver import fit, lm, schedule, search, segments, warm  # noqa: E402
 from batgraph.solver import model as mm  # noqa: E402
-from batgraph.solver.backends import FAST  # noqa: E402
-from batgraph.solver.problem import Loss, gradient  # noqa: E402
+from batgraph.solver import schedule, warm  # noqa: E402
 from batgraph.triangulate import dlt_points  # noqa: E402
 
 OPTIONS = Options(progress=False)
@@ -94,60 +93,31 @@ def gtsam_random_walk(session, ideal) -> dict:
             "marginals": marg["wall"]}
 
 
+# The schedule's steps (batgraph.solver.schedule), timed where the method calls them: (module, attribute, label)
+STEPS = ((schedule, "dlt_points", "triangulation"), (schedule, "_clean", "cleaning and exclusion"),
+         (schedule, "_choose", "noise search"), (schedule, "_final", "final solves and rejection"),
+         (schedule.shared, "solve", "shared variables"), (schedule.ends, "widen", "track ends and second depth"))
+
+
 def smoother_steps(session, dense, ideal) -> dict:
-    """The smoother method's steps (batgraph.solver.schedule) called one by one through the solver's public
-    functions, each timed [s]; xyz (F, M, 3) [m] is schedule.run_smoother's answer (for a session without shared
-    variables, motion "auto" and no given q)."""
-    out = {}
+    """The smoother method (schedule.run_smoother) with each of its STEPS timed [s] where the schedule calls it (the
+    same run, the same answer); xyz (F, M, 3) [m]."""
+    out = {label: 0.0 for _, _, label in STEPS}
 
-    def lap(name, fn, *fn_args, **kw):
-        res = timed(lambda: fn(*fn_args, **kw))
-        out[name] = res["wall"]
-        return res["result"]
+    def clocked(fn, label):
+        def run_step(*a, **kw):
+            res = timed(lambda: fn(*a, **kw))
+            out[label] += res["wall"]
+            return res["result"]
+        return run_step
 
-    p0, v0, est = lap("triangulation", lambda: schedule.initial_track(dlt_points(session.rig, ideal), session.fps))
-    setup = fit.Setup(ideal, session.rig, session.fps, Loss(OPTIONS.robust, OPTIONS.robust_k), p0,
-                      segments.pairs_of(session.rigid, dense.markers), session.rigid_sigma_m)
-    q = causal_accel_psd(session.motion, session.fps)
-    cleaning = replace(setup, loss=Loss(schedule.CLEANING_LOSS.name, OPTIONS.robust_k))
-    clean = lap("cleaning", lambda: fit.solve(cleaning, np.where(est, "constant_velocity", None), np.full(len(est), q),
-                                              (p0, None, None), lm.LOOSE, covariances=False, with_segments=False))
-    excluded = lap("exclusion", lambda: rejected(setup, clean))
-    groups = [members for members, _ in segments.groups(setup.pairs, est)]
-    choice = lap("noise search", lambda: FAST.choose(setup.without(excluded), (clean.xyz, clean.velocity, None),
-                                                     mm.AUTO_CANDIDATES, groups, False))
-    out["solves"] = dict(choice.n_solves)
-    models, start = np.where(est, choice.model, None), search_start(choice, (clean.xyz, clean.velocity), session.fps)
-    redo, last = est.copy(), None
-    for r in range(schedule.REJECTION_ROUNDS):
-        solved = lap(f"final round {r + 1}", fit.solve, setup.without(excluded), np.where(redo, models, None),
-                     choice.level, start)
-        last = solved if last is None else last.merge(solved, redo)
-        again = lap(f"exclusion {r + 1}", rejected, setup, last)
-        if r == schedule.REJECTION_ROUNDS - 1 or (again == excluded).all():
-            break
-        redo = segments.with_groups((again != excluded).any(axis=(0, 1)), setup.pairs, est)
-        excluded, start = again, (last.xyz, last.velocity, last.acceleration)
-    out["xyz"] = last.xyz
+    with contextlib.ExitStack() as stack:
+        for module, name, label in STEPS:
+            original = getattr(module, name)
+            setattr(module, name, clocked(original, label))
+            stack.callback(setattr, module, name, original)
+        out["xyz"] = schedule.run_smoother(session, dense, ideal, OPTIONS).xyz_m
     return out
-
-
-def rejected(setup, solved) -> np.ndarray:
-    """The observations the schedule leaves out at a solution (C, F, M)."""
-    sq = np.nan_to_num(fit.sq_residuals(setup, solved), nan=0.0)
-    return schedule.to_exclude(sq > schedule.REJECT_SQ_RESIDUAL, setup.ideal.seen)
-
-
-def search_start(choice, before: tuple, fps: float) -> tuple:
-    """The final solves' start: the search's solutions at the chosen models and levels (as the schedule takes it)."""
-    x = np.full(before[0].shape[:2] + (9,), np.nan)
-    for sol in choice.solution.values():
-        x[..., :sol.shape[-1]] = np.where(np.isfinite(sol), sol, x[..., :sol.shape[-1]])
-    p, v, a = search.motion_of(x, fps)
-    have = np.isfinite(p).all(axis=(0, 2))[None, :, None]
-    p = np.where(have, p, before[0])
-    v = np.where(have & np.isfinite(v).all(axis=(0, 2))[None, :, None], v, before[1])
-    return p, v, np.where(np.isfinite(a), a, gradient(v, fps))
 
 
 def rmse_mm(xyz: np.ndarray, truth: np.ndarray) -> float:
@@ -171,26 +141,23 @@ def bench_smoother(args) -> None:
         return replace(ideal, linear_xyz=None)
 
     jobs = {
-        "smoother method": lambda: timed(lambda: schedule.run_smoother(session, dense, fresh(), OPTIONS).xyz_m),
+        "smoother method": lambda: timed(lambda: smoother_steps(session, dense, fresh())),
         "smoother, the baseline's cost": lambda: timed(
             lambda: schedule.run_smoother(plain, dense, fresh(), same_cost).xyz_m),
         "GTSAM random walk (baseline)": lambda: timed(lambda: gtsam_random_walk(session, fresh())),
-        "smoother's steps one by one": lambda: timed(lambda: smoother_steps(session, dense, fresh())),
         "filter method": lambda: timed(lambda: filter_method.run(session, dense, fresh(), OPTIONS).xyz_m),
     }
     runs = alternate(jobs, args.repeats)
     print(table(runs, "GTSAM random walk (baseline)"))
     base = [r["result"] for r in runs["GTSAM random walk (baseline)"]]
-    steps = [r["result"] for r in runs["smoother's steps one by one"]]
+    steps = [r["result"] for r in runs["smoother method"]]
     print("\nbaseline's steps [s], medians: " + ", ".join(
         f"{k} {np.median([b[k] for b in base]):.2f}" for k in base[0] if k != "xyz"))
     print("smoother's steps [s], medians: " + ", ".join(
-        f"{k} {np.median([s.get(k, 0.0) for s in steps]):.2f}" for k in steps[0] if k not in ("xyz", "solves"))
-        + f"; noise-search solves {steps[-1]['solves']}")
+        f"{k} {np.median([s[k] for s in steps]):.2f}" for k in steps[0] if k != "xyz"))
     same = runs["smoother, the baseline's cost"][-1]["result"]
-    method = runs["smoother method"][-1]["result"]
-    print(f"same cost, smoother vs GTSAM: max |dx| {np.nanmax(np.abs(same - base[-1]['xyz'])):.1e} m; steps one by "
-          f"one vs the method: max |dx| {np.nanmax(np.abs(steps[-1]['xyz'] - method)):.1e} m")
+    method = steps[-1]["xyz"]
+    print(f"same cost, smoother vs GTSAM: max |dx| {np.nanmax(np.abs(same - base[-1]['xyz'])):.1e} m")
     print("position RMSE against the truth [mm]: " + ", ".join(
         f"{name} {rmse_mm(xyz, truth):.2f}" for name, xyz in (("smoother method", method),
                                                                ("smoother on the baseline's cost", same),

@@ -186,8 +186,6 @@ REFINE_SD = (np.radians(1.0), 0.02)
 
 def rig_used(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray):
     """The rig with the estimated timing and poses (and their standard deviations, covariances) written in."""
-    import dataclasses
-
     d_off, d_ro, _ = spec.split(theta)
     sd = np.sqrt(np.diag(cov))
     cols = spec.columns
@@ -202,7 +200,7 @@ def rig_used(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray):
         if spec.pose[c]:
             k = cols["pose"][c]
             change["pose_cov"] = cov[k:k + 6, k:k + 6]
-        cams.append(dataclasses.replace(cam, **change))
+        cams.append(replace(cam, **change))
     return type(rig)(cams, world_mirror=rig.world_mirror)
 
 
