@@ -229,7 +229,8 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     for _ in range(1 if large else opt.rounds):  # one round in a large rig: each costs as much as the tracking
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps, noise_m, patch=not large)
-        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
+        others = refine.leave_one_out(geom, fi, label, n_labels)
+        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m, others)
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
