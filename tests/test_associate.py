@@ -232,3 +232,23 @@ def test_a_neighbours_detection_does_not_vouch_for_itself():
     pulled, _ = views.project(geom, views.triangulate(geom, wrong, np.arange(4)[None]))
     assert np.linalg.norm(wrong[0] - pulled[0, 0]) < 6.0 - 1.0  # with its own view, the detection looks nearer
 
+
+def test_a_path_resumed_on_a_weak_link_needs_its_segments():
+    """A marker's smooth path, seeded on frame 0, with no segment partners: every frame keeps the name by
+    continuity; resumed with a weak link on frame 20 (a track that restarts with a confidence below 0.99), the
+    frames from there on lose it (continuity may not carry a name across the link that is in doubt)."""
+    from batgraph.associate import segments, verify
+
+    F = 40
+    t = np.arange(F) / 120.0
+    X = np.stack([2.0 * t, 0.3 * np.sin(8 * t), np.zeros(F)], axis=1)[:, None]  # (F, 1, 3)
+    have = np.ones((F, 1), bool)
+    have[19] = False  # the frame the track was lost on
+    seed = np.zeros((F, 1), bool)
+    seed[0] = True
+    seg = segments.Segments.none(1)
+    assert verify.vouched(X, have, seed, seg, 0.001)[have[:, 0], 0].all()
+    weak = np.zeros((F, 1), bool)
+    weak[20] = True
+    keep = verify.vouched(X, have, seed, seg, 0.001, weak)
+    assert keep[:19, 0].all() and not keep[20:, 0].any()
