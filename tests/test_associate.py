@@ -205,3 +205,50 @@ def test_a_marker_tracked_point_to_point_becomes_steady():
                        opt, None)
     assert tg.age[0] >= tracks.MATURE
     assert tg.q[0] == opt.accel_psd_m2_s3  # not adapted while young
+
+
+def test_a_neighbours_detection_does_not_vouch_for_itself():
+    """A marker seen by 4 cameras whose view in camera 0 is a neighbour's detection 6 px off: triangulated with
+    that view, the point is pulled towards it (its reprojection error shrinks); matched to where the other 3
+    cameras put the marker (refine.leave_one_out) the detection is far beyond the gate, and the marker's own
+    detection there lies within it."""
+    from conftest import tiny_rig
+
+    from batgraph.associate import refine, tracks, views
+    from batgraph.associate.assignment import mahalanobis
+
+    rig = tiny_rig(4)
+    geom = views.geometry(rig)
+    x = np.array([[0.05, -0.02, 0.15]])
+    proj, _ = views.project(geom, x)
+    uv = proj[:, 0].copy()  # (C, 2) ideal px
+    wrong = uv.copy()
+    wrong[0] += [6.0, 0.0]
+    fi = tracks.FrameDetections(np.zeros(4, np.int64), np.arange(4), wrong, np.full(4, 1.0), 0, np.array([0, 4]))
+    at, cov = refine.leave_one_out(geom, fi, np.zeros(4, np.int64), 1)
+    S = cov[0, 0, 0] + np.eye(2)
+    assert mahalanobis(wrong[0] - at[0, 0, 0], S) > tracks.CHI2_2DOF_GATE
+    assert mahalanobis(uv[0] - at[0, 0, 0], S) < 1.0
+    pulled, _ = views.project(geom, views.triangulate(geom, wrong, np.arange(4)[None]))
+    assert np.linalg.norm(wrong[0] - pulled[0, 0]) < 6.0 - 1.0  # with its own view, the detection looks nearer
+
+
+def test_a_path_resumed_on_a_weak_link_needs_its_segments():
+    """A marker's smooth path, seeded on frame 0, with no segment partners: every frame keeps the name by
+    continuity; resumed with a weak link on frame 20 (a track that restarts with a confidence below 0.99), the
+    frames from there on lose it (continuity may not carry a name across the link that is in doubt)."""
+    from batgraph.associate import segments, verify
+
+    F = 40
+    t = np.arange(F) / 120.0
+    X = np.stack([2.0 * t, 0.3 * np.sin(8 * t), np.zeros(F)], axis=1)[:, None]  # (F, 1, 3)
+    have = np.ones((F, 1), bool)
+    have[19] = False  # the frame the track was lost on
+    seed = np.zeros((F, 1), bool)
+    seed[0] = True
+    seg = segments.Segments.none(1)
+    assert verify.vouched(X, have, seed, seg, 0.001)[have[:, 0], 0].all()
+    weak = np.zeros((F, 1), bool)
+    weak[20] = True
+    keep = verify.vouched(X, have, seed, seg, 0.001, weak)
+    assert keep[:19, 0].all() and not keep[20:, 0].any()

@@ -17,6 +17,7 @@ from .detections import Detections
 PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
 SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
 SIGMA_START_PX = 2.0  # the noise assumed while measuring it
+DOUBT_BELOW = 0.99  # an assignment less sure than this does not carry a name by continuity (a suspected switch)
 HOW = ("", "seed", "tracked", "ray", "reprojection")
 """How a detection got its name: not named, the user's seed, a point the tracker assigned to its marker, a lone
 detection the tracker joined along its marker's predicted ray, or matched to where its marker is (refine)."""
@@ -222,15 +223,17 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     seeded = np.zeros((fi.n_frames, n_labels), bool)
     seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
     ref = opt.track.segment_lengths
-    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
+    doubt = _doubtful(sw, start - fi.first)
+    label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
     det_xyz, det_std = _detection_points(geom, fi, points)
     for _ in range(1 if large else opt.rounds):  # one round in a large rig: each costs as much as the tracking
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps, noise_m, patch=not large)
-        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m)
-        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref)
+        others = refine.leave_one_out(geom, fi, label, n_labels)
+        label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m, others)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
     return Association(label, conf, cand, track, how, sigma, sw)
@@ -268,13 +271,14 @@ def _seed_lengths(placed: dict[int, tracks.Seed], pairs: list[tuple[int, int]]) 
 
 def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray, fixed: np.ndarray,
              seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float,
-             reference: dict | None) -> np.ndarray:
-    """The names (N,) left where batgraph.associate.verify vouches for the marker's path; a name on a frame where
-    its marker has no triangulated position stays only if the path is vouched for within 2 frames of it."""
+             reference: dict | None, doubt: np.ndarray | None = None) -> np.ndarray:
+    """The names (N,) left where batgraph.associate.verify vouches for the marker's path (doubt (F, L): where
+    the tracker's link is in doubt, :func:`_doubtful`); a name on a frame where its marker has no triangulated
+    position stays only if the path is vouched for within 2 frames of it."""
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
     seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m, reference)
-    keep = verify.vouched(xyz, have, seeded, seg, noise_m)
+    keep = verify.vouched(xyz, have, seeded, seg, noise_m, doubt)
     near = keep.copy()
     for s_ in (1, 2):
         near[s_:] |= keep[:-s_]
@@ -283,6 +287,17 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     lab = np.maximum(label, 0)
     ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
     return np.where(fixed >= 0, fixed, np.where((label >= 0) & ok, label, -1))
+
+
+def _doubtful(sw: tracks.Sweep, k0: int) -> np.ndarray:
+    """Where a link of the tracker is in doubt (F, L) bool, as a mark on the later of the two frames it joins (in
+    frame order): the tracker placed the marker with a confidence below DOUBT_BELOW. Forward of the seed frame k0 a
+    link on frame k joins it to the frames before; backward, to the frames after (the mark goes on k + 1)."""
+    weak = (sw.kind > 0) & (sw.conf < DOUBT_BELOW)
+    out = np.zeros_like(weak)
+    out[k0 + 1:] = weak[k0 + 1:]
+    out[1:k0 + 1] |= weak[:k0]
+    return out
 
 
 def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

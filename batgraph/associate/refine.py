@@ -8,7 +8,9 @@ distance in time (the marker's own acceleration, measured on its triangulated pa
 projected markers and the detections are matched by the assignment of least cost (error^2 / (sigma_detection^2
 + sigma_projection^2) + 2 ln(sigma^2): an uncertain marker does not win a detection cheaply); a match is kept
 when the best assignment without it costs at least ``margin`` more (its confidence is 1 / (1 + e^(-margin / 2))):
-two markers on one merged blob, or a blob between two projections, stay unnamed. Two rounds: the names of the
+two markers on one merged blob, or a blob between two projections, stay unnamed. A camera's detections are matched
+to where the marker's named views in the other cameras put it (where it has two others, :func:`leave_one_out`), so
+that a neighbour's detection taken as the marker's does not vouch for itself. Two rounds: the names of the
 first give the triangulations of the second.
 """
 
@@ -16,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .assignment import assign
-from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, patch_shift
-from .views import Geometry, _prune, project
+from .assignment import assign, mahalanobis
+from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, jacobian, patch_shift, point_covariance
+from .views import Geometry, _prune, project, triangulate
 
 MAX_REACH = 6  # frames a position is carried from its nearest triangulated frame
 POINT_SIGMA = 4.0
@@ -58,6 +60,43 @@ def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: 
         xyz[k, have[keep]] = x
         std[k, have[keep]] = _std(geom, fi, rows, v, x)
     return xyz, std, label
+
+
+def leave_one_out(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each marker should appear in each camera by its other cameras' views: ideal pixels (F, L, C, 2) and
+    their covariance (F, L, C, 2, 2) [px^2] (the first-order covariance of the point triangulated from the
+    marker's named views in the other cameras, projected), NaN unless the marker has named views in that camera
+    and two others. A detection is then matched to a position it did not pull towards itself: a neighbour's
+    detection taken as the marker's does not vouch for itself."""
+    F = len(fi.start) - 1
+    C = len(geom.rig)
+    uv = np.full((F, n_labels, C, 2), np.nan)
+    cov = np.full((F, n_labels, C, 2, 2), np.nan)
+    for k in range(F):
+        rows = fi.rows(fi.first + k)
+        lab = label[rows]
+        named = lab >= 0
+        if named.sum() < 3:
+            continue
+        views = np.full((n_labels, C), -1, np.int64)
+        views[lab[named], fi.camera[rows[named]]] = np.flatnonzero(named)
+        m, c = np.nonzero((views >= 0) & ((views >= 0).sum(axis=1) >= 3)[:, None])
+        if not len(m):
+            continue
+        v = views[m].copy()
+        v[np.arange(len(m)), c] = -1
+        x = triangulate(geom, fi.uv[rows], v)
+        ok = np.isfinite(x).all(axis=1)
+        m, c, v, x = m[ok], c[ok], v[ok], x[ok]
+        P = point_covariance(geom, x, np.where(v >= 0, rows[np.maximum(v, 0)], -1), fi.sig)
+        for cam in np.unique(c):
+            s = c == cam
+            h = x[s] @ geom.P[cam][:, :3].T + geom.P[cam][:, 3]
+            J = jacobian(geom.P[cam], x[s])
+            uv[k, m[s], cam] = h[:, :2] / h[:, 2:3]
+            cov[k, m[s], cam] = J @ P[s] @ J.transpose(0, 2, 1)
+    return uv, cov
 
 
 def _std(geom: Geometry, fi: FrameDetections, rows: np.ndarray, views: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -127,13 +166,15 @@ def _accel(x: np.ndarray, frames: np.ndarray, dt: float) -> float:
 
 
 def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray, margin: float,
-          fixed: np.ndarray, det_xyz: np.ndarray, det_std: np.ndarray, noise_m: float = 0.0
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          fixed: np.ndarray, det_xyz: np.ndarray, det_std: np.ndarray, noise_m: float = 0.0,
+          others: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each detection's marker (N,) (-1: none), its confidence (N,) and, for the unnamed ones, the best candidate
     (N,) (-1: none within the gate), by matching the projected markers in every camera and frame. ``fixed`` (N,)
     holds names that stay (the seed's; -1 elsewhere). det_xyz (N, 3) [m], det_std (N,) [m]: the point of three
     views or more each detection is in (NaN: none); a marker may not take a detection whose point lies more than
-    POINT_SIGMA combined stds from it (that detection is another marker's)."""
+    POINT_SIGMA combined stds from it (that detection is another marker's). others: where each marker should
+    appear by its other cameras (:func:`leave_one_out`); where given, a camera's detections are matched to that
+    instead of the projected position."""
     N = len(fi.frame)
     label = fixed.copy()
     conf = np.where(fixed >= 0, 1.0, 0.0)
@@ -157,6 +198,12 @@ def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray,
             d2 = np.sum((proj[c, ok][:, None] - fi.uv[rc][None]) ** 2, axis=-1)  # (P, n)
             s2 = s_proj[:, None] ** 2 + fi.sig[rc][None] ** 2
             m = d2 / s2
+            if others is not None:
+                lo = np.isfinite(others[0][k, have[ok], c, 0])
+                if lo.any():
+                    S = others[1][k, have[ok][lo], c][:, None] + np.eye(2) * fi.sig[rc][None, :, None, None] ** 2
+                    m[lo] = mahalanobis(fi.uv[rc][None] - others[0][k, have[ok][lo], c][:, None], S)
+                    s2[lo] = np.sqrt(np.linalg.det(S))
             far = (np.linalg.norm(det_xyz[rc][None] - xyz[k, have[ok]][:, None], axis=-1)
                    > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None])
                    + max(POINT_SLACK_M, 2 * noise_m))

@@ -18,7 +18,7 @@ from .. import atomic, inputs
 from ..errors import InputError
 from ..formats.csv_text import write_csv
 from ..session import OBS_COLUMNS
-from .core import HOW, AssociateOptions, Association, associate
+from .core import DOUBT_BELOW, HOW, AssociateOptions, Association, associate
 from .detections import Detections, SessionSetup, read_inputs, read_seed
 
 SEED_FILE = "seed_labels.csv"
@@ -39,7 +39,7 @@ class Figures:
     how: np.ndarray
     switches: pd.DataFrame
     summary: dict
-    suspect_below: float = 0.99
+    suspect_below: float = DOUBT_BELOW
 
 
 def _markers(setup: SessionSetup, seed: pd.DataFrame, path: Path) -> list[str]:
@@ -106,7 +106,7 @@ def _labels_table(dets: Detections, cameras: list[str], markers: list[str], res:
 
 
 def _figures(dets: Detections, markers: list[str], res: Association, det_path: Path,
-             suspect_below: float = 0.99) -> Figures:
+             suspect_below: float = DOUBT_BELOW) -> Figures:
     """The marker x frame map of how names were obtained, and the suspected switches (see :class:`Figures`)."""
     first = int(dets.frame.min())
     F = int(dets.frame.max()) - first + 1

@@ -8,7 +8,9 @@ JUMP_FLOOR_M) are jumps; they and gaps of more than MAX_GAP frames cut the path 
 vouched for when it holds a seed frame, or when at least MIN_CHECKS of its distances to segment partners were
 checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (batgraph.associate.segments),
 or when it meets a vouched stretch across a gap without a jump (its end, extrapolated linearly, lands within
-the jump bound of the other's start): a name carried by continuity from the seed.
+the jump bound of the other's start): a name carried by continuity from the seed. A link the tracker doubted (placed
+with a confidence below batgraph.associate.core.DOUBT_BELOW) cuts the path too, and continuity does not carry a
+name across it: the stretch beyond keeps its name only where its segments vouch for it.
 """
 
 from __future__ import annotations
@@ -52,12 +54,13 @@ def _jumps(x: np.ndarray, have: np.ndarray, floor_m: float) -> tuple[np.ndarray,
     return (g > bound) & peak, bound
 
 
-def _stretches(have: np.ndarray, jump: np.ndarray) -> list[np.ndarray]:
-    """Runs of frames with a position, cut before each break and at gaps of more than MAX_GAP frames."""
+def _stretches(have: np.ndarray, jump: np.ndarray, doubt: np.ndarray) -> list[np.ndarray]:
+    """Runs of frames with a position, cut before each break, at gaps of more than MAX_GAP frames and where a
+    doubtful link lies between two frames (``doubt`` (F,) the count of doubtful links up to each frame)."""
     idx = np.flatnonzero(have)
     out, cur = [], []
     for k in idx:
-        if cur and (k - cur[-1] > MAX_GAP or jump[k]):
+        if cur and (k - cur[-1] > MAX_GAP or jump[k] or doubt[k] > doubt[cur[-1]]):
             out.append(np.array(cur))
             cur = []
         cur.append(k)
@@ -80,7 +83,7 @@ def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: i
 
 
 def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments,
-            noise_m: float = 0.0) -> np.ndarray:
+            noise_m: float = 0.0, doubt: np.ndarray | None = None) -> np.ndarray:
     """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
     seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
     jump bound's floor is at least 3 times it; see module docstring)."""
@@ -90,7 +93,8 @@ def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segm
         if not have[:, m].any():
             continue
         jump, bound = _jumps(X[:, m], have[:, m], max(JUMP_FLOOR_M, 3 * noise_m))
-        parts = _stretches(have[:, m], jump)
+        doubts = np.cumsum(doubt[:, m]) if doubt is not None else np.zeros(F, np.int64)
+        parts = _stretches(have[:, m], jump, doubts)
         checks, fails = _segment_counts(X, have, seg, m)
         good = []
         for p in parts:
@@ -103,9 +107,11 @@ def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segm
                 if good[i]:
                     continue
                 for j in (i - 1, i + 1):
-                    later = parts[max(i, j)] if 0 <= j < len(parts) else None
-                    if (later is not None and not jump[later[0]] and good[j]
-                            and _continues(X[:, m], parts[j], p, bound)):
+                    if not 0 <= j < len(parts) or not good[j]:
+                        continue
+                    earlier, later = parts[min(i, j)], parts[max(i, j)]
+                    sure = not jump[later[0]] and doubts[later[0]] == doubts[earlier[-1]]
+                    if sure and _continues(X[:, m], parts[j], p, bound):
                         good[i] = changed = True
                         break
         for p, g in zip(parts, good, strict=True):
