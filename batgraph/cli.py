@@ -7,7 +7,7 @@ User errors (:class:`batgraph.errors.InputError`) print one line and exit with c
 from __future__ import annotations
 
 # isort: off
-from . import _blas_threads  # noqa: F401  (first: one BLAS thread unless set, before numpy loads)
+from . import _startup  # first: BLAS threads and no collection while the modules below load
 # isort: on
 import argparse
 import gc
@@ -57,6 +57,8 @@ from .solver import kernels
 from .summary import terminal_lines
 from .validation_table import COLUMNS, format_table
 from .viewer import display_available, open_recording
+
+_startup.imports_done()
 
 
 class _Parser(argparse.ArgumentParser):

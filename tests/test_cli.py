@@ -95,7 +95,7 @@ def test_simulate_then_export_dltdv_and_console_script(tmp_path):
 
 
 def test_command_line_runs_blas_on_one_thread_unless_the_user_chose():
-    """batgraph.cli sets OPENBLAS_NUM_THREADS=1 before numpy loads (batgraph._blas_threads: its own work uses the
+    """batgraph.cli sets OPENBLAS_NUM_THREADS=1 before numpy loads (batgraph._startup: its own work uses the
     cores; OpenBLAS's idle workers nearly doubled the CPU time on 16 cores), and leaves a user's setting alone."""
     import os
 
