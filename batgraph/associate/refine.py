@@ -28,6 +28,19 @@ POINT_SLACK_M = 0.003
 MIN_ACCEL = 5.0  # [m/s^2] the least acceleration a carried position allows for
 
 
+def _named_views(fi: FrameDetections, label: np.ndarray, k: int, n_labels: int, C: int, least: int) -> tuple:
+    """Frame k's detection rows and each marker's named view per camera, (L, C) indices into those rows (-1: none);
+    the views None where the frame has fewer than ``least`` named detections."""
+    rows = fi.rows(fi.first + k)
+    lab = label[rows]
+    named = lab >= 0
+    if named.sum() < least:
+        return rows, None
+    views = np.full((n_labels, C), -1, np.int64)
+    views[lab[named], fi.camera[rows[named]]] = np.flatnonzero(named)
+    return rows, views
+
+
 def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each marker's triangulated position per frame: xyz (F, L, 3) [m] and its std (F, L) [m], NaN where it has
@@ -38,13 +51,9 @@ def positions(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: 
     std = np.full((F, n_labels), np.nan)
     label = label.copy()
     for k in range(F):
-        rows = fi.rows(fi.first + k)
-        lab = label[rows]
-        named = lab >= 0
-        if named.sum() < 2:
+        rows, views = _named_views(fi, label, k, n_labels, C, 2)
+        if views is None:
             continue
-        views = np.full((n_labels, C), -1, np.int64)
-        views[lab[named], fi.camera[rows[named]]] = np.flatnonzero(named)
         have = np.flatnonzero((views >= 0).sum(axis=1) >= 2)
         if not len(have):
             continue
@@ -74,13 +83,9 @@ def leave_one_out(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labe
     uv = np.full((F, n_labels, C, 2), np.nan)
     cov = np.full((F, n_labels, C, 2, 2), np.nan)
     for k in range(F):
-        rows = fi.rows(fi.first + k)
-        lab = label[rows]
-        named = lab >= 0
-        if named.sum() < 3:
+        rows, views = _named_views(fi, label, k, n_labels, C, 3)
+        if views is None:
             continue
-        views = np.full((n_labels, C), -1, np.int64)
-        views[lab[named], fi.camera[rows[named]]] = np.flatnonzero(named)
         m, c = np.nonzero((views >= 0) & ((views >= 0).sum(axis=1) >= 3)[:, None])
         if not len(m):
             continue
