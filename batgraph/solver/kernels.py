@@ -180,6 +180,28 @@ def row_terms(x, rows, cams, loss) -> dict:
 
 
 # ----- block-tridiagonal sweeps ----------------------------------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def state_columns(k, marker, W, jw, cols, F, M, d, n):  # pragma: no cover  (compiled)
+    """The rows' coupling of the states with the shared variables, H_xt (F, M, d, n): row i adds
+    W[i, e, j] jw[i, q, a] at (k_i + e, marker_i, 3 j + q, cols[i, a]) for each of its columns a (cols >= 0) and
+    each of its two states e within the frames. The rows' first states are summed first: every entry then gets
+    its terms in the order numpy's per-column sums gave them."""
+    out = np.zeros((F, M, d, n))
+    for e in range(2):
+        for i in range(k.shape[0]):
+            f, mk = k[i] + e, marker[i]
+            if f >= F:
+                continue
+            for a in range(cols.shape[1]):
+                c = cols[i, a]
+                if c < 0:
+                    continue
+                for j in range(d // 3):
+                    for q in range(3):
+                        out[f, mk, 3 * j + q, c] += W[i, e, j] * jw[i, q, a]
+    return out
+
+
 @njit(cache=True, nogil=True)
 def mirror_lower(a):  # pragma: no cover  (compiled)
     """a (n, n) with its upper triangle set from its lower one, in place; returns a (LAPACK's potri fills one)."""

@@ -192,7 +192,7 @@ def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared, exact: boo
         H += Hu
         y = _solve_x(prob, x, group, Hxt, setup, fit, exact)
         Y[:, ms, :prob.d] = y
-        S -= np.einsum("fmin,fmio->no", Hxt, y)
+        S -= Hxt.reshape(-1, n).T @ y.reshape(-1, n)
     S += H
     return Linear(g, H, S, Y)
 
@@ -211,10 +211,14 @@ def _units(setup: fit_mod.Setup, fit: fit_mod.Fit):
 
 
 def _row_terms(prob, x, shared: Shared, setup, exact: bool):
-    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature)."""
+    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature). g_t and
+    H_tt are summed by bincount in row order (a theta column belongs to one kind, so every entry gets its terms in
+    the order of the rows)."""
     rows = prob.rows
     t = kernels.row_terms(x, rows, prob.cams, prob.loss)
     cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
+    used = (cols >= 0).any(axis=0)
+    cols, Jt = cols[:, used], Jt[:, :, used]
     w, r, J = t["w"], t["r"], t["J"]
     Wr = w[:, None, None] * np.eye(2)  # each row's curvature in its whitened residual (n_rows, 2, 2)
     if exact:
@@ -223,23 +227,14 @@ def _row_terms(prob, x, shared: Shared, setup, exact: bool):
         Wr = Wr - f[:, None, None] * r[:, :, None] * r[:, None, :]
     F, M, d = x.shape
     n = shared.n
-    Hxt, g, H = np.zeros((F, M, d, n)), np.zeros(n), np.zeros((n, n))
     WJt = np.einsum("nij,njb->nib", Wr, Jt)
+    on = cols >= 0
+    g = np.bincount(cols[on], (w[:, None] * np.einsum("nia,ni->na", Jt, r))[on], minlength=n)
+    both = on[:, :, None] & on[:, None, :]
+    H = np.bincount((cols[:, :, None] * n + cols[:, None, :])[both], np.einsum("nia,nib->nab", Jt, WJt)[both],
+                    minlength=n * n).reshape(n, n)
     jw = np.einsum("nia,nib->nab", J, WJt)  # J_x^T W J_t per row, (n_rows, 3, p)
-    for a in range(cols.shape[1]):
-        on = cols[:, a] >= 0
-        ca = cols[on, a]
-        np.add.at(g, ca, w[on] * np.einsum("ni,ni->n", Jt[on, :, a], r[on]))
-        for b in range(cols.shape[1]):
-            both = on & (cols[:, b] >= 0)
-            np.add.at(H, (cols[both, a], cols[both, b]), np.einsum("ni,ni->n", Jt[both, :, a], WJt[both, :, b]))
-        for e in range(2):
-            frame = rows.k[on] + e
-            ok = frame < F
-            for j in range(d // 3):
-                wj = rows.W[on, e, j][ok]
-                for q in range(3):
-                    np.add.at(Hxt, (frame[ok], rows.marker[on][ok], 3 * j + q, ca[ok]), wj * jw[on][ok, q, a])
+    Hxt = kernels.state_columns(rows.k, rows.marker, rows.W, jw, cols, F, M, d, n)
     return Hxt, g, H
 
 
@@ -326,7 +321,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
     if fit.cov is not None:
         Yp = lin.Y[..., :3, :]
-        fit.cov = fit.cov + np.einsum("fmin,no,fmjo->fmij", Yp, cov_t, Yp)
+        fit.cov = fit.cov + (Yp @ cov_t) @ Yp.swapaxes(-1, -2)
     return fit, theta, cov_t, cur, steps
 
 
