@@ -242,3 +242,11 @@ class Rig:
     def project(self, xyz_world_m: np.ndarray, distort: bool = True) -> np.ndarray:
         """Project points (..., 3) into every camera: uv_px of shape (n_cams, ..., 2), NaN if not visible."""
         return np.stack([c.project(xyz_world_m, distort=distort) for c in self.cameras])
+
+    def fundamental(self, a: int, b: int) -> np.ndarray:
+        """The fundamental matrix F (3, 3) with x_b^T F x_a = 0 for ideal (undistorted) pixels x_a of camera a and
+        x_b of camera b, homogeneous."""
+        ca, cb = self.cameras[a], self.cameras[b]
+        R = cb.R @ ca.R.T  # cam_b from cam_a
+        t = cb.tvec - R @ ca.tvec
+        return np.linalg.inv(cb.K).T @ pose.skew(t) @ R @ np.linalg.inv(ca.K)

@@ -266,19 +266,8 @@ class LagScan:
     warnings: list[str] = field(default_factory=list)
 
 
-def _fundamental(rig: Rig, a: int, b: int) -> np.ndarray:
-    """F (3, 3) with x_b^T F x_a = 0 for ideal pixels of cameras a, b."""
-    ca, cb = rig[a], rig[b]
-    R = cb.R @ ca.R.T
-    t = cb.tvec - R @ ca.tvec
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return np.linalg.inv(cb.K).T @ tx @ R @ np.linalg.inv(ca.K)
-
-
-def _sampson(Fm: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    """Sampson distances [px] of ideal pixel pairs (N, 2), (N, 2) under F."""
-    ha = np.column_stack([xa, np.ones(len(xa))])
-    hb = np.column_stack([xb, np.ones(len(xb))])
+def _sampson(Fm: np.ndarray, ha: np.ndarray, hb: np.ndarray) -> np.ndarray:
+    """Sampson distances [px] of ideal pixel pairs, homogeneous (N, 3), (N, 3), under F."""
     Fa, Fb = ha @ Fm.T, hb @ Fm
     num = np.einsum("ni,ni->n", hb, Fa)
     return np.abs(num) / np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Fb[:, 0] ** 2 + Fb[:, 1] ** 2)
@@ -287,28 +276,31 @@ def _sampson(Fm: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
 def pair_costs(rig: Rig, uv: np.ndarray, frames: np.ndarray, span: int, min_points: int, max_points: int = 4000):
     """Median Sampson distance D[a, b, s + span] [px] between camera a at frame k and camera b at frame k + s, s in
     [-span, span]; NaN where fewer than ``min_points`` such pairs (at most ``max_points``, evenly spaced, are used).
+    D[b, a, span - s] = D[a, b, span + s]: the same pairs of points, and the distance is symmetric.
 
     uv: ideal pixels (C, F, M, 2), NaN where unseen; frames (F,): their frame numbers, sorted (gaps allowed: only
     pairs exactly s frames apart count)."""
-    C, F = uv.shape[:2]
+    C, F, M = uv.shape[:3]
     D = np.full((C, C, 2 * span + 1), np.nan)
+    flat = np.concatenate([uv.reshape(C, F * M, 2), np.ones((C, F * M, 1))], axis=-1)  # homogeneous
+    seen = np.isfinite(flat[..., 0])
+    fundamental = {(a, b): rig.fundamental(a, b) for a in range(C) for b in range(a + 1, C)}
     for s in range(-span, span + 1):
         lo, hi = max(0, -s), min(F, F - s)
         if hi <= lo:
             continue
         f = np.arange(lo, hi)
         f = f[frames[f + s] == frames[f] + s]
+        at = (f[:, None] * M + np.arange(M)).ravel()  # camera a's points; camera b's are s * M further
+        seen_a, seen_b = seen[:, at], seen[:, at + s * M]
         for a in range(C):
-            xa_all = uv[a, f].reshape(-1, 2)
-            for b in range(C):
-                if a == b:
-                    continue
-                xb = uv[b, f + s].reshape(-1, 2)
-                ok = np.flatnonzero(np.isfinite(xa_all[:, 0]) & np.isfinite(xb[:, 0]))
+            for b in range(a + 1, C):
+                ok = np.flatnonzero(seen_a[a] & seen_b[b])
                 if len(ok) < min_points:
                     continue
-                ok = ok[np.linspace(0, len(ok) - 1, min(len(ok), max_points)).astype(int)]
-                D[a, b, span + s] = float(np.median(_sampson(_fundamental(rig, a, b), xa_all[ok], xb[ok])))
+                ok = at[ok[np.linspace(0, len(ok) - 1, min(len(ok), max_points)).astype(int)]]
+                d = float(np.median(_sampson(fundamental[a, b], flat[a, ok], flat[b, ok + s * M])))
+                D[a, b, span + s] = D[b, a, span - s] = d
     return D
 
 
