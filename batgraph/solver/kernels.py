@@ -181,25 +181,42 @@ def row_terms(x, rows, cams, loss) -> dict:
 
 # ----- block-tridiagonal sweeps ----------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
-def state_columns(k, marker, W, jw, cols, F, M, d, n):  # pragma: no cover  (compiled)
-    """The rows' coupling of the states with the shared variables, H_xt (F, M, d, n): row i adds
-    W[i, e, j] jw[i, q, a] at (k_i + e, marker_i, 3 j + q, cols[i, a]) for each of its columns a (cols >= 0) and
-    each of its two states e within the frames. The rows' first states are summed first: every entry then gets
-    its terms in the order numpy's per-column sums gave them."""
-    out = np.zeros((F, M, d, n))
-    for e in range(2):
-        for i in range(k.shape[0]):
-            f, mk = k[i] + e, marker[i]
-            if f >= F:
+def shared_terms(k, marker, W, r, J, w, a, Jt, cols, exact, F, M, d, n):  # pragma: no cover  (compiled)
+    """The rows' part of the shared variables' system: g_t (n,), H_tt (n, n) and the coupling with the states H_xt
+    (F, M, d, n). Row i (placed: k, W as :func:`rows_system`'s; marker (n_rows,)) has whitened residual r (2,),
+    Jacobians J (2, 3) in its point and Jt (2, p) in its theta columns cols (p,) (-1: none), IRLS weight w and
+    curvature factor a (:func:`rho_w`); its curvature in r is Wr = w I, less w a r r^T / |r|^2 with ``exact`` (the
+    robust loss's own). H_xt gets W[i, e, j] (J^T Wr Jt)[q, a] at (k_i + e, marker_i, 3 j + q, cols[a]) for each of
+    the row's two states e within the frames."""
+    g, H, Hxt = np.zeros(n), np.zeros((n, n)), np.zeros((F, M, d, n))
+    p = cols.shape[1]
+    WJt, jw = np.empty((2, p)), np.empty((3, p))
+    for i in range(k.shape[0]):
+        r0, r1 = r[i, 0], r[i, 1]
+        w00, w01, w11 = w[i], 0.0, w[i]
+        d2 = r0 * r0 + r1 * r1
+        if exact and d2 > 0:
+            f = w[i] * a[i] / d2
+            w00, w01, w11 = w00 - f * r0 * r0, -f * r0 * r1, w11 - f * r1 * r1
+        for b in range(p):
+            WJt[0, b] = w00 * Jt[i, 0, b] + w01 * Jt[i, 1, b]
+            WJt[1, b] = w01 * Jt[i, 0, b] + w11 * Jt[i, 1, b]
+            for q in range(3):
+                jw[q, b] = J[i, 0, q] * WJt[0, b] + J[i, 1, q] * WJt[1, b]
+        for c in range(p):
+            ca = cols[i, c]
+            if ca < 0:
                 continue
-            for a in range(cols.shape[1]):
-                c = cols[i, a]
-                if c < 0:
-                    continue
-                for j in range(d // 3):
-                    for q in range(3):
-                        out[f, mk, 3 * j + q, c] += W[i, e, j] * jw[i, q, a]
-    return out
+            g[ca] += w[i] * (Jt[i, 0, c] * r0 + Jt[i, 1, c] * r1)
+            for b in range(p):
+                if cols[i, b] >= 0:
+                    H[ca, cols[i, b]] += Jt[i, 0, c] * WJt[0, b] + Jt[i, 1, c] * WJt[1, b]
+            for e in range(2):
+                if k[i] + e < F:
+                    for j in range(d // 3):
+                        for q in range(3):
+                            Hxt[k[i] + e, marker[i], 3 * j + q, ca] += W[i, e, j] * jw[q, c]
+    return g, H, Hxt
 
 
 @njit(cache=True, nogil=True)

@@ -296,7 +296,7 @@ class _NoCovariances:
         self.backend, self.name = backend, backend.name
 
     def fit(self, setup, models, levels, start, settings=lm.LOOSE, covariances=False, with_segments=False):
-        return self.backend.fit(setup, models, levels, start, lm.LOOSE, False, False)
+        return self.backend.fit(setup, models, levels, start, settings, False, False)
 
 
 def _choose(setup, backend, motion, start, floor, progress, names) -> tuple:

@@ -211,30 +211,15 @@ def _units(setup: fit_mod.Setup, fit: fit_mod.Fit):
 
 
 def _row_terms(prob, x, shared: Shared, setup, exact: bool):
-    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature). g_t and
-    H_tt are summed by bincount in row order (a theta column belongs to one kind, so every entry gets its terms in
-    the order of the rows)."""
+    """(H_xt (F, M', d, n), g_t (n,), H_tt (n, n)) of a problem's rows at x (:func:`linearise`'s curvature)."""
     rows = prob.rows
     t = kernels.row_terms(x, rows, prob.cams, prob.loss)
     cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
     used = (cols >= 0).any(axis=0)
-    cols, Jt = cols[:, used], Jt[:, :, used]
-    w, r, J = t["w"], t["r"], t["J"]
-    Wr = w[:, None, None] * np.eye(2)  # each row's curvature in its whitened residual (n_rows, 2, 2)
-    if exact:
-        d2 = np.einsum("ni,ni->n", r, r)
-        f = np.where(d2 > 0, w * t["a"] / np.where(d2 > 0, d2, 1.0), 0.0)
-        Wr = Wr - f[:, None, None] * r[:, :, None] * r[:, None, :]
     F, M, d = x.shape
-    n = shared.n
-    WJt = np.einsum("nij,njb->nib", Wr, Jt)
-    on = cols >= 0
-    g = np.bincount(cols[on], (w[:, None] * np.einsum("nia,ni->na", Jt, r))[on], minlength=n)
-    both = on[:, :, None] & on[:, None, :]
-    H = np.bincount((cols[:, :, None] * n + cols[:, None, :])[both], np.einsum("nia,nib->nab", Jt, WJt)[both],
-                    minlength=n * n).reshape(n, n)
-    jw = np.einsum("nia,nib->nab", J, WJt)  # J_x^T W J_t per row, (n_rows, 3, p)
-    Hxt = kernels.state_columns(rows.k, rows.marker, rows.W, jw, cols, F, M, d, n)
+    g, H, Hxt = kernels.shared_terms(rows.k, rows.marker, rows.W, t["r"], t["J"], t["w"], t["a"],
+                                     np.ascontiguousarray(Jt[:, :, used]), np.ascontiguousarray(cols[:, used]),
+                                     exact, F, M, d, shared.n)
     return Hxt, g, H
 
 
@@ -290,7 +275,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     prior = shared.prior_info()
     Z = _complement(gauge_basis(setup.rig, shared), n)  # the directions the images determine (n, n - g)
     cur = applied(setup, shared, theta)
-    fit = backend.fit(cur, models, levels, start)
+    fit = backend.fit(cur, models, levels, start, covariances=False)
     total = _total(fit, theta, prior)
     lin = linearise(cur, fit, shared, exact=True)
     first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
@@ -307,7 +292,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         new_theta = theta + step
         new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
-        new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps))
+        new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps), covariances=False)
         new_total = _total(new_fit, new_theta, prior)
         if not new_total <= total:
             lam = max(lam * factor, first)
@@ -319,9 +304,10 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         lam = lam / factor if lam > floor else 0.0
     lin = linearise(cur, fit, shared)
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
-    if fit.cov is not None:
+    at = backend.fit(cur, models, levels, (fit.xyz, fit.velocity, fit.acceleration), lm.Settings(max_iterations=0))
+    if at.cov is not None:  # the markers' covariances at the minimiser, once (the steps' fits skip them)
         Yp = lin.Y[..., :3, :]
-        fit.cov = fit.cov + (Yp @ cov_t) @ Yp.swapaxes(-1, -2)
+        fit.cov, fit.logdet, fit.length_sd_m = at.cov + (Yp @ cov_t) @ Yp.swapaxes(-1, -2), at.logdet, at.length_sd_m
     return fit, theta, cov_t, cur, steps
 
 

@@ -22,8 +22,10 @@ def compile_all() -> None:
         prob = Problem(Rows.of(ideal), Cameras.of(rig), 100.0, 3, name, np.ones(1), Loss("huber"), np.zeros((1, 3)))
         chains.solve(prob, np.zeros((3, 1, prob.d)), lm.LOOSE, covariances=True, slope=True)
         kernels.row_terms(np.zeros((3, 1, prob.d)), prob.rows, prob.cams, Loss("huber"))
-    kernels.state_columns(np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 2, 3)), np.zeros((1, 3, 1)),
-                          np.zeros((1, 1), np.int64), 1, 1, 3, 1)
+    z1, z2 = np.zeros(1, np.int64), np.zeros((1, 2))
+    for exact in (False, True):
+        kernels.shared_terms(z1, z1, np.zeros((1, 2, 3)), z2, np.zeros((1, 2, 3)), np.ones(1), np.ones(1),
+                             np.zeros((1, 2, 1)), np.zeros((1, 1), np.int64), exact, 1, 1, 3, 1)
     kernels.mirror_lower(np.eye(3))
     kernels.mirror_lower(np.asfortranarray(np.eye(3)))  # LAPACK's output (segments)
     kernels.robust_loss(np.ones(2), 1, 2.0)
