@@ -11,8 +11,7 @@ import pandas as pd
 import pytest
 from conftest import write_tiny_session
 
-from batgraph.associate import associate_session, scenes, score, write_associated
-from batgraph.associate.segments import nanmedian0
+from batgraph.associate import associate_session, kernels, scenes, score, write_associated
 from batgraph.cli import main
 from batgraph.session import read_session
 
@@ -257,13 +256,18 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
 
 
 def test_segment_medians_equal_numpys_nanmedian():
-    """associate.segments.nanmedian0 (one sort, NaN last) gives np.nanmedian's values to the bit, NaN where a column
-    has none, on random tables with NaN holes, from no rows to many."""
+    """associate.kernels.pair_distance_medians gives np.linalg.norm's distances' count, np.nanmedian and median
+    absolute deviation to the bit, NaN where a pair is never named together, on random positions with NaN holes,
+    from no frames to many."""
     rng = np.random.default_rng(0)
     for _ in range(200):
-        D = np.abs(rng.normal(size=(rng.integers(0, 30), 5, 5)))
-        D[rng.random(D.shape) < rng.random()] = np.nan
+        X = rng.normal(size=(rng.integers(0, 30), 6, 3))
+        X[rng.random(X.shape[:2]) < rng.random()] = np.nan
+        D = np.linalg.norm(X[:, :, None] - X[:, None, :], axis=-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-            ref = np.nanmedian(D, axis=0) if len(D) else np.full((5, 5), np.nan)
-        assert np.array_equal(nanmedian0(D, np.isfinite(D).sum(axis=0)), ref, equal_nan=True)
+            med = np.nanmedian(D, axis=0) if len(D) else np.full((6, 6), np.nan)
+            mad = np.nanmedian(np.abs(D - med), axis=0) if len(D) else np.full((6, 6), np.nan)
+        n, med2, mad2 = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2)))
+        assert np.array_equal(n, np.isfinite(D).sum(axis=0))
+        assert np.array_equal(med2, med, equal_nan=True) and np.array_equal(mad2, mad, equal_nan=True)
