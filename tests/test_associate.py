@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from conftest import write_tiny_session
 
-from batgraph.associate import associate_session, kernels, scenes, score, write_associated
+from batgraph.associate import assignment, associate_session, kernels, scenes, score, write_associated
 from batgraph.cli import main
 from batgraph.session import read_session
 
@@ -253,6 +253,25 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
     weak[20] = True
     keep = verify.vouched(X, have, seed, seg, 0.001, weak)
     assert keep[:19, 0].all() and not keep[20:, 0].any()
+
+
+def test_mahalanobis_within_the_gate_is_mahalanobis():
+    """associate.assignment.mahalanobis_within: mahalanobis's value to the bit wherever that is below the gate (and
+    wanted), inf only where it is not, on covariances from sharp to wide, near-singular and indefinite ones included."""
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(400, 7, 2, 2)) * rng.lognormal(0, 2, size=(400, 7, 1, 1))
+    S = A @ A.transpose(0, 1, 3, 2)
+    S[0, 0] = [[1.0, 1.0], [1.0, 1.0 + 1e-9]]
+    S[0, 1] = [[1.0, 0.0], [0.0, -2.0]]
+    diff = rng.normal(size=(400, 7, 2)) * 10
+    want = rng.random((400, 7)) < 0.8
+    ref = assignment.mahalanobis(diff, S)
+    for w in (None, want):
+        m = assignment.mahalanobis_within(diff, S, 13.82, w)
+        wanted = np.ones_like(want) if w is None else w
+        below = (ref < 13.82) & wanted
+        assert np.array_equal(m[below], ref[below]) and (ref[np.isinf(m) & wanted] >= 13.82).all()
+        assert np.isinf(m[wanted]).any() and np.isfinite(m[~below]).any() and np.isinf(m[~wanted]).all()
 
 
 def test_segment_medians_equal_numpys_nanmedian():
