@@ -274,6 +274,18 @@ def test_mahalanobis_within_the_gate_is_mahalanobis():
         assert np.isinf(m[wanted]).any() and np.isfinite(m[~below]).any() and np.isinf(m[~wanted]).all()
 
 
+def test_report_modes_are_pandas_value_counts():
+    """associate.session._modes: per group the value pandas' value_counts().idxmax() gives (the most frequent, the
+    first seen among equally frequent ones), on random groups with many ties."""
+    from batgraph.associate.session import _modes
+    rng = np.random.default_rng(2)
+    for n, G, H in ((20000, 3000, 4), (40, 3, 5), (1, 1, 1)):
+        g, h = rng.integers(0, G, n), rng.integers(0, H, n).astype(np.int8)
+        ref = pd.DataFrame({"g": g, "h": h}).groupby("g")["h"].agg(lambda x: x.value_counts().idxmax())
+        groups, modes = _modes(g, h)
+        assert np.array_equal(groups, ref.index.to_numpy()) and np.array_equal(modes, ref.to_numpy())
+
+
 def test_segment_medians_equal_numpys_nanmedian():
     """associate.kernels.pair_distance_medians gives np.linalg.norm's distances' count, np.nanmedian and median
     absolute deviation to the bit, NaN where a pair is never named together, on random positions with NaN holes,
