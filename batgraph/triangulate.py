@@ -36,12 +36,25 @@ def dlt_points(rig: Rig, ideal: IdealObservations) -> np.ndarray:
     if ideal.linear_xyz is not None and ideal.linear_xyz[0] is rig:  # triangulated already (IdealObservations)
         return ideal.linear_xyz[1].copy()
     C, F, M = ideal.uv_px.shape[:3]
-    xy = np.stack([pinhole.normalized_from_pixels(ideal.uv_px[c], np.linalg.inv(cam.K)) for c, cam in enumerate(rig)])
-    P = np.stack([pinhole.projection_matrix(np.eye(3), cam.R, cam.tvec) for cam in rig])  # the normalised cameras
-    fxfy = np.array([cam.K[0, 0] * cam.K[1, 1] for cam in rig])
-    xyz = linear_points(P, xy.reshape(C, F * M, 2), fxfy).reshape(F, M, 3)
+    xyz = dlt_pixels(normalised_cameras(rig), ideal.uv_px.reshape(C, F * M, 2)).reshape(F, M, 3)
     ideal.linear_xyz = (rig, xyz.copy())
     return xyz
+
+
+def normalised_cameras(rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`dlt_pixels` needs of a rig, for many calls: K^-1 (C, 3, 3), the normalised cameras [R | t]
+    (C, 3, 4) and the rows' weights fx fy (C,)."""
+    K_inv = np.stack([np.linalg.inv(cam.K) for cam in rig])
+    P = np.stack([pinhole.projection_matrix(np.eye(3), cam.R, cam.tvec) for cam in rig])
+    return K_inv, P, np.array([cam.K[0, 0] * cam.K[1, 1] for cam in rig])
+
+
+def dlt_pixels(cams: tuple[np.ndarray, np.ndarray, np.ndarray], uv_px: np.ndarray) -> np.ndarray:
+    """Linear DLT positions (N, 3) [m, world] of ideal pixels uv_px (C, N, 2) (NaN where unseen; NaN where fewer
+    than 2 cameras see a point), cams the rig's :func:`normalised_cameras` (see :func:`dlt_points`)."""
+    K_inv, P, fxfy = cams
+    xy = np.stack([pinhole.normalized_from_pixels(uv_px[c], K_inv[c]) for c in range(len(P))])
+    return linear_points(P, xy, fxfy)
 
 
 def triangulate_ideal(rig: Rig, ideal: IdealObservations) -> tuple[np.ndarray, np.ndarray]:

@@ -11,8 +11,7 @@ import pandas as pd
 import pytest
 from conftest import write_tiny_session
 
-from batgraph.associate import associate_session, scenes, score, write_associated
-from batgraph.associate.segments import nanmedian0
+from batgraph.associate import assignment, associate_session, kernels, scenes, score, write_associated
 from batgraph.cli import main
 from batgraph.session import read_session
 
@@ -256,14 +255,50 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
     assert keep[:19, 0].all() and not keep[20:, 0].any()
 
 
+def test_mahalanobis_within_the_gate_is_mahalanobis():
+    """associate.assignment.mahalanobis_within: mahalanobis's value to the bit wherever that is below the gate (and
+    wanted), inf only where it is not, on covariances from sharp to wide, near-singular and indefinite ones included."""
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(400, 7, 2, 2)) * rng.lognormal(0, 2, size=(400, 7, 1, 1))
+    S = A @ A.transpose(0, 1, 3, 2)
+    S[0, 0] = [[1.0, 1.0], [1.0, 1.0 + 1e-9]]
+    S[0, 1] = [[1.0, 0.0], [0.0, -2.0]]
+    diff = rng.normal(size=(400, 7, 2)) * 10
+    want = rng.random((400, 7)) < 0.8
+    ref = assignment.mahalanobis(diff, S)
+    for w in (None, want):
+        m = assignment.mahalanobis_within(diff, S, 13.82, w)
+        wanted = np.ones_like(want) if w is None else w
+        below = (ref < 13.82) & wanted
+        assert np.array_equal(m[below], ref[below]) and (ref[np.isinf(m) & wanted] >= 13.82).all()
+        assert np.isinf(m[wanted]).any() and np.isfinite(m[~below]).any() and np.isinf(m[~wanted]).all()
+
+
+def test_report_modes_are_pandas_value_counts():
+    """associate.session._modes: per group the value pandas' value_counts().idxmax() gives (the most frequent, the
+    first seen among equally frequent ones), on random groups with many ties."""
+    from batgraph.associate.session import _modes
+    rng = np.random.default_rng(2)
+    for n, G, H in ((20000, 3000, 4), (40, 3, 5), (1, 1, 1)):
+        g, h = rng.integers(0, G, n), rng.integers(0, H, n).astype(np.int8)
+        ref = pd.DataFrame({"g": g, "h": h}).groupby("g")["h"].agg(lambda x: x.value_counts().idxmax())
+        groups, modes = _modes(g, h)
+        assert np.array_equal(groups, ref.index.to_numpy()) and np.array_equal(modes, ref.to_numpy())
+
+
 def test_segment_medians_equal_numpys_nanmedian():
-    """associate.segments.nanmedian0 (one sort, NaN last) gives np.nanmedian's values to the bit, NaN where a column
-    has none, on random tables with NaN holes, from no rows to many."""
+    """associate.kernels.pair_distance_medians gives np.linalg.norm's distances' count, np.nanmedian and median
+    absolute deviation to the bit, NaN where a pair is never named together, on random positions with NaN holes,
+    from no frames to many."""
     rng = np.random.default_rng(0)
     for _ in range(200):
-        D = np.abs(rng.normal(size=(rng.integers(0, 30), 5, 5)))
-        D[rng.random(D.shape) < rng.random()] = np.nan
+        X = rng.normal(size=(rng.integers(0, 30), 6, 3))
+        X[rng.random(X.shape[:2]) < rng.random()] = np.nan
+        D = np.linalg.norm(X[:, :, None] - X[:, None, :], axis=-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-            ref = np.nanmedian(D, axis=0) if len(D) else np.full((5, 5), np.nan)
-        assert np.array_equal(nanmedian0(D, np.isfinite(D).sum(axis=0)), ref, equal_nan=True)
+            med = np.nanmedian(D, axis=0) if len(D) else np.full((6, 6), np.nan)
+            mad = np.nanmedian(np.abs(D - med), axis=0) if len(D) else np.full((6, 6), np.nan)
+        n, med2, mad2 = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2)))
+        assert np.array_equal(n, np.isfinite(D).sum(axis=0))
+        assert np.array_equal(med2, med, equal_nan=True) and np.array_equal(mad2, mad, equal_nan=True)

@@ -119,3 +119,17 @@ def _solve(sub: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
 def mahalanobis(diff: np.ndarray, S: np.ndarray) -> np.ndarray:
     """diff^T S^-1 diff for diff (..., d) and S (..., d, d)."""
     return np.einsum("...i,...i->...", diff, np.linalg.solve(S, diff[..., None])[..., 0])
+
+
+def mahalanobis_within(diff: np.ndarray, S: np.ndarray, gate: float, want: np.ndarray | None = None) -> np.ndarray:
+    """:func:`mahalanobis` for diff (..., 2) and S (..., 2, 2) where it may be below ``gate`` (and ``want``, a
+    mask of diff's leading shape), inf elsewhere: where S is positive definite and |diff|^2 > 2 gate tr(S), the
+    distance is at least 2 gate (S's largest eigenvalue is at most its trace), so it is not solved for."""
+    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+    tr = S[..., 0, 0] + S[..., 1, 1]
+    near = ~((det > 0) & (tr > 0) & (np.einsum("...i,...i->...", diff, diff) > 2 * gate * tr))
+    if want is not None:
+        near &= want
+    m = np.full(diff.shape[:-1], np.inf)
+    m[near] = mahalanobis(diff[near], S[near])
+    return m

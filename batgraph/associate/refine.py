@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .assignment import assign, mahalanobis
+from .assignment import assign, mahalanobis_within
 from .tracks import CHI2_2DOF_GATE, PATCH_GAP, FrameDetections, jacobian, patch_shift, point_covariance
 from .views import Geometry, _prune, project, triangulate
 
@@ -202,16 +202,17 @@ def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray,
             s_proj = std[k, have[ok]] * focal[c] / depth[c, ok]  # (P,) px
             d2 = np.sum((proj[c, ok][:, None] - fi.uv[rc][None]) ** 2, axis=-1)  # (P, n)
             s2 = s_proj[:, None] ** 2 + fi.sig[rc][None] ** 2
+            far = (np.linalg.norm(det_xyz[rc][None] - xyz[k, have[ok]][:, None], axis=-1)
+                   > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None])
+                   + max(POINT_SLACK_M, 2 * noise_m))
             m = d2 / s2
             if others is not None:
                 lo = np.isfinite(others[0][k, have[ok], c, 0])
                 if lo.any():
                     S = others[1][k, have[ok][lo], c][:, None] + np.eye(2) * fi.sig[rc][None, :, None, None] ** 2
-                    m[lo] = mahalanobis(fi.uv[rc][None] - others[0][k, have[ok][lo], c][:, None], S)
+                    m[lo] = mahalanobis_within(fi.uv[rc][None] - others[0][k, have[ok][lo], c][:, None], S,
+                                               CHI2_2DOF_GATE, ~far[lo])
                     s2[lo] = np.sqrt(np.linalg.det(S))
-            far = (np.linalg.norm(det_xyz[rc][None] - xyz[k, have[ok]][:, None], axis=-1)
-                   > POINT_SIGMA * np.hypot(std[k, have[ok]][:, None], det_std[rc][None])
-                   + max(POINT_SLACK_M, 2 * noise_m))
             cost = np.where((m < CHI2_2DOF_GATE) & ~far, m + 2 * np.log(s2 / np.min(s2)), np.inf)
             r, d, mg = assign(cost, CHI2_2DOF_GATE + 2 * np.log(np.max(s2) / np.min(s2)), margin)
             best = np.where(np.isfinite(cost).any(axis=0), np.argmin(cost, axis=0), -1)

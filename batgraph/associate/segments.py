@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
+
 CAP_SIGMA = 5.0  # a residual counts at most this many std (one bad point cannot sink a marker)
 MIN_SIGMA_M = 0.0015
 LEARN_MIN_FRAMES = 40  # more than a wingbeat at 120 fps: a pair steady only over part of a stroke is not a bone
@@ -50,10 +52,8 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: f
     reference = reference or {}
     L = X.shape[1]
     declared = {tuple(sorted(p)) for p in pairs}
-    D = np.linalg.norm(X[:, :, None] - X[:, None, :], axis=-1)  # (F, L, L), NaN where either is unnamed
-    n = np.isfinite(D).sum(axis=0)
-    med = nanmedian0(D, n)
-    mad = 1.4826 * nanmedian0(np.abs(D - med), n)
+    n, med, mad = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2), dtype=np.float64))
+    mad = 1.4826 * mad
     std = np.where(n >= 3, np.maximum(mad, min_sigma), 2 * min_sigma)
     cand = set(declared)
     if learn:
@@ -77,17 +77,6 @@ def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: f
         for j, (_, std, other, med) in enumerate(p):
             seg.partner[i, j], seg.length[i, j], seg.sigma[i, j] = other, med, std
     return seg
-
-
-def nanmedian0(D: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """np.nanmedian(D, axis=0) for D finite or NaN, n the finite count per column (NaN where 0), by one sort (NaN
-    sorts last): numpy's takes a masked array per call below 600 rows, 1 s for 160 frames of 180 x 180 pairs."""
-    if not len(D):
-        return np.full(D.shape[1:], np.nan)
-    S = np.sort(D, axis=0)
-    lo = np.take_along_axis(S, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
-    hi = np.take_along_axis(S, np.minimum(n // 2, len(S) - 1)[None], axis=0)[0]
-    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def evidence(seg: Segments, targets: np.ndarray, points: np.ndarray, placed: np.ndarray, range_m: float) -> np.ndarray:

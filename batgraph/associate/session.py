@@ -105,6 +105,18 @@ def _labels_table(dets: Detections, cameras: list[str], markers: list[str], res:
     return out.sort_index()
 
 
+def _modes(group: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each group's most frequent value, the first seen among equally frequent ones (as pandas' value_counts()
+    .idxmax() per group): group (n,) and value (n,) integers; returns the groups (G,) ascending and their modes."""
+    order = np.lexsort((value, group))  # stable: a run of one (group, value) keeps its rows' order
+    g, v = group[order], value[order]
+    start = np.flatnonzero(np.r_[True, (g[1:] != g[:-1]) | (v[1:] != v[:-1])])
+    count = np.diff(np.r_[start, len(g)])
+    pick = np.lexsort((order[start], -count, g[start]))  # per group: most rows, then the earliest row
+    first = pick[np.r_[True, g[start][pick][1:] != g[start][pick][:-1]]]
+    return g[start][first], v[start][first]
+
+
 def _figures(dets: Detections, markers: list[str], res: Association, det_path: Path,
              suspect_below: float = DOUBT_BELOW) -> Figures:
     """The marker x frame map of how names were obtained, and the suspected switches (see :class:`Figures`)."""
@@ -114,9 +126,8 @@ def _figures(dets: Detections, markers: list[str], res: Association, det_path: P
     how = np.zeros((M, F), np.int8)
     named = res.label >= 0
     if named.any():
-        key = pd.DataFrame({"m": res.label[named], "k": dets.frame[named] - first, "h": res.how[named]})
-        best = key.groupby(["m", "k"])["h"].agg(lambda h: h.value_counts().idxmax())
-        how[best.index.get_level_values(0), best.index.get_level_values(1)] = best.to_numpy()
+        cell, h = _modes(res.label[named] * F + dets.frame[named] - first, res.how[named])
+        how[cell // F, cell % F] = h
     sw = res.sweep
     starts = (sw.kind[1:] > 0) & (sw.kind[:-1] == 0)  # a marker placed again after a frame without it
     k, m = np.nonzero(starts)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..motion import constant_velocity_F, constant_velocity_Q
 from . import segments as seg_mod
-from .assignment import assign, mahalanobis
+from .assignment import assign, mahalanobis, mahalanobis_within
 from .views import FramePoints, Geometry
 
 CHI2_3DOF_GATE = 16.27  # 99.9 % of chi-square with 3 DOF: a point's distance to a marker's prediction
@@ -659,7 +659,7 @@ def _join(geom: Geometry, tg: _Targets, fr: _Frame, dets: FrameDetections, f: in
         t, S = t[sharp], S[sharp]
         uv_hat = (h[h[:, 2] > 0][sharp, :2] / h[h[:, 2] > 0][sharp, 2:3])
         Sfull = S[:, None] + np.eye(2) * dets.sig[fc][None, :, None, None] ** 2
-        m = mahalanobis(dets.uv[fc][None] - uv_hat[:, None], Sfull)
+        m = mahalanobis_within(dets.uv[fc][None] - uv_hat[:, None], Sfull, CHI2_2DOF_GATE)
         r, d, margin = assign(np.where(m < CHI2_2DOF_GATE, m, np.inf), CHI2_2DOF_GATE, 2 * opt.ambiguity)
         sure = margin >= 2 * opt.ambiguity
         views[t[r[sure]], c] = fc[d[sure]]

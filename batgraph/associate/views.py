@@ -20,8 +20,7 @@ import numpy as np
 
 from ..camera import Rig
 from ..geometry import pose
-from ..measurement import IdealObservations
-from ..triangulate import dlt_points
+from ..triangulate import dlt_pixels, normalised_cameras
 
 CHI2_1DOF_GATE = 16.0  # Sampson distance^2 / sigma^2 (1 DOF): 4 sigma, room for a calibration's error
 CHI2_2DOF_GATE = 16.0  # a view's reprojection error^2 / sigma^2 (2 DOF): p = 3e-4 for a true view
@@ -31,13 +30,15 @@ MAX_PARTNERS = 4  # cameras each camera is paired with to seed points in a large
 @dataclass
 class Geometry:
     """A rig prepared for matching: ideal projection matrices P (C, 3, 4), fundamental matrices in ideal pixels
-    ``F[(i, j)]`` (x_j^T F x_i = 0), the camera pairs that seed points, and each camera's viewing direction."""
+    ``F[(i, j)]`` (x_j^T F x_i = 0), the camera pairs that seed points, each image's area [px^2] and the normalised
+    cameras the linear triangulation uses (batgraph.triangulate.normalised_cameras)."""
 
     rig: Rig
     P: np.ndarray
     F: dict
     pairs: list[tuple[int, int]]
     area_px2: np.ndarray
+    cams: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def _fundamental(rig: Rig, i: int, j: int) -> np.ndarray:
@@ -70,7 +71,8 @@ def geometry(rig: Rig, max_partners: int = MAX_PARTNERS) -> Geometry:
         pairs = sorted(pairs)
     P = np.stack([c.P for c in rig])
     area = np.array([float(c.size_wh[0]) * c.size_wh[1] for c in rig])
-    return Geometry(rig, P, {(i, j): _fundamental(rig, i, j) for i, j in pairs}, pairs, area)
+    return Geometry(rig, P, {(i, j): _fundamental(rig, i, j) for i, j in pairs}, pairs, area,
+                    normalised_cameras(rig))
 
 
 def undistort(rig: Rig, camera: np.ndarray, uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,11 +92,11 @@ def triangulate(geom: Geometry, uv: np.ndarray, views: np.ndarray) -> np.ndarray
     """Linear triangulation of candidate points: views (P, C) local detection index per camera (-1: none), uv
     (n, 2) ideal pixels of the frame's detections. Returns xyz (P, 3) [m], NaN where fewer than 2 views."""
     C = views.shape[1]
-    pix = np.full((C, 1, len(views), 2), np.nan)
+    pix = np.full((C, len(views), 2), np.nan)
     for c in range(C):
         s = views[:, c] >= 0
-        pix[c, 0, s] = uv[views[s, c]]
-    return dlt_points(geom.rig, IdealObservations(pix, None))[0]
+        pix[c, s] = uv[views[s, c]]
+    return dlt_pixels(geom.cams, pix)
 
 
 def residuals(geom: Geometry, uv: np.ndarray, sig: np.ndarray, views: np.ndarray, xyz: np.ndarray) -> np.ndarray:

@@ -1,10 +1,12 @@
-"""Compile every numba loop of the solver (batgraph.solver.kernels) ahead of the first reconstruct: ``make install``
-runs ``python -m batgraph.solver.warm``; numba caches the compiled loops on disk."""
+"""Compile every numba loop of the solver (batgraph.solver.kernels) and of association (batgraph.associate.kernels)
+ahead of the first reconstruct or associate: ``make install`` runs ``python -m batgraph.solver.warm``; numba caches
+the compiled loops on disk."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..associate import kernels as associate_kernels
 from ..camera import Camera, Rig
 from ..measurement import IdealObservations
 from . import chains, kernels, lm
@@ -29,6 +31,7 @@ def compile_all() -> None:
     kernels.mirror_lower(np.eye(3))
     kernels.mirror_lower(np.asfortranarray(np.eye(3)))  # LAPACK's output (segments)
     kernels.robust_loss(np.ones(2), 1, 2.0)
+    associate_kernels.pair_distance_medians(np.zeros((2, 1, 3)))
 
 
 if __name__ == "__main__":
