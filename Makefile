@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]"
-	$(BIN)/python -m batgraph.solver.warm  # compile the numba kernels now, not in the first reconstruct
+	$(BIN)/python -m batgraph.warm  # compile the numba kernels now, not in the first reconstruct
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -10,7 +10,7 @@ Sections (each prints a markdown table; medians of jobs run in turn, ratios roun
 - command: ``python -m batgraph reconstruct data/samples/flight_5cam --out X`` with --viewer none and save, and the
   same with --methods triangulate (start-up and outputs), warm, fresh processes.
 - first-run: that command with an empty numba cache (NUMBA_CACHE_DIR a new folder), the compile step ``python -m
-  batgraph.solver.warm`` into an empty cache and the command after it, each against the warm command.
+  batgraph.warm`` into an empty cache and the command after it, each against the warm command.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchproc import SAMPLE, alternate, batgraph, machine, median, run, table, timed  # noqa: E402
 
+from batgraph import warm  # noqa: E402
 from batgraph.evaluate import dense_from_table  # noqa: E402
 from batgraph.measurement import ideal_observations  # noqa: E402
 from batgraph.motion import random_walk_sigma_m  # noqa: E402
@@ -38,7 +39,7 @@ from batgraph.session import dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
 from batgraph.solver import filter as filter_method  # noqa: E402
 from batgraph.solver import model as mm  # noqa: E402
-from batgraph.solver import schedule, warm  # noqa: E402
+from batgraph.solver import schedule  # noqa: E402
 from batgraph.triangulate import dlt_points  # noqa: E402
 
 OPTIONS = Options(progress=False)
@@ -192,7 +193,7 @@ def bench_first_run(args) -> None:
 
         def compile_step():
             state["cache"] = {"NUMBA_CACHE_DIR": next(caches)}
-            return run([sys.executable, "-m", "batgraph.solver.warm"], state["cache"])
+            return run([sys.executable, "-m", "batgraph.warm"], state["cache"])
 
         jobs = {"warm command": lambda: run(command),
                 "command, empty cache": lambda: run(command, {"NUMBA_CACHE_DIR": next(caches)}),

@@ -52,12 +52,13 @@ np.savetxt(sys.argv[2], np.column_stack([frame, marker, xyz]), delimiter=",", fm
 def export(out_dir: Path, n_cameras: int, n_markers: int, n_frames: int, seed: int) -> None:
     """Simulate; write calibration.toml, the session and points.npz with batgraph's answers and times."""
     sys.path.insert(0, str(ROOT))
+    from batgraph import warm
     from batgraph.evaluate import dense_from_table
     from batgraph.measurement import ideal_observations
     from batgraph.result import Options
     from batgraph.session import calibration_toml, dense_observations, write_session
     from batgraph.simulate import simulate_flight
-    from batgraph.solver import schedule, warm
+    from batgraph.solver import schedule
     from batgraph.triangulate import triangulate_ideal
 
     session = simulate_flight(np.random.default_rng(seed), n_cameras=n_cameras, n_markers=n_markers,

@@ -21,11 +21,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchproc import alternate, machine, median, ratio, timed  # noqa: E402
 
+from batgraph import warm  # noqa: E402
 from batgraph.measurement import ideal_observations  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import dense_observations  # noqa: E402
 from batgraph.simulate import simulate_flight  # noqa: E402
-from batgraph.solver import schedule, warm  # noqa: E402
+from batgraph.solver import schedule  # noqa: E402
 
 BASE = {"cameras": 30, "markers": 180, "frames": 160}
 FPS = 120.0  # at 160 frames

@@ -142,8 +142,8 @@ def test_a_run_that_will_compile_says_so_first(tmp_path, monkeypatch, capsys):
     is True against an empty numba
     cache (a fresh process with NUMBA_CACHE_DIR there: nothing is compiled by asking) and False once the
     kernels have run in this process (compiled and cached, or loaded)."""
-    from batgraph import cli
-    from batgraph.solver import kernels, warm
+    from batgraph import cli, warm
+    from batgraph.solver import kernels
     ask = "from batgraph.solver import kernels; print(kernels.needs_compiling())"
     fresh = subprocess.run([sys.executable, "-c", ask], capture_output=True, text=True, timeout=120,
                            env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")})

@@ -1,21 +1,21 @@
-"""Compile every numba loop of the solver (batgraph.solver.kernels) and of association (batgraph.associate.kernels)
-ahead of the first reconstruct or associate: ``make install`` runs ``python -m batgraph.solver.warm``; numba caches
-the compiled loops on disk."""
+"""Compile every numba loop, the solver's (batgraph.solver.kernels) and association's (batgraph.associate.kernels),
+ahead of the first reconstruct or associate: ``make install`` runs ``python -m batgraph.warm``; numba caches the
+compiled loops on disk."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..associate import kernels as associate_kernels
-from ..camera import Camera, Rig
-from ..measurement import IdealObservations
-from . import chains, kernels, lm
-from .problem import Cameras, Loss, Problem, Rows
+from .associate import kernels as associate_kernels
+from .camera import Camera, Rig
+from .measurement import IdealObservations
+from .solver import chains, kernels, lm
+from .solver.problem import Cameras, Loss, Problem, Rows
 
 
 def compile_all() -> None:
-    """Compile every loop for the argument types the solver passes (tiny inputs), so that the first reconstruct
-    does not wait for it: ``python -m batgraph.solver.warm`` (run by ``make install``)."""
+    """Compile every loop for the argument types the solver and association pass (tiny inputs), so that the first
+    reconstruct or associate does not wait for it: ``python -m batgraph.warm`` (run by ``make install``)."""
     rig = Rig([Camera("a", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.0, 0.0, 1.0]),
                Camera("b", (100, 100), [[100, 0, 50], [0, 100, 50], [0, 0, 1]], tvec=[0.1, 0.0, 1.0])])
     uv = np.full((2, 3, 1, 2), 50.0)
