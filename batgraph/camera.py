@@ -249,4 +249,5 @@ class Rig:
         ca, cb = self.cameras[a], self.cameras[b]
         R = cb.R @ ca.R.T  # cam_b from cam_a
         t = cb.tvec - R @ ca.tvec
-        return np.linalg.inv(cb.K).T @ pose.skew(t) @ R @ np.linalg.inv(ca.K)
+        E = pose.skew(t) @ R  # the essential matrix
+        return np.linalg.inv(cb.K).T @ E @ np.linalg.inv(ca.K)

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Rig
-from ..geometry import pose
 from ..triangulate import dlt_pixels, normalised_cameras
 
 CHI2_1DOF_GATE = 16.0  # Sampson distance^2 / sigma^2 (1 DOF): 4 sigma, room for a calibration's error
@@ -39,15 +38,6 @@ class Geometry:
     pairs: list[tuple[int, int]]
     area_px2: np.ndarray
     cams: tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def _fundamental(rig: Rig, i: int, j: int) -> np.ndarray:
-    """F with x_j^T F x_i = 0 for ideal pixels x_i of camera i and x_j of camera j."""
-    ci, cj = rig[i], rig[j]
-    R = cj.R @ ci.R.T  # cam_j from cam_i
-    t = cj.tvec - R @ ci.tvec
-    E = pose.skew(t) @ R
-    return np.linalg.inv(cj.K).T @ E @ np.linalg.inv(ci.K)
 
 
 def geometry(rig: Rig, max_partners: int = MAX_PARTNERS) -> Geometry:
@@ -71,7 +61,7 @@ def geometry(rig: Rig, max_partners: int = MAX_PARTNERS) -> Geometry:
         pairs = sorted(pairs)
     P = np.stack([c.P for c in rig])
     area = np.array([float(c.size_wh[0]) * c.size_wh[1] for c in rig])
-    return Geometry(rig, P, {(i, j): _fundamental(rig, i, j) for i, j in pairs}, pairs, area,
+    return Geometry(rig, P, {(i, j): rig.fundamental(i, j) for i, j in pairs}, pairs, area,
                     normalised_cameras(rig))
 
 
