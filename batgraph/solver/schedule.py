@@ -132,8 +132,8 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     info.update(figures)
     fit, excluded, rounds, stable = _final(setup, backend, models, levels, start, excluded, reject)
     if spec.n:
-        fit, theta, cov_theta, setup, info["shared_steps"] = shared.solve(
-            base.without(excluded), backend, models, levels, (fit.xyz, fit.velocity, fit.acceleration), spec, theta)
+        fit, theta, cov_theta, setup, info["shared_steps"] = shared.solve(base.without(excluded), backend, models,
+                                                                          levels, fit, spec, theta)
         setup = shared.applied(base, spec, theta)
         info["rig_refined"] = _rig_figures(spec, theta, cov_theta, rig)
     fit.cov, widened = ends.widen(setup.without(excluded), backend, models, levels, fit)
@@ -242,8 +242,7 @@ def _clean(setup, backend, motion, cleaning_q, spec, reject, refine_rig) -> tupl
     theta, shown = np.zeros(spec.n), {}
     if spec.n:
         first = fit
-        fit, theta, cov, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
-                                             (fit.xyz, fit.velocity, None), spec)
+        fit, theta, cov, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels, first, spec)
         kept, shown = _shown(setup.rig, spec, theta, cov, refine_rig)
         if (kept.readout != spec.readout).any() or (kept.pose != spec.pose).any():
             spec, theta, fit = kept, np.zeros(kept.n), first if not kept.n else fit

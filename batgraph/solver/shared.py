@@ -260,11 +260,12 @@ def _solve_x(prob, x, seg_ids, Hxt, setup, fit, exact: bool):
     return segments.bordered_solve(T, BG, C, E, rhs, np.zeros((len(L), rhs.shape[-1])))[0].reshape(F, gm, d, -1)
 
 
-def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray, start: tuple, shared: Shared,
+def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray, start, shared: Shared,
           theta0: np.ndarray | None = None) -> tuple:
     """The joint minimiser of the markers and the shared variables from theta0 (module docstring): (fit at the
     minimiser with theta's uncertainty in its covariances, theta (n,) [s, rad, m], its covariance (n, n),
-    setup with the corrections applied, steps taken).
+    setup with the corrections applied, steps taken). start: the markers' (p, v, a) to solve from, or their
+    minimiser at theta0 already (a fit_mod.Fit of ``setup`` there, taken as it is).
 
     The steps are Levenberg-Marquardt's on the reduced problem with the Hessian S + A: S the Gauss-Newton Schur
     complement, A a structured secant correction (Dennis, Gay and Welsch's, as NL2SOL) built from the exact reduced
@@ -275,7 +276,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     prior = shared.prior_info()
     Z = _complement(gauge_basis(setup.rig, shared), n)  # the directions the images determine (n, n - g)
     cur = applied(setup, shared, theta)
-    fit = backend.fit(cur, models, levels, start, covariances=False)
+    fit = start if isinstance(start, fit_mod.Fit) else backend.fit(cur, models, levels, start, covariances=False)
     total = _total(fit, theta, prior)
     lin = linearise(cur, fit, shared, exact=True)
     first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
@@ -307,7 +308,8 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     at = backend.fit(cur, models, levels, (fit.xyz, fit.velocity, fit.acceleration), lm.Settings(max_iterations=0))
     if at.cov is not None:  # the markers' covariances at the minimiser, once (the steps' fits skip them)
         Yp = lin.Y[..., :3, :]
-        fit.cov, fit.logdet, fit.length_sd_m = at.cov + (Yp @ cov_t) @ Yp.swapaxes(-1, -2), at.logdet, at.length_sd_m
+        fit = replace(fit, cov=at.cov + (Yp @ cov_t) @ Yp.swapaxes(-1, -2), logdet=at.logdet,
+                      length_sd_m=at.length_sd_m)
     return fit, theta, cov_t, cur, steps
 
 
