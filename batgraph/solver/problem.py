@@ -132,10 +132,11 @@ class Rows:
 
 
 def _each_distinct(weights, tau: np.ndarray) -> tuple:
-    """weights(tau) (a pair of arrays (n, ...)) computed once per distinct tau: a synchronised rig's rows all share
-    tau = 0, a rig with offsets one per camera (a rolling shutter adds one per image row)."""
-    u, inverse = np.unique(tau, return_inverse=True)
-    return tuple(a[inverse] for a in weights(u))
+    """weights(tau) (a pair of arrays (n, ...)), computed once where every tau is the same (a synchronised rig's
+    rows all have tau = 0), else per row (a rolling shutter gives almost every row its own)."""
+    if len(tau) and tau.min() == tau.max():
+        return tuple(np.repeat(a, len(tau), axis=0) for a in weights(tau[:1]))
+    return weights(tau)
 
 
 @dataclass
