@@ -276,7 +276,8 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     prior = shared.prior_info()
     Z = _complement(gauge_basis(setup.rig, shared), n)  # the directions the images determine (n, n - g)
     cur = applied(setup, shared, theta)
-    fit = start if isinstance(start, fit_mod.Fit) else backend.fit(cur, models, levels, start, covariances=False)
+    fit = start if isinstance(start, fit_mod.Fit) else backend.fit(cur, models, levels, start, lm.LOOSE,
+                                                                   covariances=False)
     total = _total(fit, theta, prior)
     lin = linearise(cur, fit, shared, exact=True)
     first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
@@ -293,7 +294,8 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         new_theta = theta + step
         new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
-        new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps), covariances=False)
+        new_fit = backend.fit(new_setup, models, levels, _motion(x, fit, setup.fps), lm.LOOSE,
+                              covariances=False)
         new_total = _total(new_fit, new_theta, prior)
         if not new_total <= total:
             lam = max(lam * factor, first)
