@@ -179,7 +179,6 @@ def row_terms(x, rows, cams, loss) -> dict:
     return out
 
 
-# ----- block-tridiagonal sweeps ----------------------------------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def shared_terms(k, marker, W, r, J, w, a, Jt, cols, exact, F, M, d, n):  # pragma: no cover  (compiled)
     """The rows' part of the shared variables' system: g_t (n,), H_tt (n, n) and the coupling with the states H_xt
@@ -219,6 +218,7 @@ def shared_terms(k, marker, W, r, J, w, a, Jt, cols, exact, F, M, d, n):  # prag
     return g, H, Hxt
 
 
+# ----- block-tridiagonal sweeps ----------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
 def mirror_lower(a):  # pragma: no cover  (compiled)
     """a (n, n) with its upper triangle set from its lower one, in place; returns a (LAPACK's potri fills one)."""

@@ -217,7 +217,7 @@ def _row_terms(prob, x, shared: Shared, setup, exact: bool):
     cols, Jt = _theta_jacobians(rows, t, shared, setup)  # (n_rows, p), (n_rows, 2, p)
     used = (cols >= 0).any(axis=0)
     F, M, d = x.shape
-    g, H, Hxt = kernels.shared_terms(rows.k, rows.marker, rows.W, t["r"], t["J"], t["w"], t["a"],
+    g, H, Hxt = kernels.shared_terms(rows.k, np.ascontiguousarray(rows.marker), rows.W, t["r"], t["J"], t["w"], t["a"],
                                      np.ascontiguousarray(Jt[:, :, used]), np.ascontiguousarray(cols[:, used]),
                                      exact, F, M, d, shared.n)
     return Hxt, g, H
