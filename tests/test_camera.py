@@ -209,3 +209,27 @@ def test_max_valid_radius_is_where_the_radial_function_stops_increasing(dist):
 
 def test_max_valid_radius_of_no_distortion_is_inf():
     assert max_valid_radius(np.zeros(5)) == np.inf
+
+
+def test_fundamental_matrix_holds_for_projected_points():
+    """x_b^T F x_a = 0 for the ideal pixels of one world point in cameras a and b (Rig.fundamental), and F of (b, a)
+    is F of (a, b) transposed, up to scale; a point off the epipolar line gives a clearly non-zero product."""
+    from batgraph.simulate import simulate_flight
+
+    rig = simulate_flight(np.random.default_rng(0), n_cameras=4, n_frames=10).rig
+    xyz = np.random.default_rng(1).normal([0.0, 0.0, 0.0], 0.2, (50, 3))
+    for a, b in ((0, 1), (1, 3), (2, 0)):
+        xa, xb = rig[a].project(xyz, distort=False), rig[b].project(xyz, distort=False)
+        ok = np.isfinite(xa).all(axis=1) & np.isfinite(xb).all(axis=1)
+        assert ok.sum() > 10
+        ha = np.column_stack([xa[ok], np.ones(ok.sum())])
+        hb = np.column_stack([xb[ok], np.ones(ok.sum())])
+        F = rig.fundamental(a, b)
+        F = F / np.linalg.norm(F)
+        line = ha @ F.T  # the epipolar lines in camera b
+        dist = np.abs(np.einsum("ni,ni->n", hb, line)) / np.linalg.norm(line[:, :2], axis=1)
+        assert dist.max() < 1e-6  # [px]
+        back = rig.fundamental(b, a)
+        np.testing.assert_allclose(back / np.linalg.norm(back), F.T * np.sign(back.ravel() @ F.T.ravel()), atol=1e-9)
+        off = np.abs(np.einsum("ni,ni->n", hb + [5.0, -5.0, 0.0], line)) / np.linalg.norm(line[:, :2], axis=1)
+        assert np.median(off) > 1.0
