@@ -266,7 +266,13 @@ def stream_jobs(fn: Callable[[int], object], n: int, workers: int,
     def start():
         recv, send = ctx.Pipe(duplex=False)
         process = ctx.Process(target=_stream_child, args=(fn, tickets, send), name="batgraph worker", daemon=True)
-        process.start()
+        # Ctrl-C held back over the fork: a child signalled before it ignores SIGINT would print a traceback from
+        # Python's own after-fork hooks; the child drops it (_stream_child), this process takes it just after.
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         send.close()
         children[recv] = [process, None, 0.0]
 
@@ -312,6 +318,7 @@ def _stream_child(fn: Callable[[int], object], tickets: int, conn) -> None:
     ("failed", i, the exception's type and message), until the dispenser is empty or the parent is gone.
     Ctrl-C is the parent's to handle (it stops the children): a child ignores it, and prints no traceback."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked over the fork (stream_jobs' start)
     parent = os.getppid()
     try:
         while os.getppid() == parent and len(b := os.read(tickets, _INDEX.size)) == _INDEX.size:
