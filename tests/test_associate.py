@@ -302,3 +302,54 @@ def test_segment_medians_equal_numpys_nanmedian():
         n, med2, mad2 = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2)))
         assert np.array_equal(n, np.isfinite(D).sum(axis=0))
         assert np.array_equal(med2, med, equal_nan=True) and np.array_equal(mad2, mad, equal_nan=True)
+
+
+def _membrane_scene(F=80, noise=0.0005, seed=0):
+    """Three markers moving freely and a fourth on their triangle (weights 0.3, 0.4) plus noise; a fifth moving on
+    its own. Positions (F, 5, 3) [m]."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(F) / 120.0
+    a = np.stack([np.sin(5 * t), np.cos(3 * t), 0.1 * t], axis=1) * 0.05
+    b = a + np.stack([0.04 + 0.01 * np.sin(9 * t), 0.01 * np.cos(7 * t), 0.02 * np.sin(11 * t)], axis=1)
+    c = a + np.stack([0.01 * np.cos(6 * t), 0.05 + 0.01 * np.sin(8 * t), 0.015 * np.cos(10 * t)], axis=1)
+    m = a + 0.3 * (b - a) + 0.4 * (c - a)
+    lone = a + np.stack([0.02 * np.sin(17 * t), 0.03 * np.cos(13 * t), 0.02 * np.sin(23 * t + 1)], axis=1)
+    X = np.stack([a, b, c, m, lone], axis=1)
+    return X + noise * rng.standard_normal(X.shape)
+
+
+def test_affine_relation_learned_for_a_membrane_marker_only():
+    """associate.affine.learn: the marker on its neighbours' triangle gets them, its weights to 0.02 and a std near
+    the points' noise; the freely moving marker and the declared ones get none."""
+    from batgraph.associate import affine
+
+    X = _membrane_scene()
+    rel = affine.learn(X, declared={0, 1, 2}, noise_m=0.0)
+    assert sorted(rel.refs[3].tolist()) == [0, 1, 2]
+    w = dict(zip(rel.refs[3].tolist()[1:], rel.weights[3].tolist(), strict=True))
+    a = rel.refs[3, 0]
+    full = {a: 1 - sum(w.values()), **w}
+    assert abs(full[1] - 0.3) < 0.02 and abs(full[2] - 0.4) < 0.02
+    assert 0.0002 < rel.sigma[3] < 0.0015
+    assert (rel.refs[[0, 1, 2, 4]] < 0).all()
+
+
+def test_a_membrane_marker_resumed_on_a_weak_link_keeps_its_name_by_its_relation():
+    """A marker without segments, resumed on a weak link, keeps its name where its affine relation holds, and
+    loses it where another marker's path (here the freely moving one's) took the name."""
+    from batgraph.associate import affine, segments, verify
+
+    X = _membrane_scene()
+    F = len(X)
+    have = np.ones((F, 5), bool)
+    seed = np.zeros((F, 5), bool)
+    seed[0] = True
+    weak = np.zeros((F, 5), bool)
+    weak[40, 3] = True
+    rel = affine.learn(X, declared={0, 1, 2}, noise_m=0.0)
+    seg = segments.Segments.none(5)
+    assert not verify.vouched(X, have, seed, seg, 0.001, weak)[40:, 3].any()  # without its relation: dropped
+    assert verify.vouched(X, have, seed, seg, 0.001, weak, rel)[40:, 3].all()
+    swapped = X.copy()
+    swapped[40:, 3] = X[40:, 4]
+    assert not verify.vouched(swapped, have, seed, seg, 0.001, weak, rel)[40:, 3].any()

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Rig
-from . import refine, segments, tracks, verify, views
+from . import affine, refine, segments, tracks, verify, views
 from .detections import Detections
 
 PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
@@ -278,7 +278,9 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
     seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m, reference)
-    keep = verify.vouched(xyz, have, seeded, seg, noise_m, doubt)
+    X = np.where(have[..., None], xyz, np.nan)
+    relations = affine.learn(X, {m for pair in pairs for m in pair}, noise_m)
+    keep = verify.vouched(xyz, have, seeded, seg, noise_m, doubt, relations)
     near = keep.copy()
     for s_ in (1, 2):
         near[s_:] |= keep[:-s_]

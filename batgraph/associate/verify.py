@@ -6,7 +6,8 @@ Per marker: frames whose position leaves the local quadratic through its neighbo
 JUMP_WINDOW frames) by more than JUMP_SIGMA times the path's own scatter (a robust scale, at least
 JUMP_FLOOR_M) are jumps; they and gaps of more than MAX_GAP frames cut the path into stretches. A stretch is
 vouched for when it holds a seed frame, or when at least MIN_CHECKS of its distances to segment partners were
-checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (batgraph.associate.segments),
+checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (batgraph.associate.segments; a
+marker without a declared segment is also checked against its learned affine relation, batgraph.associate.affine),
 or when it meets a vouched stretch across a gap without a jump (its end, extrapolated linearly, lands within
 the jump bound of the other's start): a name carried by continuity from the seed. A link the tracker doubted (placed
 with a confidence below batgraph.associate.core.DOUBT_BELOW) cuts the path too, and continuity does not carry a
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import affine
 from . import segments as seg_mod
 
 JUMP_WINDOW = 5
@@ -69,21 +71,30 @@ def _stretches(have: np.ndarray, jump: np.ndarray, doubt: np.ndarray) -> list[np
     return out
 
 
-def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame (F,) how many of marker m's segment distances were checked and how many failed."""
+def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: int,
+                    relations: affine.Relations | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (F,) how many of marker m's segment distances (and its affine relation's prediction,
+    batgraph.associate.affine) were checked and how many failed."""
+    checks, fails = np.zeros(len(X), int), np.zeros(len(X), int)
+    if relations is not None and relations.refs[m, 0] >= 0:
+        r = relations.residual(np.where(have[..., None], X, np.nan), m)
+        on = np.isfinite(r)
+        checks += on
+        fails += on & (r > SEGMENT_SIGMA * relations.sigma[m])
     part = seg.partner[m]
     ok = part >= 0
     part, length, sigma = part[ok], seg.length[m][ok], seg.sigma[m][ok]
     if not len(part):
-        return np.zeros(len(X), int), np.zeros(len(X), int)
+        return checks, fails
     d = np.linalg.norm(X[:, part] - X[:, m, None], axis=-1)  # (F, K)
     both = have[:, part] & have[:, m, None]
     bad = both & (np.abs(d - length) > SEGMENT_SIGMA * sigma)
-    return both.sum(axis=1), bad.sum(axis=1)
+    return checks + both.sum(axis=1), fails + bad.sum(axis=1)
 
 
 def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segments,
-            noise_m: float = 0.0, doubt: np.ndarray | None = None) -> np.ndarray:
+            noise_m: float = 0.0, doubt: np.ndarray | None = None,
+            relations: affine.Relations | None = None) -> np.ndarray:
     """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
     seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
     jump bound's floor is at least 3 times it; see module docstring)."""
@@ -95,7 +106,7 @@ def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segm
         jump, bound = _jumps(X[:, m], have[:, m], max(JUMP_FLOOR_M, 3 * noise_m))
         doubts = np.cumsum(doubt[:, m]) if doubt is not None else np.zeros(F, np.int64)
         parts = _stretches(have[:, m], jump, doubts)
-        checks, fails = _segment_counts(X, have, seg, m)
+        checks, fails = _segment_counts(X, have, seg, m, relations)
         good = []
         for p in parts:
             n, bad = int(checks[p].sum()), int(fails[p].sum())
