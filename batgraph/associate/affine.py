@@ -15,7 +15,7 @@ from itertools import combinations
 
 import numpy as np
 
-from . import kernels
+from .segments import pair_stats
 
 LEARN_MIN_FRAMES = 40
 NEIGHBOURS = 6
@@ -43,44 +43,62 @@ class Relations:
         return np.linalg.norm(X[:, m] - pred, axis=-1)
 
 
-def learn(X: np.ndarray, declared: set[int], noise_m: float = 0.0) -> Relations:
+def learn(X: np.ndarray, declared: set[int], noise_m: float = 0.0, stats: tuple | None = None) -> Relations:
     """Relations (see module docstring) from named positions X (F, L, 3) [m] (NaN where unnamed) for the markers
-    not in ``declared`` (the markers with a declared segment); noise_m [m]: the floor of a relation's std."""
+    not in ``declared`` (the markers with a declared segment); noise_m [m]: the floor of a relation's std; stats:
+    segments.pair_stats(X) where the caller has it."""
     F, L = X.shape[:2]
     out = Relations(np.full((L, 3), -1, np.int64), np.zeros((L, 2)), np.full(L, np.nan))
     named = np.isfinite(X).all(axis=-1)
-    n, med, _ = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2), dtype=np.float64))
+    n, med, _ = stats if stats is not None else pair_stats(X)
     for m in range(L):
         if m in declared or named[:, m].sum() < LEARN_MIN_FRAMES:
             continue
         ok = (n[m] >= LEARN_MIN_FRAMES) & (np.arange(L) != m)
         near = np.flatnonzero(ok)[np.argsort(med[m][ok], kind="stable")][:NEIGHBOURS]
-        best = (np.inf, None, None)
-        for a, b, c in combinations(near.tolist(), 3):
-            on = named[:, m] & named[:, a] & named[:, b] & named[:, c]
-            if on.sum() < LEARN_MIN_FRAMES:
-                continue
-            w, sigma = _fit(X[on, m], X[on, a], X[on, b], X[on, c])
-            if sigma < best[0]:
-                best = (sigma, (a, b, c), w)
-        if best[1] is not None and best[0] <= MAX_SIGMA_M:
-            out.refs[m], out.weights[m], out.sigma[m] = best[1], best[2], max(best[0], noise_m)
+        trip = np.array(list(combinations(near.tolist(), 3)), np.int64).reshape(-1, 3)
+        if not len(trip):
+            continue
+        w, sigma = _fit(X[:, m], X[:, trip[:, 0]].transpose(1, 0, 2), X[:, trip[:, 1]].transpose(1, 0, 2),
+                        X[:, trip[:, 2]].transpose(1, 0, 2))
+        best = int(np.argmin(sigma))
+        if sigma[best] <= MAX_SIGMA_M:
+            out.refs[m], out.weights[m], out.sigma[m] = trip[best], w[best], max(float(sigma[best]), noise_m)
     return out
 
 
-def _fit(xm: np.ndarray, xa: np.ndarray, xb: np.ndarray, xc: np.ndarray) -> tuple[np.ndarray, float]:
-    """Weights (2,) by least squares, refitted once without the frames beyond 4 stds, and the per-axis robust std
-    of the residual [m]."""
-    A = np.stack([xb - xa, xc - xa], axis=-1).reshape(-1, 2)  # (n * 3, 2)
-    y = (xm - xa).reshape(-1)
-    keep = np.ones(len(xm), bool)
-    w, sigma = np.zeros(2), np.inf
+def _fit(xm: np.ndarray, xa: np.ndarray, xb: np.ndarray, xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triple (T): weights (T, 2) by least squares over the frames where all four are named, refitted once
+    without the frames beyond 4 stds, and the residual's robust per-axis std (T,) [m] (inf with fewer than
+    LEARN_MIN_FRAMES frames). xm (F, 3), xa, xb, xc (T, F, 3), NaN where not named."""
+    y, db, dc = xm[None] - xa, xb - xa, xc - xa
+    keep = np.isfinite(y).all(axis=-1) & np.isfinite(db).all(axis=-1) & np.isfinite(dc).all(axis=-1)  # (T, F)
+    enough = keep.sum(axis=1) >= LEARN_MIN_FRAMES
+    y, db, dc = (np.nan_to_num(a) for a in (y, db, dc))
+    dot = {name: np.einsum("tfi,tfi->tf", p, q) for name, (p, q) in
+           {"bb": (db, db), "cc": (dc, dc), "bc": (db, dc), "by": (db, y), "cy": (dc, y), "yy": (y, y)}.items()}
+    w, sigma = np.zeros((len(xa), 2)), np.full(len(xa), np.inf)
     for _ in range(2):
-        rows = np.repeat(keep, 3)
-        w = np.linalg.lstsq(A[rows], y[rows], rcond=None)[0]
-        r = np.linalg.norm((y - A @ w).reshape(-1, 3), axis=1)
-        sigma = float(np.median(r[keep])) / CHI3_MEDIAN
-        keep = r <= 4 * sigma
-        if keep.sum() < LEARN_MIN_FRAMES:
-            break
-    return w, sigma
+        bb, cc, bc, by, cy = ((keep * dot[k]).sum(axis=1) for k in ("bb", "cc", "bc", "by", "cy"))
+        det = bb * cc - bc * bc
+        good = enough & (det > 1e-12 * np.maximum(bb * cc, 1e-300))
+        w = np.where(good[:, None], np.stack([cc * by - bc * cy, bb * cy - bc * by], axis=1)
+                     / np.where(good, det, 1.0)[:, None], 0.0)
+        wb, wc = w[:, :1], w[:, 1:]
+        r2 = (dot["yy"] - 2 * (wb * dot["by"] + wc * dot["cy"]) + wb * wb * dot["bb"] + 2 * wb * wc * dot["bc"]
+              + wc * wc * dot["cc"])
+        r = np.sqrt(np.maximum(r2, 0.0))  # (T, F) the residuals' lengths
+        sigma = np.where(good, _median(r, keep) / CHI3_MEDIAN, np.inf)
+        keep = keep & (r <= 4 * sigma[:, None])
+        enough = enough & (keep.sum(axis=1) >= LEARN_MIN_FRAMES)
+    return w, np.where(enough, sigma, np.inf)
+
+
+def _median(r: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Per row (T,) the median of r (T, F) over the kept entries (NaN where none): np.nanmedian's value, by one
+    sort (nanmedian loops over the rows)."""
+    n = keep.sum(axis=1)
+    s = np.sort(np.where(keep, r, np.inf), axis=1)
+    lo, hi = np.maximum((n - 1) // 2, 0), np.maximum(n // 2, 0)
+    mid = 0.5 * (np.take_along_axis(s, lo[:, None], 1)[:, 0] + np.take_along_axis(s, hi[:, None], 1)[:, 0])
+    return np.where(n > 0, mid, np.nan)

@@ -277,9 +277,10 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     position stays only if the path is vouched for within 2 frames of it."""
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
-    seg = segments.measure(np.where(have[..., None], xyz, np.nan), pairs, True, noise_m, reference)
     X = np.where(have[..., None], xyz, np.nan)
-    relations = affine.learn(X, {m for pair in pairs for m in pair}, noise_m)
+    stats = segments.pair_stats(X)
+    seg = segments.measure(X, pairs, True, noise_m, reference, stats)
+    relations = affine.learn(X, {m for pair in pairs for m in pair}, noise_m, stats)
     keep = verify.vouched(xyz, have, seeded, seg, noise_m, doubt, relations)
     near = keep.copy()
     for s_ in (1, 2):

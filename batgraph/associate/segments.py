@@ -40,19 +40,26 @@ class Segments:
         return cls(np.full((n_labels, 1), -1, np.int64), np.full((n_labels, 1), np.nan), np.full((n_labels, 1), np.nan))
 
 
+def pair_stats(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per marker pair (L, L): the frames both are named on, the median and the MAD of their distance [m], from
+    named positions X (F, L, 3) (NaN where unnamed)."""
+    return kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2), dtype=np.float64))
+
+
 def measure(X: np.ndarray, pairs: list[tuple[int, int]], learn: bool, noise_m: float = 0.0,
-            reference: dict | None = None) -> Segments:
+            reference: dict | None = None, stats: tuple | None = None) -> Segments:
     """Segments measured on named positions X (F, L, 3) [m] (NaN where unnamed): the declared ``pairs`` (marker
     index pairs) and, with ``learn``, the steady undeclared ones (see module docstring). noise_m [m]: the points'
     position noise; the stds' floors are at least it (twice it for a learned segment, which may be 1.5 times it).
     reference: {(a, b): length [m]} measured where the user placed both markers: a declared segment's length is
-    that, not the named frames' (names carried wrongly all along would otherwise vouch for themselves)."""
+    that, not the named frames' (names carried wrongly all along would otherwise vouch for themselves).
+    stats: :func:`pair_stats` of X where the caller has it."""
     min_sigma, learn_sigma = max(MIN_SIGMA_M, noise_m), max(LEARN_MIN_SIGMA_M, 2 * noise_m)
     learn_std = max(LEARN_MAX_STD_M, 1.5 * noise_m)
     reference = reference or {}
     L = X.shape[1]
     declared = {tuple(sorted(p)) for p in pairs}
-    n, med, mad = kernels.pair_distance_medians(np.ascontiguousarray(X.transpose(1, 0, 2), dtype=np.float64))
+    n, med, mad = stats if stats is not None else pair_stats(X)
     mad = 1.4826 * mad
     std = np.where(n >= 3, np.maximum(mad, min_sigma), 2 * min_sigma)
     cand = set(declared)
