@@ -32,22 +32,22 @@ class Relations:
     weights: np.ndarray
     sigma: np.ndarray
 
-    def residual(self, X: np.ndarray, m: int) -> np.ndarray:
+    def residual(self, X: np.ndarray, have: np.ndarray, m: int) -> np.ndarray:
         """Marker m's distance (F,) [m] from its relation's prediction on each frame of X (F, L, 3); NaN where
-        any of the four is not named or m has no relation."""
+        any of the four is not named (have (F, L)) or m has no relation."""
         a, b, c = self.refs[m]
         if a < 0:
             return np.full(len(X), np.nan)
         wb, wc = self.weights[m]
         pred = X[:, a] + wb * (X[:, b] - X[:, a]) + wc * (X[:, c] - X[:, a])
-        return np.linalg.norm(X[:, m] - pred, axis=-1)
+        return np.where(have[:, [m, a, b, c]].all(axis=1), np.linalg.norm(X[:, m] - pred, axis=-1), np.nan)
 
 
 def learn(X: np.ndarray, declared: set[int], noise_m: float = 0.0, stats: tuple | None = None) -> Relations:
     """Relations (see module docstring) from named positions X (F, L, 3) [m] (NaN where unnamed) for the markers
     not in ``declared`` (the markers with a declared segment); noise_m [m]: the floor of a relation's std; stats:
     segments.pair_stats(X) where the caller has it."""
-    F, L = X.shape[:2]
+    L = X.shape[1]
     out = Relations(np.full((L, 3), -1, np.int64), np.zeros((L, 2)), np.full(L, np.nan))
     named = np.isfinite(X).all(axis=-1)
     n, med, _ = stats if stats is not None else pair_stats(X)

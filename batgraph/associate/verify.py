@@ -77,7 +77,7 @@ def _segment_counts(X: np.ndarray, have: np.ndarray, seg: seg_mod.Segments, m: i
     batgraph.associate.affine) were checked and how many failed."""
     checks, fails = np.zeros(len(X), int), np.zeros(len(X), int)
     if relations is not None and relations.refs[m, 0] >= 0:
-        r = relations.residual(np.where(have[..., None], X, np.nan), m)
+        r = relations.residual(X, have, m)
         on = np.isfinite(r)
         checks += on
         fails += on & (r > SEGMENT_SIGMA * relations.sigma[m])
@@ -97,7 +97,8 @@ def vouched(X: np.ndarray, have: np.ndarray, seed: np.ndarray, seg: seg_mod.Segm
             relations: affine.Relations | None = None) -> np.ndarray:
     """Which named positions keep their name (F, L) bool. X (F, L, 3) [m] positions, have (F, L) where named,
     seed (F, L) where the user named the marker, seg: segments with lengths, noise_m [m] the positions' noise (the
-    jump bound's floor is at least 3 times it; see module docstring)."""
+    jump bound's floor is at least 3 times it; see module docstring), relations: the markers' learned affine
+    relations (batgraph.associate.affine; None: none)."""
     F, L = have.shape
     keep = np.zeros((F, L), bool)
     for m in range(L):
