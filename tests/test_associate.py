@@ -353,3 +353,66 @@ def test_a_membrane_marker_resumed_on_a_weak_link_keeps_its_name_by_its_relation
     swapped = X.copy()
     swapped[40:, 3] = X[40:, 4]
     assert not verify.vouched(swapped, have, seed, seg, 0.001, weak, rel)[40:, 3].any()
+
+
+def _two_marker_frames(F: int = 30, gap_m: float = 0.03):
+    """Two markers gap_m apart moving together at 0.5 m/s, seen by 4 cameras without noise, as the tracker sees
+    them: (geometry, FrameDetections, points(frame, ...), true views (F, 2, C), positions (F, 2, 3))."""
+    from conftest import tiny_rig
+
+    from batgraph.associate import tracks, views
+
+    geom = views.geometry(tiny_rig(4))
+    t = np.arange(F) / 120.0
+    X = np.stack([np.stack([0.5 * t, np.full(F, y), np.full(F, 0.1)], axis=1) for y in (0.0, gap_m)], axis=1)
+    uv, _ = views.project(geom, X.reshape(-1, 3))  # (C, F * 2, 2)
+    C = uv.shape[0]
+    frame = np.repeat(np.arange(F), 2 * C)
+    det_uv = uv.transpose(1, 0, 2).reshape(-1, 2)  # frame by frame, marker by marker, camera by camera
+    camera = np.tile(np.arange(C), 2 * F)
+    fi = tracks.FrameDetections(frame, camera, det_uv, np.full(len(frame), 0.5), 0, np.arange(0, 2 * C * F + 1, 2 * C))
+    true_views = np.arange(F * 2 * C).reshape(F, 2, C)
+
+    def points(f, pred, std):
+        return views.FramePoints(true_views[f], X[f], np.zeros(2))
+    return geom, fi, points, true_views, X
+
+
+def test_a_sweep_takes_its_anchors_and_tracks_the_gap_between_them():
+    """Marker 0 named on frames 0-9 and 20-29 and marker 1 on every frame (tracks.Anchors): a sweep over every
+    frame, forward and backward, names marker 0's own points on frames 10-19 and keeps the anchors as given."""
+    from batgraph.associate import tracks
+
+    geom, fi, points, true_views, X = _two_marker_frames()
+    F = len(X)
+    xyz = X.copy()
+    xyz[10:20, 0] = np.nan
+    views_ = np.where(np.isfinite(xyz[..., :1]), true_views, -1)
+    anchors = tracks.Anchors(xyz, views_)
+    opt = tracks.TrackOptions(noise_m=0.001, volume_m3=0.001, range_m=0.2)
+    for order, dt in ((np.arange(F), 1 / 120.0), (np.arange(F)[::-1], -1 / 120.0)):
+        sw = tracks.Sweep.empty(F, 2, 4)
+        tracks.sweep(geom, points, fi, order, dt, {}, [], sw, opt, None, anchors)
+        assert (sw.kind == 1).all()
+        assert (sw.views == true_views).all()
+        assert sw.conf[np.isfinite(xyz[..., 0])].min() > 0.999
+
+
+def test_a_gap_name_on_a_point_where_another_unnamed_marker_may_be_is_dropped():
+    """gaps.exclusive: a new name's point within the gate of where another marker, unnamed on that frame, was
+    carried is not its marker's alone; 10 of those stds away it is; a marker named on that frame is no rival."""
+    from batgraph.associate import gaps
+
+    F, L = 3, 3
+    xyz = np.zeros((F, L, 3))
+    have = np.zeros((F, L), bool)
+    have[:, 0] = True  # marker 0's new name, at the origin
+    carried = np.full((F, L, 3), np.nan)
+    carried_std = np.full((F, L), np.nan)
+    carried[0, 1], carried_std[0, 1] = [0.004, 0, 0], 0.002  # frame 0: marker 1 (unnamed) 2 stds away
+    carried[1, 1], carried_std[1, 1] = [0.020, 0, 0], 0.002  # frame 1: 10 stds away
+    carried[2, 2], carried_std[2, 2] = [0.001, 0, 0], 0.002  # frame 2: marker 2 near, but named there
+    have[2, 2] = True
+    ok = gaps.exclusive(xyz, have, carried, carried_std, np.full((F, L), 1e-4), 0.0,
+                        np.array([[0, 0], [1, 0], [2, 0]]))
+    assert not ok[0, 0] and ok[1, 0] and ok[2, 0]

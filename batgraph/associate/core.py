@@ -1,6 +1,8 @@
 """Association end to end on arrays: detections -> 3D points per frame (batgraph.associate.views) -> the seeded
 markers tracked away from the seed (batgraph.associate.tracks) -> every detection named by where its marker is
-(batgraph.associate.refine). No files (batgraph.associate.session).
+(batgraph.associate.refine) -> the gaps between named stretches tracked again from every named position
+(batgraph.associate.gaps), each step's names checked (batgraph.associate.verify). No files
+(batgraph.associate.session).
 """
 
 from __future__ import annotations
@@ -11,13 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Rig
-from . import affine, refine, segments, tracks, verify, views
+from . import affine, gaps, refine, segments, tracks, verify, views
 from .detections import Detections
 
 PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
 SIGMA_SAMPLE_FRAMES = 40  # frames whose points measure the pixel noise
 SIGMA_START_PX = 2.0  # the noise assumed while measuring it
-DOUBT_BELOW = 0.99  # an assignment less sure than this does not carry a name by continuity (a suspected switch)
 HOW = ("", "seed", "tracked", "ray", "reprojection")
 """How a detection got its name: not named, the user's seed, a point the tracker assigned to its marker, a lone
 detection the tracker joined along its marker's predicted ray, or matched to where its marker is (refine)."""
@@ -216,14 +217,15 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
                  else {}, pairs, sw, opt.track, first)
     N = len(dets.frame)
-    label, how, track = _from_sweep(sw, N)
+    label, kind, track = tracks.per_detection(sw, N)
+    how = np.where(kind > 0, kind + 1, 0)
     fixed = np.full(N, -1, np.int64)
     fixed[seed_det] = seed_lab
     label = np.where(fixed >= 0, fixed, label)
     seeded = np.zeros((fi.n_frames, n_labels), bool)
     seeded[fi.frame[seed_det] - fi.first, seed_lab] = True
     ref = opt.track.segment_lengths
-    doubt = _doubtful(sw, start - fi.first)
+    doubt = tracks.doubtful(sw, start - fi.first)
     label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
     swept = label.copy()
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
@@ -234,7 +236,14 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
         others = refine.leave_one_out(geom, fi, label, n_labels)
         label, conf, cand = refine.match(geom, fi, xyz, std, opt.margin, fixed, det_xyz, det_std, noise_m, others)
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
-    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where(label == swept, how, 4)))
+    filled = np.zeros(N, np.int64)
+    if not large:  # two more sweeps: in a large rig they would cost as much as the first two
+        label, filled, gap_conf, gap_doubt = gaps.fill(geom, fi, points_at, label, n_labels, pairs, fps, opt.track,
+                                                       noise_m)
+        label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt | gap_doubt)
+        conf = np.where(filled > 0, gap_conf, conf)
+    how = np.where(filled > 0, filled + 1, how)
+    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where((label == swept) | (filled > 0), how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)
     return Association(label, conf, cand, track, how, sigma, sw)
 
@@ -290,32 +299,3 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     lab = np.maximum(label, 0)
     ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
     return np.where(fixed >= 0, fixed, np.where((label >= 0) & ok, label, -1))
-
-
-def _doubtful(sw: tracks.Sweep, k0: int) -> np.ndarray:
-    """Where a link of the tracker is in doubt (F, L) bool, as a mark on the later of the two frames it joins (in
-    frame order): the tracker placed the marker with a confidence below DOUBT_BELOW. Forward of the seed frame k0 a
-    link on frame k joins it to the frames before; backward, to the frames after (the mark goes on k + 1)."""
-    weak = (sw.kind > 0) & (sw.conf < DOUBT_BELOW)
-    out = np.zeros_like(weak)
-    out[k0 + 1:] = weak[k0 + 1:]
-    out[1:k0 + 1] |= weak[:k0]
-    return out
-
-
-def _from_sweep(sw: tracks.Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per detection: the marker the tracker gave it (-1), how (HOW index) and its track: a run of consecutive
-    frames on which the tracker placed the marker (a frame without splits it)."""
-    F, L = sw.kind.shape
-    label, how, track = np.full(N, -1, np.int64), np.zeros(N, np.int64), np.full(N, -1, np.int64)
-    on = sw.kind > 0
-    starts = on & ~np.vstack([np.zeros((1, L), bool), on[:-1]])
-    run = np.cumsum(starts.T.ravel()).reshape(L, F).T - 1  # run number, counted marker by marker
-    k, lab = np.nonzero(on)
-    v = sw.views[k, lab]  # (n, C)
-    has = v >= 0
-    det = v[has]
-    label[det] = np.broadcast_to(lab[:, None], v.shape)[has]
-    how[det] = np.broadcast_to(np.where(sw.kind[k, lab] == 1, 2, 3)[:, None], v.shape)[has]
-    track[det] = np.broadcast_to(run[k, lab][:, None], v.shape)[has]
-    return label, how, track

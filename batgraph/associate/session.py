@@ -18,8 +18,9 @@ from .. import atomic, inputs
 from ..errors import InputError
 from ..formats.csv_text import write_csv
 from ..session import OBS_COLUMNS
-from .core import DOUBT_BELOW, HOW, AssociateOptions, Association, associate
+from .core import HOW, AssociateOptions, Association, associate
 from .detections import Detections, SessionSetup, read_inputs, read_seed
+from .tracks import DOUBT_BELOW
 
 SEED_FILE = "seed_labels.csv"
 LABEL_COLUMNS = ["frame", "camera", "u", "v", "marker", "track", "confidence", "how"]

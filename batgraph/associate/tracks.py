@@ -10,7 +10,8 @@ A link is kept when the next-best assignment is worse by ``ambiguity`` nats and 
 more; else the marker stays unassigned on that frame (its track splits) rather than risk a swap. A marker without a
 point takes lone detections along its predicted rays where that prediction is sharp (``join_max_px``); one that
 finds nothing coasts, and is lost after ``max_miss`` frames or past ``max_std_m``. In large rigs the points come
-from the markers' predictions (views.projected_points) and go to the marker that found them.
+from the markers' predictions (views.projected_points) and go to the marker that found them. Markers already named
+on a frame (:class:`Anchors`, batgraph.associate.gaps) take their positions there as sure links before the rounds.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ ROUNDS = 6
 MATURE = 2  # points after which a marker's velocity is its own
 COHERENT_M = 0.04  # [m] the reach of an assigned marker's motion over its neighbours' predictions
 RESEGMENT_FRAMES = 15  # segment lengths are measured again after this many frames
+DOUBT_BELOW = 0.99  # an assignment less sure than this does not carry a name by continuity (a suspected switch)
 
 
 @dataclass
@@ -105,6 +107,15 @@ class Sweep:
     def empty(cls, F: int, L: int, C: int) -> Sweep:
         return cls(np.zeros((F, L), np.int8), np.full((F, L, C), -1, np.int64), np.zeros((F, L)),
                    np.full((F, L, 3), np.nan))
+
+
+@dataclass
+class Anchors:
+    """Markers already named, which a sweep takes as they are: xyz (F, L, 3) [m] their positions (NaN: none) and
+    views (F, L, C) their detections (global indices, -1: none)."""
+
+    xyz: np.ndarray
+    views: np.ndarray
 
 
 @dataclass
@@ -287,13 +298,27 @@ class _Frame:
         self.prior = pair_prior(pts.views)
         self.source = pts.source
 
+    def add(self, xyz: np.ndarray, R: np.ndarray, views: np.ndarray) -> np.ndarray:
+        """Append points (n, 3) with covariances R (n, 3, 3) and views (n, C); returns their indices."""
+        n0 = len(self.xyz)
+        self.xyz = np.concatenate([self.xyz, xyz])
+        self.R = np.concatenate([self.R, R])
+        self.views = np.concatenate([self.views, views])
+        self.taken = np.concatenate([self.taken, np.zeros(len(xyz), bool)])
+        self.prior = np.concatenate([self.prior, np.zeros(len(xyz))])
+        if self.source is not None:
+            self.source = np.concatenate([self.source, np.full(len(xyz), -1, self.source.dtype)])
+        return np.arange(n0, len(self.xyz))
+
 
 def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt: float, seeds: dict[int, Seed],
-          pairs: list[tuple[int, int]], out: Sweep, opt: TrackOptions, first=None) -> None:
+          pairs: list[tuple[int, int]], out: Sweep, opt: TrackOptions, first=None,
+          anchors: Anchors | None = None) -> None:
     """Track every marker through ``frames`` (in the order given; dt [s] negative backward), starting at the seed
     frames' placements; results go into ``out`` (see module docstring). points(frame, predicted xyz (L, 3) [m] (NaN:
     none), their std (L,) [m]) -> the frame's FramePoints (views as global detection indices); first(frame): the
-    points the seeded markers' first velocities are measured on, where ``points`` needs predictions to find any.)"""
+    points the seeded markers' first velocities are measured on, where ``points`` needs predictions to find any.)
+    anchors: markers already named, linked to their positions (:func:`_anchor`)."""
     L = out.kind.shape[1]
     F_dt = constant_velocity_F(dt)
     Q1 = constant_velocity_Q(1.0, abs(dt))
@@ -322,6 +347,8 @@ def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt:
                     np.zeros((0, 3, 3)), L)
         if f in seeds:
             _place_seed(tg, fr, seeds[f], geom, dets, out, k, opt, flow)
+        if anchors is not None:
+            _anchor(tg, fr, anchors, k, geom, dets, out, before, opt, flow)
         _rounds(tg, fr, seg, out, k, before, dt, opt, flow)
         used = np.concatenate([fr.views[fr.taken].ravel(), out.views[k][fr.assigned].ravel()])
         joined = _join(geom, tg, fr, dets, f, used[used >= 0], out, k, opt)
@@ -331,6 +358,20 @@ def sweep(geom: Geometry, points, dets: FrameDetections, frames: np.ndarray, dt:
         since += 1
         if since >= RESEGMENT_FRAMES:
             seg, since = _measure(out, pairs, opt), 0
+
+
+def _anchor(tg: _Targets, fr: _Frame, anchors: Anchors, k: int, geom: Geometry, dets: FrameDetections, out: Sweep,
+            before: tuple[np.ndarray, np.ndarray], opt: TrackOptions, flow: np.ndarray | None) -> None:
+    """The markers anchored on frame k are linked to their anchored positions (as sure links, confidence 1) before
+    the rounds, so that their detections are taken and the rounds name only the others."""
+    lab = np.flatnonzero(np.isfinite(anchors.xyz[k, :, 0]) & ~fr.assigned)
+    if not len(lab):
+        return
+    v = anchors.views[k, lab]
+    z = anchors.xyz[k, lab]
+    p = fr.add(z, point_covariance(geom, z, v, dets.sig), v)
+    steady = tg.alive[lab] & (np.abs(k - tg.last[lab]) == 1) & (tg.age[lab] >= MATURE)
+    _commit(tg, fr, lab, p, v, np.full(len(lab), 50.0), out, k, tg.x.copy(), tg.P.copy(), steady, before, opt, flow)
 
 
 def _measure(out: Sweep, pairs: list[tuple[int, int]], opt: TrackOptions) -> seg_mod.Segments:
@@ -673,3 +714,36 @@ def _join(geom: Geometry, tg: _Targets, fr: _Frame, dets: FrameDetections, f: in
         out.conf[k, t] = conf[t]
         out.xyz[k, t] = tg.x[t, :3]
     return joined
+
+
+def doubtful(sw: Sweep, k0: int) -> np.ndarray:
+    """Where a link of the tracker is in doubt (F, L) bool, as a mark on the later of the two frames it joins (in
+    frame order): the tracker placed the marker with a confidence below DOUBT_BELOW. Forward of frame k0 (the
+    frame a sweep started from; -1: a forward sweep over every frame) a link on frame k joins it to the frames
+    before; backward of it (k0 = F - 1: a backward sweep over every frame), to the frames after (the mark goes on
+    k + 1)."""
+    weak = (sw.kind > 0) & (sw.conf < DOUBT_BELOW)
+    out = np.zeros_like(weak)
+    out[k0 + 1:] = weak[k0 + 1:]
+    if k0 > 0:
+        out[1:k0 + 1] |= weak[:k0]
+    return out
+
+
+def per_detection(sw: Sweep, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per detection (N,): the marker the sweep gave it (-1: none), the sweep's kind there (1 a point, 2 a ray
+    join, 0 none) and its track: a run of consecutive frames on which the sweep placed the marker (a frame without
+    splits it)."""
+    F, L = sw.kind.shape
+    label, kind, track = np.full(N, -1, np.int64), np.zeros(N, np.int64), np.full(N, -1, np.int64)
+    on = sw.kind > 0
+    starts = on & ~np.vstack([np.zeros((1, L), bool), on[:-1]])
+    run = np.cumsum(starts.T.ravel()).reshape(L, F).T - 1  # run number, counted marker by marker
+    k, lab = np.nonzero(on)
+    v = sw.views[k, lab]  # (n, C)
+    has = v >= 0
+    det = v[has]
+    label[det] = np.broadcast_to(lab[:, None], v.shape)[has]
+    kind[det] = np.broadcast_to(sw.kind[k, lab][:, None], v.shape)[has]
+    track[det] = np.broadcast_to(run[k, lab][:, None], v.shape)[has]
+    return label, kind, track

@@ -10,7 +10,7 @@ checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (b
 marker without a declared segment is also checked against its learned affine relation, batgraph.associate.affine),
 or when it meets a vouched stretch across a gap without a jump (its end, extrapolated linearly, lands within
 the jump bound of the other's start): a name carried by continuity from the seed. A link the tracker doubted (placed
-with a confidence below batgraph.associate.core.DOUBT_BELOW) cuts the path too, and continuity does not carry a
+with a confidence below batgraph.associate.tracks.DOUBT_BELOW) cuts the path too, and continuity does not carry a
 name across it: the stretch beyond keeps its name only where its segments vouch for it.
 """
 
