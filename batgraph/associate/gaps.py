@@ -5,9 +5,9 @@ its segments place it again, and a stretch the checks drop (batgraph.associate.v
 named position is an anchor (a sure link, batgraph.associate.tracks.Anchors), and the tracker names what lies
 between them, from both sides. A detection takes the name one sweep gives it where the other gives it no other
 name and the marker has no other detection in that camera and frame. A new name is kept where its point is the
-marker's alone: within the gate of no other marker unnamed on that frame, where the names before put that one
-(batgraph.associate.refine.carry). The caller's checks then judge every path again, with the new links whose
-confidence is below DOUBT_BELOW in doubt.
+marker's alone: within the gate of no other marker unnamed on that frame, where the names (the new ones included:
+they place the neighbours a lost marker moves with) carry that one (batgraph.associate.refine.carry). The caller's
+checks then judge every path again, with the new links whose confidence is below DOUBT_BELOW in doubt.
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ def fill(geom: Geometry, fi: tracks.FrameDetections, points_at, label: np.ndarra
     twice = on[count[inv] > 1]
     out[twice[new[twice]]] = -1  # a marker with two detections in one camera keeps its named one, else none
     new &= out >= 0
-    xc, sc = refine.carry(xyz, std, fps, noise_m)
     now, now_std, _ = refine.positions(geom, fi, out, n_labels)
+    xc, sc = refine.carry(now, now_std, fps, noise_m)  # the new names place the neighbours a lost marker moves with
     alone = exclusive(now, np.isfinite(now_std), xc, sc, now_std, noise_m, np.unique(np.stack(
         [k[new], out[new]], axis=1), axis=0))
     out = np.where(new & ~alone[k, np.maximum(out, 0)], -1, out)
@@ -66,8 +66,8 @@ def exclusive(xyz: np.ndarray, have: np.ndarray, carried: np.ndarray, carried_st
               std: np.ndarray, noise_m: float, cells: np.ndarray) -> np.ndarray:
     """Whether each new name's point is its marker's alone (F, L) bool, for cells (n, 2) of (frame, marker): its
     position xyz[k, m] (F, L, 3) [m] (std (F, L) [m], where ``have``) within the 3-DOF gate of no other marker
-    unnamed on that frame, where the names before put that one (carried (F, L, 3), carried_std (F, L) [m], NaN
-    where nowhere). A cell without a position is kept."""
+    unnamed on that frame, where the names carry that one (carried (F, L, 3), carried_std (F, L) [m], NaN where
+    nowhere). A cell without a position is kept."""
     ok = np.ones(have.shape, bool)
     for k, m in cells:
         if not have[k, m]:
