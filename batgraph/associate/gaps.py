@@ -69,12 +69,12 @@ def exclusive(xyz: np.ndarray, have: np.ndarray, carried: np.ndarray, carried_st
     unnamed on that frame, where the names carry that one (carried (F, L, 3), carried_std (F, L) [m], NaN where
     nowhere). A cell without a position is kept."""
     ok = np.ones(have.shape, bool)
-    for k, m in cells:
-        if not have[k, m]:
-            continue
-        s2 = carried_std[k] ** 2 + std[k, m] ** 2 + noise_m ** 2
-        d2 = np.sum((carried[k] - xyz[k, m]) ** 2, axis=1) / s2
-        rival = np.isfinite(d2) & (d2 < CHI2_3DOF_GATE) & ~have[k]
-        rival[m] = False
-        ok[k, m] = not rival.any()
+    k, m = cells.reshape(-1, 2).T
+    on = have[k, m]
+    k, m = k[on], m[on]
+    s2 = carried_std[k] ** 2 + std[k, m][:, None] ** 2 + noise_m ** 2  # (n, L)
+    d2 = np.sum((carried[k] - xyz[k, m][:, None]) ** 2, axis=-1) / s2
+    rival = np.isfinite(d2) & (d2 < CHI2_3DOF_GATE) & ~have[k]
+    rival[np.arange(len(m)), m] = False
+    ok[k, m] = ~rival.any(axis=1)
     return ok
