@@ -51,7 +51,8 @@ def _timing_errors(run) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("generator", ["flight", "wingbeat"])
 def test_sync_estimate_recovers_the_timing(generator):
     """Offsets of up to half a frame plus lags of up to 4 frames and a 6 ms readout, timing unknown: the lag scan
-    then the joint solve put each offset within 0.15 ms of the truth (and within 4 of its sds) and the readout
+    then the joint solve put each offset within 3 of its sds of the truth and within 0.25 ms (the hold-out bat's
+    third camera is determined to 0.27 ms: measured 0.22 ms off; the flight's within 0.06 ms) and the readout
     within 0.5 ms; the observed points are as accurate as with the timing given (within 1.2x). The hold-out
     generator's seed 1 scans one camera 2.53 frames late (true 2.29): starting its solve from the rounded lag, 0.7
     frame off, ended 2.4 ms off (measured)."""
@@ -61,7 +62,7 @@ def test_sync_estimate_recovers_the_timing(generator):
     given = run_methods(make(Timing(OFFSETS_S, READOUT_S, known=True)), ["smoother"], quiet)
     estimated = run_methods(make(Timing(OFFSETS_S, READOUT_S)), ["smoother"], dataclasses.replace(quiet, sync=True))
     err, z, ro = _timing_errors(estimated)
-    assert np.abs(err).max() < 0.15e-3 and np.abs(z).max() < 4, (err, z)
+    assert np.abs(err).max() < 0.25e-3 and np.abs(z).max() < 3, (err, z)
     assert np.abs(ro).max() < 0.5e-3, ro
     assert _observed_rmse(estimated) < 1.2 * _observed_rmse(given)
     # reprojection.csv projects each point at its capture time through the timing it was estimated with: per camera
@@ -99,7 +100,7 @@ def test_refine_rig_writes_a_reusable_rig(tmp_path):
     lambda: simulate_wingbeat(np.random.default_rng(2), n_cameras=5, n_frames=72, pixel_sigma_px=1.0)])
 def test_refine_rig_keeps_an_exact_rig(make):
     """An exact rig with --refine-rig: the evidence favours the poses as given (log Bayes factor measured +92 / +88
-    on these scenes, the move's chi-square 20.6 / 31.3 for 23 degrees of freedom; a rig bumped by 0.5 deg and 5 mm:
+    on these scenes, the move's chi-square 21.3 / 28.5 for 23 degrees of freedom; a rig bumped by 0.5 deg and 5 mm:
     -18,000 and less), so the smoother's points are those without --refine-rig and rig.toml's poses the input's
     (refined regardless, an exact rig's noise moves the points to 1.08-1.87x the input rig's RMSE)."""
     s = make()

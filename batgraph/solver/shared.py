@@ -176,16 +176,18 @@ class Linear:
     Y: np.ndarray
 
 
-def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared, exact: bool = False) -> Linear:
-    """The shared variables' gradient, Hessian, Schur complement and Y at ``fit``: the rows' curvature the robust
-    loss's own with ``exact`` (the steps: IRLS's overstates it past Huber's k, and the steps then crawl), IRLS's
-    without (the covariances, as everywhere)."""
+def linearise(setup: fit_mod.Setup, fit: fit_mod.Fit, shared: Shared, levels: np.ndarray,
+              exact: bool = False) -> Linear:
+    """The shared variables' gradient, Hessian, Schur complement and Y at ``fit`` (markers at noise levels ``levels``
+    (M,), as solved: the motion prior sets how much of a timing change the trajectories absorb): the rows' curvature
+    the robust loss's own with ``exact`` (the steps: IRLS's overstates it past Huber's k, and the steps then crawl),
+    IRLS's without (the covariances, as everywhere)."""
     F, M = setup.shape
     n = shared.n
     g, H, S = np.zeros(n), np.zeros((n, n)), np.zeros((n, n))
     Y = np.zeros((F, M, 9, n))
     for name, ms, group in _units(setup, fit):
-        prob = setup.problem(ms, name, np.ones(len(ms)))
+        prob = setup.problem(ms, name, levels[ms])
         x = np.ascontiguousarray(fit.state[:, ms, :prob.d])
         Hxt, gu, Hu = _row_terms(prob, x, shared, setup, exact)
         g += gu
@@ -279,7 +281,7 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     fit = start if isinstance(start, fit_mod.Fit) else backend.fit(cur, models, levels, start, lm.LOOSE,
                                                                    covariances=False)
     total = _total(fit, theta, prior)
-    lin = linearise(cur, fit, shared, exact=True)
+    lin = linearise(cur, fit, shared, levels, exact=True)
     first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
     A, lam, steps = np.zeros((n, n)), 0.0, 0
     g = lin.g + prior @ theta
@@ -300,12 +302,12 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         if not new_total <= total:
             lam = max(lam * factor, first)
             continue
-        new_lin = linearise(new_setup, new_fit, shared, exact=True)
+        new_lin = linearise(new_setup, new_fit, shared, levels, exact=True)
         new_g = new_lin.g + prior @ new_theta
         A = _secant(A, step, new_g - g, new_lin.S + prior)
         theta, fit, total, cur, lin, g = new_theta, new_fit, new_total, new_setup, new_lin, new_g
         lam = lam / factor if lam > floor else 0.0
-    lin = linearise(cur, fit, shared)
+    lin = linearise(cur, fit, shared, levels)
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
     at = backend.fit(cur, models, levels, (fit.xyz, fit.velocity, fit.acceleration), lm.Settings(max_iterations=0))
     if at.cov is not None:  # the markers' covariances at the minimiser, once (the steps' fits skip them)
