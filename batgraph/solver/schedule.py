@@ -244,7 +244,7 @@ def _clean(setup, backend, motion, cleaning_q, spec, reject, refine_rig) -> tupl
         first = fit
         fit, theta, cov, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels, first, spec)
         kept, shown = _shown(setup.rig, spec, theta, cov, refine_rig)
-        if (kept.readout != spec.readout).any() or (kept.pose != spec.pose).any():
+        if (kept.pose != spec.pose).any():
             spec, theta, fit = kept, np.zeros(kept.n), first if not kept.n else fit
             if spec.n:
                 fit, theta, _, _, _ = shared.solve(cleaning, _NoCovariances(backend), models, levels,
@@ -261,31 +261,17 @@ def _clean(setup, backend, motion, cleaning_q, spec, reject, refine_rig) -> tupl
 
 
 def _shown(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, judge_poses: bool) -> tuple:
-    """The shared variables the data show, and figures: a readout READOUT_SIGNIFICANCE standard deviations from the
-    known one; with ``judge_poses`` (--refine-rig), the poses moved only where the evidence favours the move
-    (shared.poses_evidence: an exact rig would otherwise take on the solve's noise, and the world frame with it).
-    Poses that are variables only for their calibrated covariance stay variables: their uncertainty is wanted."""
-    kept = replace(spec, readout=_significant_readouts(spec, theta, cov))
+    """The shared variables the data show, and figures: with ``judge_poses`` (--refine-rig), the poses moved only
+    where the evidence favours the move (shared.poses_evidence: an exact rig would otherwise take on the solve's
+    noise, and the world frame with it). Poses that are variables only for their calibrated covariance stay
+    variables: their uncertainty is wanted. Offsets and readouts always stay: where the data cannot tell a readout,
+    its standard deviation says so and the offsets' include it."""
     if not (judge_poses and spec.pose.any()):
-        return kept, {}
+        return spec, {}
     evidence = shared.poses_evidence(rig, spec, theta, cov)
     as_given = evidence["log_bayes_factor"] > 0
-    if as_given:
-        kept = replace(kept, pose=np.zeros_like(spec.pose))
+    kept = replace(spec, pose=np.zeros_like(spec.pose)) if as_given else spec
     return kept, {"poses": {**evidence, "kept_as_given": bool(as_given)}}
-
-
-READOUT_SIGNIFICANCE = 5.0  # standard deviations: a readout estimated nearer to the known one is left at it
-
-
-def _significant_readouts(spec: shared.Shared, theta: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """The readout variables (C,) bool whose correction is at least READOUT_SIGNIFICANCE standard deviations from
-    0: a model that misses the motion (a hand-waved LED at 20 fps) showed a spurious -5.6 +- 1.7 ms readout."""
-    col = spec.columns["readout"]
-    on = spec.readout.copy()
-    sd = np.sqrt(np.diag(cov))
-    on[on] = np.abs(theta[col[on]]) >= READOUT_SIGNIFICANCE * sd[col[on]]
-    return on
 
 
 class _NoCovariances:
