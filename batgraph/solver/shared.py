@@ -6,9 +6,9 @@ clock; the variables are the offsets' corrections (the reference camera's is fix
 readout per sensor mode (same image size and rate: a readout per camera is confounded with the wings' own
 vertical motion; docs/timing.md). Poses: a left perturbation of cam_from_world, R' = exp(w) R, t' = exp(w) t + d,
 under the calibration's pose covariance; the similarity directions the images cannot see are projected out.
-The solve is variable projection: the markers' minimiser x*(theta) from any backend, then a damped step on the
-Schur complement S = H_tt - H_tx H_xx^-1 H_xt (each marker's block-tridiagonal H_xx) with a structured secant
-correction, the markers re-solved from their first-order move. theta's covariance is S^-1; each point's covariance
+The solve is variable projection: the markers' minimiser x*(theta) from any backend, then a damped Gauss-Newton
+step on the Schur complement S = H_tt - H_tx H_xx^-1 H_xt (each marker's block-tridiagonal H_xx, at the markers'
+noise levels), the markers re-solved from their first-order move. theta's covariance is S^-1; each point's covariance
 gains Y S^-1 Y^T (Y = H_xx^-1 H_xt), so the rig's uncertainty reaches the 3D.
 """
 
@@ -269,10 +269,8 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     setup with the corrections applied, steps taken). start: the markers' (p, v, a) to solve from, or their
     minimiser at theta0 already (a fit_mod.Fit of ``setup`` there, taken as it is).
 
-    The steps are Levenberg-Marquardt's on the reduced problem with the Hessian S + A: S the Gauss-Newton Schur
-    complement, A a structured secant correction (Dennis, Gay and Welsch's, as NL2SOL) built from the exact reduced
-    gradients along the steps. Gauss-Newton alone converged linearly (a step 0.7x the last) where the data barely
-    tell an offset from a readout (every camera sees the bat over a band of rows)."""
+    The steps are Levenberg-Marquardt's on the reduced problem with the Gauss-Newton Schur complement S as its
+    Hessian."""
     n = shared.n
     theta = np.zeros(n) if theta0 is None else np.asarray(theta0, float).copy()
     prior = shared.prior_info()
@@ -283,16 +281,15 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
     total = _total(fit, theta, prior)
     lin = linearise(cur, fit, shared, levels, exact=True)
     first, factor, floor, stuck = lm.TIGHT.damping  # the driver's damping rules
-    A, lam, steps = np.zeros((n, n)), 0.0, 0
+    lam, steps = 0.0, 0
     g = lin.g + prior @ theta
     while steps < lm.TIGHT.max_iterations and lam <= stuck:
         steps += 1
         S = Z.T @ (lin.S + prior) @ Z
-        newton = np.linalg.solve(S + Z.T @ A @ Z, Z.T @ g)
+        newton = np.linalg.solve(S, Z.T @ g)
         if 0.5 * float(Z.T @ g @ newton) < DECREMENT_TOL:
             break
-        step = _limited(-Z @ np.linalg.solve(S + Z.T @ A @ Z + lam * np.diag(np.diag(S)), Z.T @ g), shared,
-                        setup.fps)
+        step = _limited(-Z @ np.linalg.solve(S + lam * np.diag(np.diag(S)), Z.T @ g), shared, setup.fps)
         new_theta = theta + step
         new_setup = applied(setup, shared, new_theta)
         x = fit.state - np.einsum("fmin,n->fmi", lin.Y, step)
@@ -302,10 +299,9 @@ def solve(setup: fit_mod.Setup, backend, models: np.ndarray, levels: np.ndarray,
         if not new_total <= total:
             lam = max(lam * factor, first)
             continue
-        new_lin = linearise(new_setup, new_fit, shared, levels, exact=True)
-        new_g = new_lin.g + prior @ new_theta
-        A = _secant(A, step, new_g - g, new_lin.S + prior)
-        theta, fit, total, cur, lin, g = new_theta, new_fit, new_total, new_setup, new_lin, new_g
+        theta, fit, total, cur = new_theta, new_fit, new_total, new_setup
+        lin = linearise(cur, fit, shared, levels, exact=True)
+        g = lin.g + prior @ theta
         lam = lam / factor if lam > floor else 0.0
     lin = linearise(cur, fit, shared, levels)
     cov_t = Z @ np.linalg.inv(Z.T @ (lin.S + prior) @ Z) @ Z.T
@@ -352,16 +348,6 @@ def _complement(G: np.ndarray, n: int) -> np.ndarray:
         return np.eye(n)
     q = np.linalg.qr(np.hstack([G, np.eye(n)]))[0]
     return q[:, G.shape[1]:n]
-
-
-def _secant(A: np.ndarray, s: np.ndarray, y: np.ndarray, S_new: np.ndarray) -> np.ndarray:
-    """The structured secant update of A after a step s with gradient change y, so that (S_new + A') s = y
-    (Dennis-Gay-Welsch); A unchanged when y . s <= 0 (no curvature along the step to learn)."""
-    ys = float(y @ s)
-    if ys <= 0:
-        return A
-    r = y - S_new @ s - A @ s
-    return A + (np.outer(r, y) + np.outer(y, r)) / ys - float(r @ s) * np.outer(y, y) / ys**2
 
 
 def _total(fit: fit_mod.Fit, theta: np.ndarray, prior: np.ndarray) -> float:
