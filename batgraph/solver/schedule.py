@@ -132,7 +132,7 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     info.update(figures)
     fit, excluded, rounds, stable = _final(setup, backend, models, levels, start, excluded, reject)
     if spec.n:
-        fit, theta, cov_theta, setup, info["shared_steps"] = shared.solve(base.without(excluded), backend, models,
+        fit, theta, cov_theta, spec, info["shared_steps"] = _solve_shared(base.without(excluded), backend, models,
                                                                           levels, fit, spec, theta)
         setup = shared.applied(base, spec, theta)
         info["rig_refined"] = _rig_figures(spec, theta, cov_theta, rig)
@@ -148,6 +148,22 @@ def _run(session, dense, ideal, options, backend) -> Estimate:
     elif poses_asked:  # the poses kept as given: OUT/rig.toml is still the rig to reuse
         est.rig = rig
     return est
+
+
+def _solve_shared(setup, backend, models, levels, fit, spec: shared.Shared, theta: np.ndarray) -> tuple:
+    """shared.solve from the final fit: (fit, theta, its covariance, spec, steps). A readout that ends below 0 is held
+    at its known value (0 unless calibration.toml gives one) and the rest solved again: a rolling shutter reads down
+    the image, so a negative readout is a global shutter's noise (the MCSC rig: -1.6 +- 3.9 ms), and offsets solved
+    with it would not be those of the rig.toml that cannot state it."""
+    fit, theta, cov, _, steps = shared.solve(setup, backend, models, levels, fit, spec, theta)
+    d_off, d_ro, d_pose = spec.split(theta)
+    known = np.array([cam.readout_s for cam in setup.rig])
+    held = replace(spec, readout=spec.readout & (known + d_ro >= 0))
+    if (held.readout == spec.readout).all() or not held.n:
+        return fit, theta, cov, spec, steps
+    fit, theta, cov, _, more = shared.solve(setup, backend, models, levels, (fit.xyz, fit.velocity, fit.acceleration),
+                                            held, held.join(d_off, d_ro, d_pose))
+    return fit, theta, cov, held, steps + more
 
 
 def shared_variables(session: Session, options: Options) -> shared.Shared:
@@ -190,13 +206,14 @@ def rig_used(rig, spec: shared.Shared, theta: np.ndarray, cov: np.ndarray):
     sd = np.sqrt(np.diag(cov))
     cols = spec.columns
     moved = shared.applied_rig(rig, spec, theta)
+    timed = spec.offset.any() or spec.readout.any()
     cams = []
     for c, cam in enumerate(moved):
         change = {}
-        if spec.offset[c] or spec.readout[c]:
+        if timed:
             change.update(time_offset_s=cam.time_offset_s + d_off[c], readout_s=max(cam.readout_s + d_ro[c], 0.0),
                           time_offset_sd_s=float(sd[cols["offset"][c]]) if spec.offset[c] else 0.0,
-                          readout_sd_s=float(sd[cols["readout"][c]]))
+                          readout_sd_s=float(sd[cols["readout"][c]]) if spec.readout[c] else 0.0)
         if spec.pose[c]:
             k = cols["pose"][c]
             change["pose_cov"] = cov[k:k + 6, k:k + 6]
@@ -209,10 +226,11 @@ def _rig_figures(spec: shared.Shared, theta: np.ndarray, cov: np.ndarray, rig) -
     d_off, d_ro, d_pose = spec.split(theta)
     sd = np.sqrt(np.diag(cov))
     cols = spec.columns
+    timed = spec.offset.any() or spec.readout.any()
     out = {}
     for c, cam in enumerate(rig):
         row = {}
-        if spec.offset[c] or spec.readout[c]:
+        if timed:  # every camera, the clock's and those whose readout is held included
             row.update(time_offset_s=float(cam.time_offset_s + d_off[c]), readout_s=float(cam.readout_s + d_ro[c]),
                        time_offset_sd_s=float(sd[cols["offset"][c]]) if spec.offset[c] else 0.0,
                        readout_sd_s=float(sd[cols["readout"][c]]) if spec.readout[c] else 0.0)

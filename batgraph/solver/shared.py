@@ -91,6 +91,17 @@ class Shared:
             out[i][on] = theta[idx].reshape(out[i][on].shape)
         return tuple(out)
 
+    def join(self, d_offset: np.ndarray, d_readout: np.ndarray, d_pose: np.ndarray) -> np.ndarray:
+        """theta (n,) holding these per-camera corrections (the inverse of :meth:`split`; a sensor mode takes its
+        last camera's readout)."""
+        theta = np.zeros(self.n)
+        cols = self.columns
+        for kind, values in zip(KINDS, (d_offset, d_readout, d_pose), strict=True):
+            on = cols[kind] >= 0
+            idx = cols[kind][on][:, None] + np.arange(WIDTH[kind])
+            theta[idx] = np.asarray(values, float)[on].reshape(idx.shape)
+        return theta
+
     def prior_info(self) -> np.ndarray:
         """The priors' information (n, n): PRIOR_SD_S^-2 on the timing, pose_cov^-1 per pose."""
         P = np.eye(self.n) / PRIOR_SD_S**2
