@@ -78,7 +78,9 @@ def _progress_bars(args) -> bool:
 # ----- reconstruct -----------------------------------------------------------------------------
 def _add_reconstruct(sub):
     p = sub.add_parser("reconstruct", help="3D trajectories of every marker on every frame, with covariance",
-                       description="Reconstruct 3D marker trajectories from a session folder (or several).")
+                       description="Reconstruct 3D marker trajectories from a session folder (or several). A "
+                                   "folder of unlabelled detections (detections.csv and seed_labels.csv, no "
+                                   "observations) is named first, as `batgraph associate` does.")
     p.add_argument("sessions", nargs="+", metavar="SESSION", help="session folder(s) or glob pattern(s)")
     p.add_argument("--out", help="output folder (default SESSION/out; with several sessions OUT/<session>)")
     p.add_argument("--calibration", metavar="FILE",

@@ -10,6 +10,7 @@ import contextlib
 import json
 import math
 import os
+import tempfile
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from . import associate as associate_mod
 from . import atomic, forked, inputs
 from . import methods as methods_registry
 from . import report as report_mod
@@ -66,20 +68,23 @@ def export_method(result: Run) -> str:
 #: The files of one result folder: a folder holds one result,
 #: so one of these that a run does not write is not carried over from the previous result.
 OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
-                "trajectories.trc", "recording.rrd", "validation.csv", "rig.toml")
+                "trajectories.trc", "recording.rrd", "validation.csv", "rig.toml", "labels.csv", "association.json")
+OBS_NAME = "observations.csv"  # the names given to unlabelled detections, in reconstruct's scratch folder
 
 
 def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
-                  validation_table: pd.DataFrame | None = None, report: forked.Standby | None = None) -> list[Path]:
+                  validation_table: pd.DataFrame | None = None, report: forked.Standby | None = None,
+                  association: tuple[pd.DataFrame, dict] | None = None) -> list[Path]:
     """Write a result folder's files (:data:`OUTPUT_FILES`) into ``out_dir`` as one atomic replacement.
 
-    viewer: "save" or "spawn" write recording.rrd; "none" skips it. validation_table: also write
-    validation.csv (batgraph.validate). Every file is written into a staging folder beside ``out_dir``
-    that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash or kill leaves the previous
-    complete result or the new one, never a mix; files in ``out_dir`` that are not in :data:`OUTPUT_FILES`
-    are carried over. report.html is drawn in a child process while this process writes the other files,
-    and waited for before the swap: ``report``, a :func:`report_standby` made earlier, or one forked here
-    (here, in this process, where no child can be made).
+    viewer: "save" or "spawn" write recording.rrd; "none" skips it. validation_table: also write validation.csv
+    (batgraph.validate). association: (labels table, counts) of the names ``reconstruct`` gave unlabelled
+    detections, written as labels.csv and association.json (as ``batgraph associate`` does). Every file is written
+    into a staging folder beside ``out_dir`` that then replaces ``out_dir`` (batgraph.atomic.result_folder): a crash
+    or kill leaves the previous complete result or the new one, never a mix; files in ``out_dir`` that are not in
+    :data:`OUTPUT_FILES` are carried over. report.html is drawn in a child process while this process writes the
+    other files, and waited for before the swap: ``report``, a :func:`report_standby` made earlier, or one forked
+    here (here, in this process, where no child can be made).
     Returns the paths written (under ``out_dir``).
     """
     out_dir = Path(out_dir)
@@ -92,6 +97,10 @@ def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", option
         if validation_table is not None:
             validation_mod.write_csv(validation_table, stage / validation_mod.CSV_NAME)
             files.append(stage / validation_mod.CSV_NAME)
+        if association is not None:
+            write_csv(stage / "labels.csv", association[0].reset_index(drop=True), "%.6f")
+            atomic.write_text(stage / "association.json", json.dumps(association[1], indent=2) + "\n")
+            files += [stage / "labels.csv", stage / "association.json"]
     return [out_dir / p.name for p in files]
 
 
@@ -175,8 +184,11 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
     # the report's child, forked before the estimators' memory grows; cancelled on failure
-    with report_standby(viewer) as report:
-        session = read_session(session_dir, calibration)
+    with report_standby(viewer) as report, tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
+        named = _associate_first(Path(session_dir), calibration, Path(scratch))
+        session = read_session(session_dir, calibration, None if named is None else Path(scratch) / OBS_NAME)
+        if named is not None:
+            session.warnings.append(_association_warning(named[1].summary))
         methods = list(methods or DEFAULT_METHODS)
         if viewer == "spawn":
             with LiveViewer(session, dense_observations(session), method="filter") as live:
@@ -184,6 +196,8 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         else:
             run = run_methods(session, methods, options)
         result = Result(**vars(run), out_dir=out)
+        if named is not None:
+            result.summary["association"] = named[1].to_summary()
         validation = None
         if validate:
             validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
@@ -192,8 +206,30 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         # one atomic replacement of the whole folder; without --validate a previous validation.csv is not kept
         # (it would be read as this result's)
         result.files = write_outputs(result, out, viewer, options,
-                                     validation_table=None if validation is None else validation.table, report=report)
+                                     validation_table=None if validation is None else validation.table, report=report,
+                                     association=None if named is None else (named[0], named[1].summary))
         return result
+
+
+def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path
+                     ) -> tuple[pd.DataFrame, associate_mod.Figures] | None:
+    """For a session folder that holds unlabelled detections (detections.csv or .parquet) and no observations:
+    name them (batgraph.associate, from seed_labels.csv) and write the named ones to ``scratch``/observations.csv,
+    for read_session. Returns (labels table, figures), or None for a folder with observations."""
+    has = [(folder / f"{stem}.{ext}").exists() for stem in ("observations", "detections") for ext in ("csv", "parquet")]
+    if any(has[:2]) or not any(has[2:]):
+        return None
+    obs, labels, figures = associate_mod.associate_session(folder, calibration=calibration)
+    associate_mod.require_named(folder, obs)
+    associate_mod.write_observations(scratch / OBS_NAME, obs)
+    return labels, figures
+
+
+def _association_warning(counts: dict) -> str:
+    """The warning every run on names from unlabelled detections carries: how many, and where to check them."""
+    return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
+            f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
+            f"{counts['suspected_switches']} suspected identity switch(es); check labels.csv before relying on the 3D")
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

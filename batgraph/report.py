@@ -479,23 +479,70 @@ def _fig_coverage_map(trajectories, method: str, frames: np.ndarray, markers: li
         code = np.where(t["span"].to_numpy() == "outside", _MAP_CODES["outside"], code)
     grid = (pd.Series(code, index=pd.MultiIndex.from_frame(t[["marker", "frame"]]))
             .unstack("frame").reindex(index=markers, columns=frames).to_numpy(float))
+    return _marker_frame_map(grid, frames, markers, fps, _MAP_COLOURS, _MAP_LABELS)
+
+
+def _marker_frame_map(grid: np.ndarray, frames: np.ndarray, markers: list[str], fps: float, colours: list[str],
+                      labels: list[str]) -> svg.Figure:
+    """A marker x frame map: grid (M, F) holds a class index per cell (NaN: none drawn), shown in colours[class]
+    with its label in the legend; frames (F,) on the time axis (side by side where they are not consecutive)."""
     joined = len(frames) and frames[-1] - frames[0] + 1 != len(frames)  # several takes: their frames side by side
     edges = np.arange(len(frames) + 1, dtype=float) if joined else np.append(frames, frames[-1] + 1) / fps
     row = 12 if len(markers) > 30 else 16
     left = 20 + max(svg.text_width(m, 10) for m in markers)
-    legend_w = max(svg.text_width(lab, 11) for lab in _MAP_LABELS) + 50
-    fig = svg.Figure(1200, max(row * len(markers) + 50, 18 * len(_MAP_LABELS) + 20))  # the legend fits too
+    legend_w = max(svg.text_width(lab, 11) for lab in labels) + 50
+    fig = svg.Figure(1200, max(row * len(markers) + 50, 18 * len(labels) + 20))  # the legend fits too
     ax = fig.add_axes((left, 8, 1200 - left - legend_w - 20, row * len(markers)), (edges[0], edges[-1]),
                       (0, len(markers)), y_down=True)
-    for c, colour in enumerate(_MAP_COLOURS):  # one rectangle per run of a status along a marker's row
+    for c, colour in enumerate(colours):  # one rectangle per run of a class along a marker's row
         on = np.pad(grid == c, ((0, 0), (1, 1))).astype(np.int8)
         starts, ends = np.nonzero(np.diff(on, axis=1) == 1), np.nonzero(np.diff(on, axis=1) == -1)
         ax.rects(edges[starts[1]], edges[ends[1]], starts[0].astype(float), starts[0] + 1.0, colour)
     ax.frame("frames of the takes, side by side" if joined else "time [s]", "", "",
              yticklabels=(np.arange(len(markers)) + 0.5, list(markers)))
-    fig.legend([(lab, {"colour": col, "patch": True}) for col, lab in zip(_MAP_COLOURS, _MAP_LABELS, strict=True)],
+    fig.legend([(lab, {"colour": col, "patch": True}) for col, lab in zip(colours, labels, strict=True)],
                1200 - legend_w, 8, ncol=1, anchor="start")
     return fig
+
+
+_HOW_LABELS = {"none": "not named", "seed": "seed (your clicks)", "tracked": "tracked (a 3D point)",
+               "ray": "joined along its predicted ray", "reprojection": "matched where its path projects"}
+_HOW_COLOURS = ["#eeeeee", "#000000", "#1b9e77", "#7570b3", "#d95f02"]
+
+
+def _association_section(r: _Report) -> str | None:
+    """How the markers were named from unlabelled detections (summary.association, batgraph.associate): the
+    counts, a marker x frame map of how each name was obtained and the suspected identity switches; None when
+    the run took labelled observations."""
+    a = r.summary.association
+    if not isinstance(a, dict):
+        return None
+    codes = list(a.get("how_codes") or {})
+    how = a.get("how") or {}
+    markers = [m for m in how if m]
+    parts = [
+        f'<p>The observations are the names <code>batgraph associate</code> gave {a.get("detections")} unlabelled '
+        f'detections from your seed frame: {a.get("named")} named ({100 * float(a.get("named_fraction", 0)):.1f} %), '
+        f'pixel noise {_fmt(a.get("pixel_sigma_px"))} px, {a.get("suspected_switches")} suspected identity '
+        "switch(es). labels.csv gives every detection's name, track and confidence; a detection left unnamed "
+        "(spurious, merged or in doubt) is not used.</p>"]
+    if markers and codes:
+        first = int(a.get("first_frame", 0))
+        grid = np.array([[codes.index(ch) for ch in how[m]] for m in markers], float)
+        frames = first + np.arange(grid.shape[1])
+        labels = [_HOW_LABELS.get(a["how_codes"][c], a["how_codes"][c]) for c in codes]
+        parts.append(r.figures.add(
+            lambda: _marker_frame_map(grid, frames, markers, r.fps, _HOW_COLOURS[:len(codes)], labels),
+            "How each marker got its name on each frame (the way most of its detections there were named).",
+            "marker by frame map of how names were obtained"))
+    switches = a.get("switches") or []
+    if switches:
+        rows = [[str(s["frame"]), html.escape(str(s["marker"])), _fmt(s["confidence"], 3)] for s in switches[:50]]
+        parts.append('<p class="note">Suspected identity switches: where a marker\'s track resumes and its name was '
+                     "carried on with a confidence below 0.99"
+                     + (f" (the first 50 of {len(switches)})" if len(switches) > 50 else "") + ".</p>"
+                     + _table(["frame", "marker", "confidence"], rows))
+    return "".join(parts)
 
 
 def _fig_error_time(fig, box, errors, methods, style, fps, ylabel: str, title: str, hline: float | None = None):
@@ -1054,6 +1101,9 @@ def render_report(session, trajectories: pd.DataFrame, reprojection: pd.DataFram
     validation = _validation_section(summary)
     if validation is not None:
         sections.append(("validation", "Leave-one-camera-out validation", validation))
+    association = _association_section(r)
+    if association is not None:
+        sections.append(("association", "Names from unlabelled detections", association))
     nav = " ".join(f'<a href="#{a}">{html.escape(t)}</a>' for a, t, _ in sections)
     body = "\n".join(f'<section id="{a}"><h2>{html.escape(t)}</h2>\n{b}\n</section>' for a, t, b in sections)
     title = f"batgraph report: {html.escape(str(session.name))}"

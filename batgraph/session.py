@@ -678,11 +678,13 @@ def _session_config(path: Path, warnings: list[str]) -> dict:
     return data
 
 
-def read_session(folder: str | Path, calibration: str | Path | None = None) -> Session:
+def read_session(folder: str | Path, calibration: str | Path | None = None,
+                 observations: str | Path | None = None) -> Session:
     """Load and validate a session folder (see module docstring).
 
     calibration: a calibration.toml to use instead of the folder's own (e.g. one ``calibrate`` wrote
-    from a wand recording of the same rig); the folder is not modified.
+    from a wand recording of the same rig); observations: an observations.csv to use instead of the folder's (the
+    names ``batgraph associate`` gave its detections); the folder is not modified.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -692,8 +694,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None) -> S
     cfg = _session_config(folder / "session.toml", notes)
     cal_path = Path(calibration) if calibration is not None else folder / "calibration.toml"
     rig = read_calibration(cal_path, warnings=notes)
-    obs_path = folder / "observations.csv"
-    if not obs_path.exists() and (folder / "observations.parquet").exists():
+    obs_path = folder / "observations.csv" if observations is None else Path(observations)
+    if not obs_path.exists() and observations is None and (folder / "observations.parquet").exists():
         obs_path = folder / "observations.parquet"
     if not obs_path.exists():
         if any((folder / f"detections.{ext}").exists() for ext in ("csv", "parquet")):

@@ -400,22 +400,25 @@ class Summary:
     comparison: Comparison | None = None
     verdict: Verdict | None = None
     validation: dict | None = None
+    association: dict | None = None
 
     def to_json(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k not in ("imported", "comparison",
-                                                                               "verdict", "validation")}
+                                                                               "verdict", "validation", "association")}
         d["import"] = self.imported
         d["comparison"] = self.comparison.to_json() if self.comparison else None
         d["verdict"] = ({"use": self.verdict.use, "why": self.verdict.why, "headlines": self.verdict.headlines,
                          "warnings": self.verdict.warnings} if self.verdict else None)
         if self.validation is not None:
             d["validation"] = self.validation
+        if self.association is not None:
+            d["association"] = self.association
         return clean(d)
 
     @classmethod
     def from_json(cls, d: dict) -> Summary:
         plain = {k: d.get(k) for k in cls.__dataclass_fields__
-                 if k not in ("imported", "comparison", "verdict", "validation")}
+                 if k not in ("imported", "comparison", "verdict", "validation", "association")}
         for k in ("views", "spans", "pixel_sigma_px", "pixel_noise", "checks", "world", "methods", "warning_details"):
             plain[k] = plain[k] or {}
         plain["warnings"] = plain["warnings"] or []
@@ -425,7 +428,7 @@ class Summary:
             lines = v.get("headlines") or ([v["headline"]] if v.get("headline") else [])
             verdict_ = Verdict(v["use"], v["why"], list(lines), list(v.get("warnings") or []))
         return cls(**plain, imported=d.get("import") or {}, comparison=Comparison.from_json(d.get("comparison")),
-                   verdict=verdict_, validation=d.get("validation"))
+                   verdict=verdict_, validation=d.get("validation"), association=d.get("association"))
 
 
 def summarize(session, trajectories: pd.DataFrame, reprojection: pd.DataFrame, *,

@@ -3,6 +3,7 @@ known labels; the files' checks (one line, exit 2); the test-scene maker and the
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -56,8 +57,6 @@ def test_spurious_blobs_stay_unnamed(tmp_path):
 
 def test_cli_associate_writes_a_session_reconstruct_takes(tmp_path, capsys):
     folder, sc = detections_folder(tmp_path)
-    assert main(["reconstruct", str(folder), "--viewer", "none", "--quiet"]) == 2  # unlabelled: associate first
-    assert "batgraph associate" in capsys.readouterr().err
     out = tmp_path / "associated"
     assert main(["associate", str(folder), "--out", str(out)]) == 0
     labels = pd.read_csv(out / "labels.csv", keep_default_na=False)
@@ -68,6 +67,34 @@ def test_cli_associate_writes_a_session_reconstruct_takes(tmp_path, capsys):
     assert not (out / "detections.csv").exists()
     assert main(["reconstruct", str(out), "--methods", "triangulate", "--viewer", "none", "--quiet"]) == 0
     assert "named" in capsys.readouterr().out
+
+
+def test_reconstruct_of_unlabelled_detections_names_them_first(tmp_path, capsys):
+    """reconstruct of a folder with detections.csv and no observations gives what associate then reconstruct give:
+    the same trajectories, labels.csv and association.json in its output, summary.json's association (its map of how
+    per marker and frame), the report's section and a warning; without seed_labels.csv one line and exit 2."""
+    folder, _ = detections_folder(tmp_path)
+    args = ["--methods", "triangulate,smoother", "--viewer", "none", "--quiet"]
+    assert main(["associate", str(folder), "--out", str(tmp_path / "named")]) == 0
+    assert main(["reconstruct", str(tmp_path / "named"), "--out", str(tmp_path / "two_steps"), *args]) == 0
+    capsys.readouterr()
+    assert main(["reconstruct", str(folder), "--out", str(tmp_path / "one_step"), *args]) == 0
+    assert "named from unlabelled detections" in capsys.readouterr().err
+    one, two = tmp_path / "one_step", tmp_path / "two_steps"
+    assert (one / "trajectories.csv").read_bytes() == (two / "trajectories.csv").read_bytes()
+    assert (one / "labels.csv").read_bytes() == (tmp_path / "named" / "labels.csv").read_bytes()
+    assert json.loads((one / "association.json").read_text()) == json.loads(
+        (tmp_path / "named" / "association.json").read_text())
+    a = json.loads((one / "summary.json").read_text())["association"]
+    labels = pd.read_csv(one / "labels.csv", keep_default_na=False)
+    assert a["named"] == (labels["marker"] != "").sum()
+    counts = labels[labels["how"] == "seed"].groupby("marker")["frame"].first()
+    for marker, frame in counts.items():  # the map marks each seeded marker's seed frame
+        assert a["how"][marker][frame - a["first_frame"]] == "S"
+    assert "Names from unlabelled detections" in (one / "report.html").read_text()
+    assert "association" not in json.loads((two / "summary.json").read_text())
+    (folder / "seed_labels.csv").unlink()
+    assert "seed_labels.csv" in _fails(["reconstruct", str(folder), "--out", str(tmp_path / "none"), *args], capsys)
 
 
 def test_parquet_detections_and_score_column(tmp_path):

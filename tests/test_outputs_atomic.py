@@ -150,6 +150,9 @@ def test_working_directory_is_written_in_place(tmp_path, monkeypatch):
 
 
 # ----- reconstruct ------------------------------------------------------------------------------
+NAMES = ("labels.csv", "association.json")  # written only where reconstruct named unlabelled detections
+
+
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory):
     folder = tmp_path_factory.mktemp("atomic") / "s"
@@ -187,7 +190,7 @@ def test_reconstruct_killed_at_each_output_step(small_session, tmp_path):
     reconstruct(small_session, base, ["triangulate"], viewer="none")
     (base / "notes.txt").write_text("the user's notes")
     old = _snapshot(base)
-    new_names = {*OUTPUT_FILES} - {"validation.csv", "rig.toml"} | {"notes.txt"}  # rig.toml: a refined rig only
+    new_names = {*OUTPUT_FILES} - {"validation.csv", "rig.toml", *NAMES} | {"notes.txt"}  # rig.toml: refined rigs
     outcomes = []
     for k in range(1, 40):
         out = tmp_path / f"out{k}"
@@ -210,7 +213,8 @@ def test_reconstruct_killed_at_each_output_step(small_session, tmp_path):
     k_between = outcomes.index("between") + 1
     out = tmp_path / f"out{k_between}"
     reconstruct(small_session, out, ["triangulate"], viewer="none")
-    assert set(_snapshot(out)) == {*OUTPUT_FILES} - {"validation.csv", "recording.rrd", "rig.toml"} | {"notes.txt"}
+    assert set(_snapshot(out)) == {*OUTPUT_FILES} - {"validation.csv", "recording.rrd", "rig.toml", *NAMES} | {
+        "notes.txt"}
     assert (out / "notes.txt").read_text() == "the user's notes"
     assert _hidden_siblings(out) == [] and _hidden_inside(out) == []
     for k in range(1, len(outcomes)):  # every other killed folder: the next run's recovery alone
@@ -269,7 +273,7 @@ def test_write_outputs_writes_a_result_of_run_methods(small_session, tmp_path):
 
     result = run_methods(read_session(small_session), ["triangulate"], Options(progress=False))
     files = write_outputs(result, tmp_path / "out", viewer="none")
-    assert {p.name for p in files} == {*OUTPUT_FILES} - {"validation.csv", "recording.rrd", "rig.toml"}
+    assert {p.name for p in files} == {*OUTPUT_FILES} - {"validation.csv", "recording.rrd", "rig.toml", *NAMES}
     assert all(p.is_file() for p in files) and _hidden_siblings(tmp_path / "out") == []
     assert len((tmp_path / "out" / "trajectories.csv").read_text().splitlines()) == len(result.trajectories) + 1
 
@@ -321,7 +325,8 @@ def test_a_full_disk_at_each_output_step_is_one_line_and_keeps_the_previous_resu
     from batgraph.cli import main
     from batgraph.pipeline import OUTPUT_FILES
 
-    assert set(STEPS) == set(OUTPUT_FILES) - {"rig.toml"}  # written by the same step, only for a refined rig
+    assert set(STEPS) == set(OUTPUT_FILES) - {"rig.toml", *NAMES}  # written by the same steps, only for a refined
+    # rig and for unlabelled detections
     base = tmp_path / "base"
     argv = ["reconstruct", str(small_session), "--methods", "triangulate", "--validate", "--viewer", "save",
             "--quiet"]

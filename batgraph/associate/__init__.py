@@ -7,6 +7,7 @@ with .segments and .assignment), naming every detection by where its marker is (
 """
 
 from .core import AssociateOptions
-from .session import Figures, associate_session, write_associated
+from .session import Figures, associate_session, require_named, write_associated, write_observations
 
-__all__ = ["AssociateOptions", "Figures", "associate_session", "write_associated"]
+__all__ = ["AssociateOptions", "Figures", "associate_session", "require_named", "write_associated",
+           "write_observations"]

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputError
 from .core import AssociateOptions
-from .session import associate_session, write_associated
+from .session import associate_session, require_named, write_associated
 
 
 def run(args) -> int:
@@ -15,9 +14,7 @@ def run(args) -> int:
     out = Path(args.out) if args.out else folder / "associated"
     opt = AssociateOptions(pixel_sigma_px=args.pixel_sigma)
     obs, labels, fig = associate_session(folder, opt)
-    if not len(obs):
-        raise InputError(f"{folder}: no detection could be named from the seed (check that seed_labels.csv's clicks "
-                         "are on this session's frames and that the markers are seen by two cameras there)")
+    require_named(folder, obs)
     write_associated(folder, out, obs, labels, fig)
     s = fig.summary
     print(f"{folder}: named {s['named']} of {s['detections']} detections ({100 * s['named_fraction']:.1f} %), "

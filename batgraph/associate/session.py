@@ -25,6 +25,7 @@ from .tracks import DOUBT_BELOW
 SEED_FILE = "seed_labels.csv"
 LABEL_COLUMNS = ["frame", "camera", "u", "v", "marker", "track", "confidence", "how"]
 OUTPUT_FILES = ("observations.csv", "labels.csv", "association.json")
+HOW_CODES = ".STRP"  # summary.json's map of how: not named, seed, tracked, ray, reprojection (core.HOW's order)
 NOT_COPIED = ("detections.csv", "detections.parquet", "observations.csv", "observations.parquet", SEED_FILE)
 
 
@@ -42,6 +43,15 @@ class Figures:
     summary: dict
     suspect_below: float = DOUBT_BELOW
 
+    def to_summary(self) -> dict:
+        """summary.json's ``association``: the counts, the suspected switches (frame, marker, confidence) and the
+        map of how, one string per marker with a character per frame from ``first_frame`` on (HOW_CODES)."""
+        return {**self.summary, "first_frame": int(self.frames[0]) if len(self.frames) else 0,
+                "how_codes": dict(zip(HOW_CODES, (h or "none" for h in HOW), strict=True)),
+                "how": {m: "".join(HOW_CODES[i] for i in row) for m, row in zip(self.markers, self.how, strict=True)},
+                "switches": [{"frame": int(f), "marker": str(m), "confidence": round(float(c), 4)} for f, m, c in
+                             self.switches[["frame", "marker", "confidence"]].itertuples(index=False)]}
+
 
 def _markers(setup: SessionSetup, seed: pd.DataFrame, path: Path) -> list[str]:
     """The marker names: session.toml's [markers] names, else the seed's in order of first click."""
@@ -53,17 +63,18 @@ def _markers(setup: SessionSetup, seed: pd.DataFrame, path: Path) -> list[str]:
     return names
 
 
-def associate_session(folder: str | Path, options: AssociateOptions | None = None
-                      ) -> tuple[pd.DataFrame, pd.DataFrame, Figures]:
+def associate_session(folder: str | Path, options: AssociateOptions | None = None,
+                      calibration: str | Path | None = None) -> tuple[pd.DataFrame, pd.DataFrame, Figures]:
     """Name the detections of a session folder holding detections.csv (or .parquet) and seed_labels.csv.
 
     Returns (observations, labels, figures): observations in observations.csv's layout (frame, camera, marker, u,
     v, weight; the named detections only, weight = the detector's score where it has one in (0, 1], else 1);
     labels with one row per detection (LABEL_COLUMNS; marker empty where unnamed, track -1 where in no track);
     figures for the report (:class:`Figures`). InputError for bad input (see batgraph.associate.detections).
+    calibration: a calibration.toml to use instead of the folder's own.
     """
     folder = Path(folder)
-    setup, rig, dets, det_path = read_inputs(folder)
+    setup, rig, dets, det_path = read_inputs(folder, None if calibration is None else Path(calibration))
     seed_path = folder / SEED_FILE
     if not seed_path.exists():
         raise InputError(f"{seed_path}: file not found; name the markers once: frame, camera, marker, u, v for the "
@@ -160,8 +171,20 @@ def write_associated(folder: str | Path, out: str | Path, observations: pd.DataF
     with atomic.result_folder(out, [p.name for p in copied] + list(OUTPUT_FILES)) as stage:
         for p in copied:
             shutil.copy2(p, stage / p.name)
-        cols = OBS_COLUMNS + (["weight"] if not np.allclose(observations["weight"], 1.0) else [])
-        write_csv(stage / "observations.csv", observations[cols], "%.6f")
+        write_observations(stage / "observations.csv", observations)
         write_csv(stage / "labels.csv", labels.reset_index(drop=True), "%.6f")
         (stage / "association.json").write_text(json.dumps(figures.summary, indent=2) + "\n")
     return out
+
+
+def write_observations(path: Path, observations: pd.DataFrame) -> None:
+    """The named detections as observations.csv (the weight column only where a weight is not 1)."""
+    cols = OBS_COLUMNS + (["weight"] if not np.allclose(observations["weight"], 1.0) else [])
+    write_csv(path, observations[cols], "%.6f")
+
+
+def require_named(folder: Path, observations: pd.DataFrame) -> None:
+    """InputError when the seed named no detection at all (nothing for an estimator to take)."""
+    if not len(observations):
+        raise InputError(f"{folder}: no detection could be named from the seed (check that seed_labels.csv's clicks "
+                         "are on this session's frames and that the markers are seen by two cameras there)")
