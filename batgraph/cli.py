@@ -172,6 +172,9 @@ def _cmd_reconstruct(args) -> int:
         items = reconstruct_many(args.sessions, args.out, methods, options, scheduler=args.scheduler,
                                  n_workers=args.workers, progress=_progress_bars(args), viewer=viewer,
                                  calibration=args.calibration, validate=args.validate)
+        for it in items:  # even with --quiet: a warning may mean the numbers are wrong
+            for w in it.warnings:
+                print(f"batgraph: warning: {it.name}: {w}", file=sys.stderr)
         if args.quiet:
             for it in items:
                 if it.status != "ok":

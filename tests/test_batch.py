@@ -213,6 +213,18 @@ def test_glob_expands_sorted_to_folders_once(make_session_folder, tmp_path):
     assert is_batch([str(tmp_path / "s_*")]) and is_batch([a, b]) and not is_batch([a])
 
 
+def test_batch_prints_each_sessions_warnings_with_its_name(make_session_folder, tmp_path, capsys):
+    """A session's warnings reach the terminal in a batch too (even with --quiet), each after its session's name."""
+    from batgraph.cli import main
+
+    a, b = make_session_folder("s_a"), make_session_folder("s_b")
+    (b / "session.toml").write_text((b / "session.toml").read_text() + "\n[lab]\nbat = \"Carollia 7\"\n")
+    assert main(["reconstruct", str(a), str(b), "--out", str(tmp_path / "out"), "--methods", "triangulate",
+                 "--viewer", "none", "--workers", "1", "--quiet"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(err) == 1 and err[0].startswith("batgraph: warning: s_b: ") and "[lab]" in err[0], err
+
+
 def test_exit_code_ranks_crash_over_input_error():
     """0 when all ok; 2 when the only problems are bad input; 1 as soon as one session crashed."""
     def item(status):
