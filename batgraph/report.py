@@ -539,7 +539,7 @@ def _association_section(r: _Report) -> str | None:
     if switches:
         rows = [[str(s["frame"]), html.escape(str(s["marker"])), _fmt(s["confidence"], 3)] for s in switches[:50]]
         parts.append('<p class="note">Suspected identity switches: where a marker\'s track resumes and its name was '
-                     "carried on with a confidence below 0.99"
+                     f"carried on with a confidence below {_fmt(a.get('suspect_below'))}"
                      + (f" (the first 50 of {len(switches)})" if len(switches) > 50 else "") + ".</p>"
                      + _table(["frame", "marker", "confidence"], rows))
     return "".join(parts)

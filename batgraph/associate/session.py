@@ -44,9 +44,11 @@ class Figures:
     suspect_below: float = DOUBT_BELOW
 
     def to_summary(self) -> dict:
-        """summary.json's ``association``: the counts, the suspected switches (frame, marker, confidence) and the
-        map of how, one string per marker with a character per frame from ``first_frame`` on (HOW_CODES)."""
-        return {**self.summary, "first_frame": int(self.frames[0]) if len(self.frames) else 0,
+        """summary.json's ``association``: the counts, the suspected switches (frame, marker, confidence; below
+        ``suspect_below``) and the map of how, one string per marker with a character per frame from
+        ``first_frame`` on (HOW_CODES)."""
+        return {**self.summary, "suspect_below": self.suspect_below,
+                "first_frame": int(self.frames[0]) if len(self.frames) else 0,
                 "how_codes": dict(zip(HOW_CODES, (h or "none" for h in HOW), strict=True)),
                 "how": {m: "".join(HOW_CODES[i] for i in row) for m, row in zip(self.markers, self.how, strict=True)},
                 "switches": [{"frame": int(f), "marker": str(m), "confidence": round(float(c), 4)} for f, m, c in
