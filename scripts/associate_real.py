@@ -4,6 +4,8 @@
 * Pose2Sim demo (4 cameras, OpenPose keypoints of a balancing human, 60 fps): ``batgraph import pose2sim``.
 * Caliscope (4 webcams, ChArUco corners of a board moved by hand; its frames are sync indices, not every one
   of which holds corners): a session from its corners and calibration (tests/real_dlt.py's loader).
+* DANNCE mouse (6 cameras, 22 landmarks clicked on 81 frames sampled from a long recording, so not consecutive):
+  written as a DLTdv project and imported (``batgraph import dltdv --units mm``), as scripts/real_data_study.py does.
 
 Each: the observations without their markers become detections.csv, the frame where the most markers are seen by
 three cameras or more (nearest the middle) is the seed, ``associate_session`` names the rest; printed: the scores
@@ -46,6 +48,21 @@ def caliscope(out: Path) -> Path:
     return out
 
 
+def dannce(out: Path) -> Path:
+    import real_dlt
+
+    from batgraph.cli import main
+
+    rig = real_dlt.load_dannce()
+    paths = real_dlt.write_dltdv_project(out.parent / "dannce_dltdv", rig.P, rig.uv, rig.image_hw,
+                                         pixel_origin="lower-left", units="mm", xyz=rig.xyz)
+    argv = ["import", "dltdv", "--xypts", paths["xypts"], "--coefs", paths["dltCoefs"], "--xyzpts", paths["xyzpts"],
+            "--fps", rig.fps, "--units", "mm", "--image-size", rig.image_hw[1], rig.image_hw[0], "--out", out,
+            "--force"]
+    assert main([str(a) for a in argv]) == 0
+    return out
+
+
 def relabel(labelled: Path, work: Path) -> dict:
     from batgraph.associate import associate_session, scenes, score
     from batgraph.session import read_session
@@ -70,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
-        for name, make in (("pose2sim", pose2sim), ("caliscope", caliscope)):
+        for name, make in (("pose2sim", pose2sim), ("caliscope", caliscope), ("dannce", dannce)):
             r = relabel(make(work / name), work / f"{name}_stripped")
             print(name, " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()),
                   flush=True)
