@@ -261,6 +261,41 @@ def test_a_neighbours_detection_does_not_vouch_for_itself():
     assert np.linalg.norm(wrong[0] - pulled[0, 0]) < 6.0 - 1.0  # with its own view, the detection looks nearer
 
 
+def test_a_detection_where_a_hidden_marker_projects_is_left_unnamed():
+    """Markers A and B seen by 4 cameras; B is hidden in camera 0 and projects 1.5 px from A's detection there:
+    that detection could be either and is flagged (refine.shared_views); 8 px away it is not; with B's own detection
+    in camera 0 named, A's is not flagged either (B has its view). A's other views, B's and a seed click never are."""
+    from conftest import tiny_rig
+
+    from batgraph.associate import refine, tracks, views
+
+    geom = views.geometry(tiny_rig(4))
+    a = np.array([0.05, -0.02, 0.15])
+    proj, _ = views.project(geom, a[None])
+    ray = np.linalg.solve(geom.P[0][:, :3], np.r_[proj[0, 0] + [1.5, 0.0], 1.0])  # B behind A, 1.5 px aside in cam 0
+    centre = -np.linalg.solve(geom.P[0][:, :3], geom.P[0][:, 3])
+    b = centre + ray / np.linalg.norm(ray) * (np.linalg.norm(a - centre) + 0.08)
+    uv = views.project(geom, np.stack([a, b]))[0]  # (C, 2, 2)
+
+    def flagged(b_in_cam0: bool, shift_px: float = 0.0, fixed_a0: bool = False) -> np.ndarray:
+        det = [uv[c, 0] for c in range(4)] + [uv[c, 1] for c in range(0 if b_in_cam0 else 1, 4)]
+        cams = list(range(4)) + list(range(0 if b_in_cam0 else 1, 4))
+        det[0] = det[0] + [shift_px, 0.0]
+        order = np.argsort(cams, kind="stable")
+        label = np.r_[np.zeros(4), np.ones(len(cams) - 4)].astype(np.int64)[order]
+        fi = tracks.FrameDetections(np.zeros(len(cams), np.int64), np.asarray(cams)[order], np.asarray(det)[order],
+                                    np.full(len(cams), 0.5), 0, np.array([0, len(cams)]))
+        fixed = np.full(len(cams), -1, np.int64)
+        if fixed_a0:
+            fixed[np.flatnonzero(order == 0)] = 0
+        return refine.shared_views(geom, fi, label, fixed, 2)[np.argsort(order)]
+
+    assert flagged(False).tolist() == [True] + [False] * 6
+    assert not flagged(False, shift_px=8.0).any()
+    assert not flagged(True).any()
+    assert not flagged(False, fixed_a0=True).any()
+
+
 def test_a_path_resumed_on_a_weak_link_needs_its_segments():
     """A marker's smooth path, seeded on frame 0, with no segment partners: every frame keeps the name by
     continuity; resumed with a weak link on frame 20 (a track that restarts with a confidence below 0.99), the

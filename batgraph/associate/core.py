@@ -1,8 +1,8 @@
 """Association end to end on arrays: detections -> 3D points per frame (batgraph.associate.views) -> the seeded
 markers tracked away from the seed (batgraph.associate.tracks) -> every detection named by where its marker is
 (batgraph.associate.refine) -> the gaps between named stretches tracked again from every named position
-(batgraph.associate.gaps), each step's names checked (batgraph.associate.verify). No files
-(batgraph.associate.session).
+(batgraph.associate.gaps), each step's names checked (batgraph.associate.verify); last, a named detection that
+another marker could as well have made is unnamed (refine.shared_views). No files (batgraph.associate.session).
 """
 
 from __future__ import annotations
@@ -242,6 +242,8 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
                                                        noise_m)
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt | gap_doubt)
         conf = np.where(filled > 0, gap_conf, conf)
+    shared = refine.shared_views(geom, fi, label, fixed, n_labels)
+    cand, label = np.where(shared, label, cand), np.where(shared, -1, label)
     how = np.where(filled > 0, filled + 1, how)
     how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where((label == swept) | (filled > 0), how, 4)))
     track = np.where((label >= 0) & (label == swept), track, -1)

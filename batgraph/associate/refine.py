@@ -221,3 +221,35 @@ def match(geom: Geometry, fi: FrameDetections, xyz: np.ndarray, std: np.ndarray,
             label[rc[d[sure]]] = have[ok][r[sure]]
             conf[rc[d]] = 1.0 / (1.0 + np.exp(-np.minimum(mg, 50) / 2))
     return label, conf, cand
+
+
+AMBIGUOUS_CHI2 = 9.21  # 99 % of chi-square with 2 DOF
+
+
+def shared_views(geom: Geometry, fi: FrameDetections, label: np.ndarray, fixed: np.ndarray, n_labels: int
+                 ) -> np.ndarray:
+    """Which named detections (N,) bool another marker could as well have made: the detection lies within the 99 %
+    gate (AMBIGUOUS_CHI2; the detection's noise and the projection's) of where another marker projects, one that
+    is triangulated on that frame from its own named views and has no named detection in that camera (a marker
+    hidden there whose projection falls on a visible one's blob; two markers' blobs merged into one). The seed's
+    clicks (``fixed`` >= 0) never are."""
+    xyz, std, _ = positions(geom, fi, label, n_labels)
+    out = np.zeros(len(fi.frame), bool)
+    focal = np.array([c.K[0, 0] for c in geom.rig])
+    for k in range(std.shape[0]):
+        rows = fi.rows(fi.first + k)
+        named = rows[label[rows] >= 0]
+        have = np.flatnonzero(np.isfinite(std[k]))
+        if len(have) < 2 or not len(named):
+            continue
+        proj, depth = project(geom, xyz[k, have])
+        for c in np.unique(fi.camera[named]):
+            in_c = named[fi.camera[named] == c]
+            test = in_c[fixed[in_c] < 0]
+            other = (depth[c] > 0) & ~np.isin(have, label[in_c])  # no named detection in camera c (nor the own)
+            if not len(test) or not other.any():
+                continue
+            s2 = fi.sig[test][:, None] ** 2 + (std[k, have[other]] * focal[c] / depth[c, other])[None] ** 2
+            d2 = np.sum((fi.uv[test][:, None] - proj[c, other][None]) ** 2, axis=-1)
+            out[test] = (d2 < AMBIGUOUS_CHI2 * s2).any(axis=1)
+    return out
