@@ -229,7 +229,8 @@ def _association_warning(counts: dict) -> str:
     """The warning every run on names from unlabelled detections carries: how many, and where to check them."""
     return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
             f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
-            f"{counts['suspected_switches']} suspected identity switch(es); check labels.csv before relying on the 3D")
+            f"{counts['suspected_switches']} suspected identity switch(es), but most wrong names are not among them: "
+            "check the 3D paths where a marker reappears after a gap before relying on them")
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")
