@@ -317,6 +317,29 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
     assert keep[:19, 0].all() and not keep[20:, 0].any()
 
 
+def test_positions_one_frame_before_a_stretch_are_tested_for_a_jump():
+    """A marker's path seeded on frame 30 (2 mm of noise), no segment partners, named on frames 0-5, 14-16 and 18-39.
+    Frames 14-16 join the seeded stretch where they continue the path, and lose the name where they lie 5 cm off it
+    (another marker's points): the jump test on frame 18 fits the frames within its reach, 14-16, where the five
+    nearest reach back to frame 4 (it used to skip such a frame, and frames 14-16 were kept)."""
+    from batgraph.associate import segments, verify
+
+    F = 40
+    t = np.arange(F) / 120.0
+    path = np.stack([2.0 * t, 0.3 * np.sin(8 * t), np.zeros(F)], axis=1)[:, None]  # (F, 1, 3)
+    path = path + 0.002 * np.random.default_rng(0).standard_normal(path.shape)
+    have = np.zeros((F, 1), bool)
+    have[[*range(0, 6), 14, 15, 16, *range(18, F)]] = True
+    seed = np.zeros((F, 1), bool)
+    seed[30] = True
+    seg = segments.Segments.none(1)
+    assert verify.vouched(path, have, seed, seg, 0.001)[14:, 0][have[14:, 0]].all()
+    off = path.copy()
+    off[14:17, 0, 1] += 0.05
+    keep = verify.vouched(off, have, seed, seg, 0.001)[:, 0]
+    assert not keep[14:17].any() and keep[18:].all()
+
+
 def test_mahalanobis_within_the_gate_is_mahalanobis():
     """associate.assignment.mahalanobis_within: mahalanobis's value to the bit wherever that is below the gate (and
     wanted), inf only where it is not, on covariances from sharp to wide, near-singular and indefinite ones included."""

@@ -2,16 +2,17 @@
 continuity with the seed vouch for. A swap shows as a jump in the path (its ends) or as segment lengths gone
 wrong (its middle); where the evidence cannot tell, the name is dropped (flagged, not guessed).
 
-Per marker: frames whose position leaves the local quadratic through its neighbours on both sides (within
-JUMP_WINDOW frames) by more than JUMP_SIGMA times the path's own scatter (a robust scale, at least
-JUMP_FLOOR_M) are jumps; they and gaps of more than MAX_GAP frames cut the path into stretches. A stretch is
-vouched for when it holds a seed frame, or when at least MIN_CHECKS of its distances to segment partners were
-checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds (batgraph.associate.segments; a
-marker without a declared segment is also checked against its learned affine relation, batgraph.associate.affine),
-or when it meets a vouched stretch across a gap without a jump (its end, extrapolated linearly, lands within
-the jump bound of the other's start): a name carried by continuity from the seed. A link the tracker doubted (placed
-with a confidence below batgraph.associate.tracks.DOUBT_BELOW) cuts the path too, and continuity does not carry a
-name across it: the stretch beyond keeps its name only where its segments vouch for it.
+Per marker: frames whose position leaves the local quadratic through its neighbours on both sides (up to
+JUMP_WINDOW named frames a side, within 2 JUMP_WINDOW frames) by more than JUMP_SIGMA times the path's own scatter
+(a robust scale, at least JUMP_FLOOR_M) are jumps; they and gaps of more than MAX_GAP frames cut the path into
+stretches. A stretch is vouched for when it holds a seed frame, or when at least MIN_CHECKS of its distances to
+segment partners were checked and at most MAX_FAIL of them were off by more than SEGMENT_SIGMA stds
+(batgraph.associate.segments; a marker without a declared segment is also checked against its learned affine
+relation, batgraph.associate.affine), or when it meets a vouched stretch across a gap without a jump (its end,
+extrapolated linearly, lands within the jump bound of the other's start): a name carried by continuity from the
+seed. A link the tracker doubted (placed with a confidence below batgraph.associate.tracks.DOUBT_BELOW) cuts the
+path too, and continuity does not carry a name across it: the stretch beyond keeps its name only where its segments
+vouch for it.
 """
 
 from __future__ import annotations
@@ -32,23 +33,28 @@ SEGMENT_SIGMA = 4.0
 
 def _jumps(x: np.ndarray, have: np.ndarray, floor_m: float) -> tuple[np.ndarray, float]:
     """Breaks (F,) bool of one marker's path x (F, 3) (where ``have``): frame k breaks from the frame before where
-    the quadratics fitted to up to JUMP_WINDOW frames on each side (the path bends as a wing flaps) disagree,
-    half a frame before k, by more than the bound [m] (JUMP_SIGMA times their robust disagreement along the path,
-    at least floor_m), and more than at the neighbouring frames. A swap shows so at both ends."""
+    the quadratics fitted to up to JUMP_WINDOW named frames on each side within 2 JUMP_WINDOW frames of k (at least
+    3 a side; the path bends as a wing flaps) disagree, half a frame before k, by more than the bound [m], and more
+    than at the neighbouring frames. A swap shows so at both ends. The bound is JUMP_SIGMA times the robust
+    disagreement where both sides have their JUMP_WINDOW nearest frames in reach (fits over sparser frames
+    extrapolate further and would loosen it for every frame), at least floor_m."""
     F = len(x)
     idx = np.flatnonzero(have)
     gap = np.full(F, np.nan)
+    whole = np.zeros(F, bool)  # both sides' nearest frames in reach: these set the bound
     for j in range(1, len(idx)):
         k = idx[j]
         left = idx[max(0, j - JUMP_WINDOW):j]
         right = idx[j:j + JUMP_WINDOW]
-        if len(left) < 3 or len(right) < 3 or k - left[0] > 2 * JUMP_WINDOW or right[-1] - k > 2 * JUMP_WINDOW:
+        whole[k] = k - left[0] <= 2 * JUMP_WINDOW and right[-1] - k <= 2 * JUMP_WINDOW
+        left, right = left[k - left <= 2 * JUMP_WINDOW], right[right - k <= 2 * JUMP_WINDOW]
+        if len(left) < 3 or len(right) < 3:
             continue
         at = k - 0.5
         a = np.polyfit(left - at, x[left], 2 if len(left) >= 4 else 1)[-1]
         b = np.polyfit(right - at, x[right], 2 if len(right) >= 4 else 1)[-1]
         gap[k] = float(np.linalg.norm(a - b))
-    ok = np.isfinite(gap)
+    ok = np.isfinite(gap) & whole
     scale = 1.4826 * float(np.median(gap[ok])) if ok.sum() >= 5 else floor_m
     bound = max(JUMP_SIGMA * scale, floor_m)
     g = np.nan_to_num(gap, nan=0.0)
