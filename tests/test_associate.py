@@ -320,8 +320,8 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
 def test_positions_one_frame_before_a_stretch_are_tested_for_a_jump():
     """A marker's path seeded on frame 30 (2 mm of noise), no segment partners, named on frames 0-5, 14-16 and 18-39.
     Frames 14-16 join the seeded stretch where they continue the path, and lose the name where they lie 5 cm off it
-    (another marker's points): the jump test on frame 18 fits the frames within its reach, 14-16, where the five
-    nearest reach back to frame 4 (it used to skip such a frame, and frames 14-16 were kept)."""
+    (another marker's points): the jump test on frame 18 fits the frames within its reach, 14-16, although the five
+    nearest reach back to frame 4."""
     from batgraph.associate import segments, verify
 
     F = 40
