@@ -24,10 +24,11 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q -ra
 
-## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 15 minutes on 2 cores)
+## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 17 minutes on 2 cores)
 bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
+	$(BIN)/python scripts/bench_associate.py --repeats 3
 	test -x .venv-bench/bin/python || ($(PYTHON) -m venv .venv-bench && .venv-bench/bin/python -m pip install --quiet aniposelib)
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
 	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib
