@@ -224,6 +224,13 @@ def _lomb_scargle(y: np.ndarray, w: np.ndarray, n: np.ndarray, wt: np.ndarray) -
     c, s = np.cos(two_tau / 2), np.sin(two_tau / 2)
     cc = 0.5 * (n + c2)  # sum cos^2 wt, sum sin^2 wt, sum sin wt cos wt
     ss, cs = 0.5 * (n - c2), 0.5 * s2
-    power = 0.5 * ((c * yc + s * ys) ** 2 / (c * c * cc + 2 * c * s * cs + s * s * ss)
-                   + (c * ys - s * yc) ** 2 / (c * c * ss - 2 * c * s * cs + s * s * cc))
+    power = 0.5 * (_ratio((c * yc + s * ys) ** 2, c * c * cc + 2 * c * s * cs + s * s * ss, n)
+                   + _ratio((c * ys - s * yc) ** 2, c * c * ss - 2 * c * s * cs + s * s * cc, n))
     return power.sum(axis=0)
+
+
+def _ratio(num: np.ndarray, den: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """num / den, 0 where den is a rounding error of n (tracks, 1) frames: frames every k-th fall on the zeros of
+    that term's sine or cosine at multiples of fps / (2 k), where it has no power to give."""
+    ok = den > 1e-9 * n
+    return np.divide(num, den, out=np.zeros_like(num), where=ok)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from batgraph import checks
+from batgraph import checks, motion
 from batgraph.measurement import of_markers
 from batgraph.motion import constant_acceleration_Q, constant_velocity_Q
 from batgraph.result import Options
@@ -281,3 +281,18 @@ def test_threads_never_change_the_answer(monkeypatch):
     assert np.array_equal(one.cov_m2, many.cov_m2, equal_nan=True)
     assert str(one.info) == str(many.info)
     assert threads.side_by_side([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]
+
+
+def test_wingbeat_spectrum_of_a_track_seen_every_kth_frame_stays_finite():
+    """A track triangulated on every 6th frame of 72 at 120 fps: the Lomb-Scargle terms whose sine or cosine
+    vanishes on those frames (multiples of 10 Hz) have no power, not an infinite one that sets the flapping floor
+    from a 20 Hz wingbeat that is not there."""
+    F, fps = 72, 120.0
+    t = np.arange(F) / fps
+    xyz = np.full((F, 1, 3), np.nan)
+    on = np.arange(F) % 6 == 0
+    phase = 2 * np.pi * 8.0 * t[on]  # an 8 Hz wingbeat
+    xyz[on, 0] = np.stack([0.05 * np.sin(phase), 0.01 * t[on], 1 + 0.02 * np.cos(phase)], axis=1)
+    hz, power = motion.periodogram(xyz, fps)
+    assert np.isfinite(power).all()
+    assert abs(motion.wingbeat_peak(xyz, fps)[0] - 20.0) > 1.0
