@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from batgraph import checks, motion
+from batgraph import checks, motion, wingbeat
 from batgraph.measurement import of_markers
 from batgraph.motion import constant_acceleration_Q, constant_velocity_Q
 from batgraph.result import Options
@@ -281,6 +281,51 @@ def test_threads_never_change_the_answer(monkeypatch):
     assert np.array_equal(one.cov_m2, many.cov_m2, equal_nan=True)
     assert str(one.info) == str(many.info)
     assert threads.side_by_side([lambda: 1, lambda: 2, lambda: 3]) == [1, 2, 3]
+
+
+def test_markers_seen_on_few_frames_take_their_segment_partners_level():
+    """segments.partner_levels: an unset marker takes the least level of its set partners, along a chain of unset
+    ones; one whose partners are all unset keeps its own."""
+    level = np.array([2.0, 400.0, 0.01, 0.01, 0.01, 5.0, 0.01, np.nan])
+    unset = level == 0.01
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [0, 4], [5, 4], [6, 7]])  # marker 7: not estimated
+    np.testing.assert_array_equal(fit.segments.partner_levels(level, unset, pairs),
+                                  [2.0, 400.0, 400.0, 2.0, 2.0, 5.0, 0.01, np.nan])
+
+
+def test_segment_lengths_start_from_the_frames_that_see_both_markers():
+    """segments.initial_lengths: the median over the frames where a camera sees both markers, every frame where
+    none does."""
+    xyz = np.zeros((4, 3, 3))
+    xyz[:, 1, 0] = [0.1, 0.1, 0.5, 0.5]  # marker 1 seen on frames 0-1 only, extrapolated off on 2-3
+    xyz[:, 2, 0] = [0.2, 0.2, 0.2, 0.3]
+    seen = np.array([[1, 1, 0], [1, 1, 0], [1, 0, 0], [1, 0, 0]], bool)
+    np.testing.assert_allclose(fit.segments.initial_lengths(xyz, np.array([[0, 1], [0, 2]]), seen), [0.1, 0.2])
+
+
+def test_segments_hold_a_wing_whose_markers_are_seen_on_few_frames():
+    """A wingbeat scene (seed 1) whose left elbow, wrist and tip3 are labelled on every 6th frame, tip5 on frames
+    30-31 only and tip4 there in one camera (never triangulated): sparse hand clicks. The segments must help, not
+    hurt. Their evidence alone set tip5's motion noise at the search's stiffest level, a straight line through
+    flapping points that the segment then bent the wrist to (measured: 30.5 mm worst on frames seen by two cameras,
+    RMSE 1.75 mm against 1.43 without the segments; with the partners' levels 7.2 and 1.27 mm)."""
+    s = wingbeat.simulate_wingbeat(np.random.default_rng(1))
+    o = s.observations
+    wing, tips = o.marker.isin(["L_elbow", "L_wrist", "L_tip3"]), o.marker.isin(["L_tip4", "L_tip5"])
+    keep = ~(wing | tips) | (wing & (o.frame % 6 == 0)) | (tips & o.frame.isin([30, 31]))
+    keep &= (o.marker != "L_tip4") | (o.camera == o.camera[o.marker == "L_tip4"].iloc[0])
+    s = dataclasses.replace(s, observations=o[keep].reset_index(drop=True))
+    dense = dense_observations(s)
+    pre = checks.preflight(s, dense)
+    truth = np.stack([s.truth[s.truth.marker == m].sort_values("frame")[["x", "y", "z"]].to_numpy()
+                      for m in dense.markers], axis=1)
+    err = {}
+    for rigid in (True, False):
+        session = pre.session if rigid else dataclasses.replace(pre.session, rigid=[])
+        est = schedule.run_smoother(session, dense, pre.ideal, Options(progress=False))
+        err[rigid] = np.linalg.norm(est.xyz_m - truth, axis=-1)[dense.n_views >= 2]
+    rms = {k: float(np.sqrt(np.mean(e**2))) for k, e in err.items()}
+    assert err[True].max() < 0.015 and rms[True] <= rms[False], (err[True].max(), rms)
 
 
 def test_wingbeat_spectrum_of_a_track_seen_every_kth_frame_stays_finite():

@@ -151,7 +151,7 @@ def _solve_group(setup, members, seg_ids, name, levels, start, settings, covaria
     seg = segments.Segments(np.searchsorted(members, setup.pairs[seg_ids]), setup.rigid_sigma_m)
     x = _start(name, setup.fps, start, members)
     group = segments.Group(prob, seg)
-    state = (x, segments.initial_lengths(x[..., :3], seg.local))
+    state = (x, segments.initial_lengths(x[..., :3], seg.local, setup.ideal.seen.any(axis=0)[:, members]))
     res = lm.minimise(group, state, settings)
     cov_x, cov_L, ld = segments.marginals(group, state, covariances)
     return state[0], state[1], cov_L, ld, res, None if cov_x is None else cov_x[..., :3, :3]

@@ -235,7 +235,7 @@ def _fit_unit(setup, models, levels, start, members, seg_ids, covariances, out) 
     seg, L0 = None, None
     if seg_ids is not None:
         seg = Segments(np.searchsorted(members, setup.pairs[seg_ids]), setup.rigid_sigma_m)
-        L0 = initial_lengths(x0[..., :3], seg.local)
+        L0 = initial_lengths(x0[..., :3], seg.local, setup.ideal.seen.any(axis=0)[:, members])
     g = Graph(prob, setup.rig, x0, seg, L0)
     values, iters = g.solve()
     x = g.states(values, F, len(members))

@@ -62,6 +62,25 @@ def with_groups(markers: np.ndarray, pairs: np.ndarray, estimated: np.ndarray) -
     return out
 
 
+def partner_levels(level: np.ndarray, unset: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Levels (M,) where each marker of ``unset`` (M,) bool takes the least level of its segment partners (pairs
+    (S, 2)) that are set (finite), spreading along chains of unset markers; one with no such partner keeps its own.
+    For the markers whose own frames cannot set their level: a straight line fits one or two observed frames
+    exactly, so their evidence rises to the stiffest level searched, and a wing tip kept that straight pulls its
+    bone's other end off its path through the segment."""
+    level, unset = np.array(level, float), np.array(unset, bool)
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    while True:
+        took = {}
+        for a, b in np.concatenate([pairs, pairs[:, ::-1]]):
+            if unset[a] and not unset[b] and np.isfinite(level[b]):
+                took[a] = min(took.get(a, np.inf), level[b])
+        if not took:
+            return level
+        for m, value in took.items():
+            level[m], unset[m] = value, False
+
+
 @dataclass
 class Segments:
     """The segment terms of one group: local (s, 2) pairs of member columns, sigma [m]."""
@@ -104,9 +123,14 @@ class Segments:
         return C, np.eye(len(self.local)) * (len(x) / s2), -r.sum(axis=0) / self.sigma
 
 
-def initial_lengths(xyz_m: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """Each segment's median distance over frames (S,) [m] (NaN frames skipped)."""
-    return np.nanmedian(np.linalg.norm(xyz_m[:, pairs[:, 0]] - xyz_m[:, pairs[:, 1]], axis=-1), axis=0)
+def initial_lengths(xyz_m: np.ndarray, pairs: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Each segment's median distance (S,) [m] over the frames where a camera sees both its markers (seen (F, M)
+    bool), over every frame where none does (NaN frames skipped). Elsewhere the start is the motion model's guess:
+    a marker seen on a few frames of a wingbeat is extrapolated far off, and a length started there stays off."""
+    both = seen[:, pairs[:, 0]] & seen[:, pairs[:, 1]]
+    both |= ~both.any(axis=0)
+    dist = np.linalg.norm(xyz_m[:, pairs[:, 0]] - xyz_m[:, pairs[:, 1]], axis=-1)
+    return np.nanmedian(np.where(both, dist, np.nan), axis=0)
 
 
 class Group:
