@@ -4,8 +4,8 @@
    at the causal q (the random walk at its sigma); Cauchy's redescending influence leaves a mislabel unfitted.
 2. Exclude the observations with |r|^2 > 25 at that solution (:func:`to_exclude`).
 3. Each marker's model ("auto") and noise level by the marginal likelihood (batgraph.solver.search) on the rest,
-   without the segments; a marker whose evidence peaks at the stiffest level searched takes its segment partners'
-   (segments.partner_levels); a constant-velocity q at least :func:`flapping_floor`.
+   without the segments; a marker seen on too few frames to show its motion noise takes its segment partners'
+   (:func:`_partner_levels`); a constant-velocity q at least :func:`flapping_floor`.
 4. Final solves with the chosen loss and the segments until the excluded set is stable (later rounds only the
    markers whose exclusions changed). The first starts from one with the segments SEGMENT_RELAX times softer: from
    the segment-free solution a single-view end can lie nearer the far one of a segment's two depths.
@@ -29,7 +29,7 @@ from ..motion import G_MPS2, WINGBEAT_PROMINENCE, causal_accel_psd, random_walk_
 from ..result import Estimate, Options
 from ..session import DenseObservations, Session
 from ..triangulate import dlt_points
-from . import chains, ends, lm, search, segments, shared
+from . import ends, lm, search, segments, shared
 from . import fit as fit_mod
 from . import model as mm
 from .backends import FAST
@@ -41,9 +41,6 @@ REJECT_SQ_RESIDUAL = 25.0  # |r| > 5 sigma: at 13.8 an excluded inlier drifts of
 OUTLIER_SQ_RESIDUAL = 13.8155  # chi-square 2 DOF, 99.9 %: the flags reported
 REJECTION_ROUNDS = 3
 SEGMENT_RELAX = 10.0  # the first solve with the segments has them this many times softer (step 4)
-# nats: a marker keeps its own stiffest level against its segment partners' when its evidence favours it by more
-# (Kass & Raftery's "strong" evidence, a Bayes factor of 20; step 3)
-KEEP_OWN_LOG_BAYES_FACTOR = 3.0
 
 
 def initial_track(xyz_tri_m: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -344,21 +341,13 @@ def _choose(setup, backend, motion, start, floor, progress, names) -> tuple:
 
 
 def _partner_levels(setup, choice, estimated: np.ndarray) -> np.ndarray:
-    """Levels (M,): a marker whose evidence peaks at the stiffest level searched takes its segment partners'
-    (segments.partner_levels) unless its own evidence favours its level over theirs by more than
-    KEEP_OWN_LOG_BAYES_FACTOR (its frames show it stiffer: a gliding body's, a shoulder's seen on 7 frames)."""
-    own = choice.level
-    stiffest = np.array([10.0 ** search.LOG10_RANGE[n][0] if n is not None else np.nan for n in choice.model])
-    level = segments.partner_levels(own, estimated & (own <= stiffest), setup.pairs)
-    moved = np.flatnonzero(estimated & (level != own))
-    for name in dict.fromkeys(choice.model[moved]):
-        ms = moved[choice.model[moved] == name]
-        x0 = choice.solution[name][:, ms, :mm.state_dim(name)]
-        ev = [chains.solve(p, x0, lm.LOOSE).log_evidence(p) for p in (setup.problem(ms, name, at[ms])
-                                                                        for at in (own, level))]
-        stiff = ms[ev[0] - ev[1] > KEEP_OWN_LOG_BAYES_FACTOR]
-        level[stiff] = own[stiff]
-    return level
+    """Levels (M,): a marker seen on fewer frames than its motion model needs to show any motion noise (ORDER + 2:
+    a constant-velocity track fits two frames exactly, a constant-acceleration one three, so nothing in its data
+    measures the noise and its evidence rises to the stiffest level searched) takes its segment partners' level
+    (segments.partner_levels); the others keep their own."""
+    frames = setup.ideal.seen.any(axis=0).sum(axis=0)
+    need = np.array([mm.ORDER[n] + 2 if n is not None else 0 for n in choice.model])
+    return segments.partner_levels(choice.level, estimated & (frames < need), setup.pairs)
 
 
 def _final(setup, backend, models, levels, start, excluded, reject) -> tuple:

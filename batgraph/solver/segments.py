@@ -64,10 +64,8 @@ def with_groups(markers: np.ndarray, pairs: np.ndarray, estimated: np.ndarray) -
 
 def partner_levels(level: np.ndarray, unset: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Levels (M,) where each marker of ``unset`` (M,) bool takes the least level of its segment partners (pairs
-    (S, 2)) that are set (finite), spreading along chains of unset markers; one with no such partner keeps its own.
-    For the markers whose own frames cannot set their level: a straight line fits one or two observed frames
-    exactly, so their evidence rises to the stiffest level searched, and a wing tip kept that straight pulls its
-    bone's other end off its path through the segment."""
+    (S, 2)) that are set (finite), spreading along chains of unset markers; one with no such partner keeps its own
+    (a bone's two ends move together: the level of a marker whose own frames cannot set it)."""
     level, unset = np.array(level, float), np.array(unset, bool)
     pairs = np.asarray(pairs, int).reshape(-1, 2)
     while True:
