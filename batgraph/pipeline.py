@@ -186,7 +186,8 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     # the report's child, forked before the estimators' memory grows; cancelled on failure
     with report_standby(viewer) as report, tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
         named = _associate_first(Path(session_dir), calibration, Path(scratch))
-        session = read_session(session_dir, calibration, None if named is None else Path(scratch) / OBS_NAME)
+        session = (read_session(session_dir, calibration) if named is None else
+                   read_session(session_dir, calibration, Path(scratch) / OBS_NAME, named[2]))
         if named is not None:
             session.warnings.append(_association_warning(named[1].summary))
         methods = list(methods or DEFAULT_METHODS)
@@ -212,17 +213,18 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
 
 
 def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path
-                     ) -> tuple[pd.DataFrame, associate_mod.Figures] | None:
+                     ) -> tuple[pd.DataFrame, associate_mod.Figures, str] | None:
     """For a session folder that holds unlabelled detections (detections.csv or .parquet) and no observations:
     name them (batgraph.associate, from seed_labels.csv) and write the named ones to ``scratch``/observations.csv,
-    for read_session. Returns (labels table, figures), or None for a folder with observations."""
+    for read_session. Returns (labels table, figures, how warnings name the named detections), or None for a
+    folder with observations."""
     has = [(folder / f"{stem}.{ext}").exists() for stem in ("observations", "detections") for ext in ("csv", "parquet")]
     if any(has[:2]) or not any(has[2:]):
         return None
     obs, labels, figures = associate_mod.associate_session(folder, calibration=calibration)
     associate_mod.require_named(folder, obs)
     associate_mod.write_observations(scratch / OBS_NAME, obs)
-    return labels, figures
+    return labels, figures, f"{figures.summary['detections_file']} (the detections named)"
 
 
 def _association_warning(counts: dict) -> str:

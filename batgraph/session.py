@@ -510,10 +510,11 @@ def _camera(tab: dict, where: str, key: str, scale: float, notes: list[str]) -> 
     return Camera(str(name), (int(size[0]), int(size[1])), K, dist, rvec, tvec, cov, **_timing(tab, where))
 
 
-def read_observations(path: Path, rig: Rig,
-                      calibration_name: str = "calibration.toml") -> tuple[pd.DataFrame, list[str]]:
+def read_observations(path: Path, rig: Rig, calibration_name: str = "calibration.toml",
+                      shown_as: str | None = None) -> tuple[pd.DataFrame, list[str]]:
     """Read and validate observations.csv/.parquet against ``rig`` (read from ``calibration_name``, named in
-    errors). Returns (table, warnings). Frames obey batgraph.inputs' limits (MAX_FRAME, MAX_FRAME_GAP).
+    errors). Returns (table, warnings; they name the file as ``shown_as`` where given). Frames obey
+    batgraph.inputs' limits (MAX_FRAME, MAX_FRAME_GAP).
 
     The camera and marker columns are checked, matched and sorted as codes into their distinct names
     (batgraph.labels), not as text per row.
@@ -558,7 +559,7 @@ def read_observations(path: Path, rig: Rig,
         sel = rows[cam[rows] == c]
         n_out += int((~one.in_image(np.stack([u[sel], v[sel]], axis=1))).sum())
     if n_out:
-        warnings.append(f"{path}: {n_out} observation(s) lie outside their camera's image; kept")
+        warnings.append(f"{shown_as or path}: {n_out} observation(s) lie outside their camera's image; kept")
     out = pd.DataFrame({"frame": frame[rows], "camera": text_column(camera.names, camera.codes[rows]),
                         "marker": text_column(marker.names, marker.codes[rows]),
                         "u": u[rows], "v": v[rows], "weight": w[rows]})
@@ -679,12 +680,13 @@ def _session_config(path: Path, warnings: list[str]) -> dict:
 
 
 def read_session(folder: str | Path, calibration: str | Path | None = None,
-                 observations: str | Path | None = None) -> Session:
+                 observations: str | Path | None = None, observations_shown_as: str | None = None) -> Session:
     """Load and validate a session folder (see module docstring).
 
     calibration: a calibration.toml to use instead of the folder's own (e.g. one ``calibrate`` wrote
     from a wand recording of the same rig); observations: an observations.csv to use instead of the folder's (the
-    names ``batgraph associate`` gave its detections); the folder is not modified.
+    names ``batgraph associate`` gave its detections), named in warnings as ``observations_shown_as`` where given
+    (a scratch file's path means nothing to the user); the folder is not modified.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -702,7 +704,8 @@ def read_session(folder: str | Path, calibration: str | Path | None = None,
             raise InputError(f"{obs_path}: file not found; the folder holds unlabelled detections: name them first "
                              f"with `batgraph associate {folder}` (docs/associate.md)")
         raise InputError(f"{obs_path}: file not found (nor observations.parquet)")
-    observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path))
+    observations, warnings = read_observations(obs_path, rig, cal_path.name if calibration is None else str(cal_path),
+                                               observations_shown_as)
     sess, motion, noise = cfg["session"], cfg.get("motion", {}), cfg.get("noise", {})
     observations, clock_notes = to_session_clock(observations, rig, float(sess["fps"]), str(cal_path))
     warnings = notes + warnings + clock_notes

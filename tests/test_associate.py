@@ -97,6 +97,19 @@ def test_reconstruct_of_unlabelled_detections_names_them_first(tmp_path, capsys)
     assert "seed_labels.csv" in _fails(["reconstruct", str(folder), "--out", str(tmp_path / "none"), *args], capsys)
 
 
+def test_reconstruct_of_unlabelled_detections_names_their_file_in_warnings(tmp_path, capsys):
+    """A warning about the named detections (here: some lie outside their camera's image, the calibration's size
+    made smaller than the detector's images) names detections.csv, not the scratch file they were named into."""
+    folder, sc = detections_folder(tmp_path)
+    text = (folder / "calibration.toml").read_text()
+    (folder / "calibration.toml").write_text(text.replace("640", str(int(sc.detections["u"].median()))))
+    assert main(["reconstruct", str(folder), "--methods", "triangulate", "--viewer", "none", "--quiet", "--out",
+                 str(tmp_path / "out")]) == 0
+    warns = json.loads((tmp_path / "out" / "summary.json").read_text())["warnings"]
+    outside = [w for w in warns if "outside their camera's image" in w]
+    assert len(outside) == 1 and outside[0].startswith(str(folder / "detections.csv")), warns
+
+
 def test_parquet_detections_and_score_column(tmp_path):
     """detections.parquet is read like detections.csv; a detector's score in (0, 1] becomes the weight."""
     folder, sc = detections_folder(tmp_path)
