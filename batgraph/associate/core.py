@@ -213,6 +213,10 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     start = min(placed) if placed else int(frames[0])
     first = _subset_points(rig, fi, seed_det) if large else None
+    if placed:
+        near = first or (lambda f: points.get(int(f), empty))
+        opt = dataclasses.replace(opt, track=tracks.start_noise(placed[start], near(start - 1).xyz,
+                                                                near(start + 1).xyz, 1.0 / fps, noise_m, opt.track))
     tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track, first)
     tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
                  else {}, pairs, sw, opt.track, first)

@@ -17,7 +17,7 @@ on a frame (:class:`Anchors`, batgraph.associate.gaps) take their positions ther
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,6 +33,7 @@ MIN_EXTENT_M = 0.1  # the smallest side of the marker set's box (:func:`extent`)
 LINK_GATE = 60.0  # [nats] an assignment's cost is LINK_GATE - log likelihood ratio; unassigned costs half each
 ROUNDS = 6
 MATURE = 2  # points after which a marker's velocity is its own
+REFERENCE_FPS = 120.0  # [Hz] the rate TrackOptions.q_min is set for (a bat rig's)
 COHERENT_M = 0.04  # [m] the reach of an assigned marker's motion over its neighbours' predictions
 RESEGMENT_FRAMES = 15  # segment lengths are measured again after this many frames
 DOUBT_BELOW = 0.99  # an assignment less sure than this does not carry a name by continuity (a suspected switch)
@@ -41,9 +42,10 @@ DOUBT_BELOW = 0.99  # an assignment less sure than this does not carry a name by
 @dataclass
 class TrackOptions:
     """accel_psd_m2_s3: the starting acceleration noise q [m^2/s^3] (each marker adapts its own within [q_min,
-    q_max]); speed_mps: a new marker's velocity std [m/s] (flow_std_mps when the body's motion is known,
-    :func:`bulk_velocity`); ambiguity: the least margin [nats] over the next-best assignment; min_llr: the least
-    evidence [nats] against clutter of a link; max_miss [frames], max_std_m [m]: when a coasting marker is lost;
+    q_max]; the association sets the start and q_min from the seed, :func:`start_noise`); speed_mps: a new
+    marker's velocity std [m/s] (flow_std_mps when the body's motion is known, :func:`bulk_velocity`); ambiguity:
+    the least margin [nats] over the next-best assignment; min_llr: the least evidence [nats] against clutter of a
+    link; max_miss [frames], max_std_m [m]: when a coasting marker is lost;
     join_max_px: the largest projected std [px] of a prediction that may take a lone detection; acquire_llr: the
     segment evidence [nats] that places a marker without a prediction; learn: learn steady distances as segments;
     volume_m3, range_m: the marker set's box [m^3] and size [m] (clutter is uniform in them, :func:`extent`);
@@ -51,7 +53,7 @@ class TrackOptions:
     {(a, b): length [m]} of the declared segments where the seed placed both markers."""
 
     accel_psd_m2_s3: float = 50.0
-    q_min: float = 10.0
+    q_min: float = 10.0  # at REFERENCE_FPS (:func:`start_noise`)
     q_max: float = 1e5
     speed_mps: float = 3.0
     flow_std_mps: float = 1.0
@@ -218,20 +220,29 @@ INIT_GATE_M = 0.03  # [m] how far a seeded marker's point may be on the next fra
 INIT_MIN_STD_MPS = 0.25  # [m/s] the least std of a seeded marker's first velocity
 
 
-def initial_velocity(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray | None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded markers' velocities (S, 3) [m/s] and stds (S,) from the next frame's points z (n, 3): the seeded
-    positions p (S, 3), moved by the body's ``flow``, are matched to the points (least total distance, within
-    INIT_GATE_M); each marker takes the median displacement of the matched markers within PATCH_M of it (itself
-    included: one wrong match is outvoted), its std their spread (at least INIT_MIN_STD_MPS)."""
+def seed_displacements(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray | None) -> np.ndarray:
+    """Each seeded marker's displacement (S, 3) [m] to its point on the frame dt [s] away (points z (n, 3)), NaN
+    where none: the seeded positions p (S, 3), moved by the body's ``flow`` [m/s], matched to the points (least
+    total distance, within INIT_GATE_M)."""
     from scipy.optimize import linear_sum_assignment
 
+    disp = np.full(p.shape, np.nan)
+    if not len(z):
+        return disp
     base = p + (0.0 if flow is None else flow * dt)
     d = np.linalg.norm(z[None] - base[:, None], axis=-1)
     r, c = linear_sum_assignment(np.where(d < INIT_GATE_M, d, 1e3))
     ok = d[r, c] < INIT_GATE_M
-    disp = np.full(p.shape, np.nan)
     disp[r[ok]] = z[c[ok]] - p[r[ok]]
+    return disp
+
+
+def initial_velocity(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded markers' velocities (S, 3) [m/s] and stds (S,) from the next frame's points z (n, 3)
+    (:func:`seed_displacements`): each marker takes the median displacement of the matched markers within PATCH_M of
+    it (itself included: one wrong match is outvoted), its std their spread (at least INIT_MIN_STD_MPS)."""
+    disp = seed_displacements(p, z, dt, flow)
     v = np.zeros((len(p), 3)) + (0.0 if flow is None else flow)
     sv = np.full(len(p), 1.0)
     for i in range(len(p)):
@@ -242,6 +253,25 @@ def initial_velocity(p: np.ndarray, z: np.ndarray, dt: float, flow: np.ndarray |
             spread = 1.4826 * np.median(np.linalg.norm(disp[near] - med, axis=1)) / abs(dt)
             sv[i] = max(spread, INIT_MIN_STD_MPS)
     return v * np.sign(dt), sv
+
+
+def start_noise(seed: Seed, before: np.ndarray, after: np.ndarray, dt: float, noise_m: float, opt: TrackOptions
+                ) -> TrackOptions:
+    """``opt`` with the acceleration noise measured on the seed. accel_psd_m2_s3: the largest q the seeded markers
+    show between the frames either side of the seed (points before, after (n, 3) [m]; a marker's second difference
+    has a per-axis variance of q dt^3 plus 6 noise_m^2), at most opt's own (a bat wing's) and at least q_min:
+    a start far above what the markers do makes neighbouring markers ambiguous on the first frames (a board moved
+    by hand at 30 fps, predicted with a wing's q, 26 mm std a frame against 53 mm between its corners); opt's start
+    where fewer than 3 markers are matched on both frames. q_min: opt's, which holds at REFERENCE_FPS, at the same
+    process noise per frame (q dt^3 / 3) at the rig's rate: how sure of its next position a marker may become."""
+    q_min = opt.q_min * (REFERENCE_FPS * dt) ** -3
+    a = sum(seed_displacements(seed.xyz, z, s * dt, bulk_velocity(seed.xyz, z, s * dt))
+            for s, z in ((-1.0, before), (1.0, after)))
+    a = a[np.isfinite(a[:, 0])]
+    start = opt.accel_psd_m2_s3
+    if len(a) >= 3:
+        start = min(start, (float(np.max(np.sum(a * a, axis=1))) / 3.0 - 6.0 * noise_m ** 2) / dt ** 3)
+    return replace(opt, accel_psd_m2_s3=max(start, q_min), q_min=q_min)
 
 
 def extent(xyz: np.ndarray) -> tuple[float, float]:
