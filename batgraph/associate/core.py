@@ -8,6 +8,7 @@ another marker could as well have made is unnamed (refine.shared_views). No file
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -212,7 +213,7 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
                                                                  segment_lengths=_seed_lengths(placed, pairs)))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     start = min(placed) if placed else int(frames[0])
-    first = _subset_points(rig, fi, seed_det) if large else None
+    first = functools.lru_cache(_subset_points(rig, fi, seed_det)) if large else None  # start_noise, then sweep
     if placed:
         near = first or (lambda f: points.get(int(f), empty))
         opt = dataclasses.replace(opt, track=tracks.start_noise(placed[start], near(start - 1).xyz,
