@@ -232,7 +232,8 @@ def _association_warning(counts: dict) -> str:
     return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
             f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
             f"{counts['suspected_switches']} suspected identity switch(es), but most wrong names are not among them: "
-            "check the 3D paths where a marker reappears after a gap before relying on them")
+            "check the 3D paths where a marker reappears after a gap before relying on them"
+            + (f"; {associate_mod.out_of_step_text(counts)}" if associate_mod.out_of_step_text(counts) else ""))
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

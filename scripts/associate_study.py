@@ -30,16 +30,21 @@ sys.path.insert(0, str(ROOT))
 from batgraph.associate import associate_session, scenes, score, write_associated  # noqa: E402
 from batgraph.cli import main  # noqa: E402
 from batgraph.session import write_session  # noqa: E402
-from batgraph.simulate import simulate_flight  # noqa: E402
+from batgraph.simulate import Timing, simulate_flight  # noqa: E402
 from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
+
+OUT_OF_STEP_S = (0.0, 3.1e-3, -2.4e-3, 1.7e-3, -4.0e-3)  # a free-running rig at 120 fps (frames 8.3 ms apart)
 
 
 def simulate(scene: str, seed: int):
-    """The simulated session of a case: 'flightN' (N markers, 160 frames) or 'wingbeat' (14 markers, 72 frames)."""
+    """The simulated session of a case: 'flightN' (N markers, 160 frames) or 'wingbeat' (14 markers, 72 frames);
+    with '_steps' the 5 cameras are out of step by OUT_OF_STEP_S (unknown to the association)."""
     rng = np.random.default_rng(seed)
-    if scene.startswith("flight"):
-        return simulate_flight(rng, n_markers=int(scene[6:] or 14), n_frames=160, pixel_sigma_px=1.0)
-    return simulate_wingbeat(rng, pixel_sigma_px=1.0)
+    base, _, steps = scene.partition("_")
+    timing = Timing(time_offsets_s=OUT_OF_STEP_S) if steps == "steps" else None
+    if base.startswith("flight"):
+        return simulate_flight(rng, n_markers=int(base[6:] or 14), n_frames=160, pixel_sigma_px=1.0, timing=timing)
+    return simulate_wingbeat(rng, pixel_sigma_px=1.0, timing=timing)
 
 
 def smoother_rmse(session_dir: Path, out: Path) -> float:

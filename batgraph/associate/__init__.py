@@ -2,12 +2,12 @@
 
 ``associate_session(folder)`` is the entry point (batgraph.associate.session); the stages are the detections'
 input (.detections), cross-view matching per frame (.views), tracking the seeded markers through time (.tracks,
-with .segments and .assignment), naming every detection by where its marker is (.refine), the whole on arrays
-(.core), and test scenes with their scoring (.scenes, .score).
+with .segments and .assignment), naming every detection by where its marker is (.refine), cameras out of step on
+some frames (.jitter), the whole on arrays (.core), and test scenes with their scoring (.scenes, .score).
 """
 
 from .core import AssociateOptions
-from .session import Figures, associate_session, require_named, write_associated, write_observations
+from .session import Figures, associate_session, out_of_step_text, require_named, write_associated, write_observations
 
-__all__ = ["AssociateOptions", "Figures", "associate_session", "require_named", "write_associated",
-           "write_observations"]
+__all__ = ["AssociateOptions", "Figures", "associate_session", "out_of_step_text", "require_named",
+           "write_associated", "write_observations"]

@@ -2,7 +2,9 @@
 markers tracked away from the seed (batgraph.associate.tracks) -> every detection named by where its marker is
 (batgraph.associate.refine) -> the gaps between named stretches tracked again from every named position
 (batgraph.associate.gaps), each step's names checked (batgraph.associate.verify); last, a named detection that
-another marker could as well have made is unnamed (refine.shared_views). No files (batgraph.associate.session).
+another marker could as well have made is unnamed (refine.shared_views). Where some cameras are out of step or
+shaken on some frames, their detections are moved there by what the names tell (batgraph.associate.jitter), and the
+naming runs again from the names it gave (the tracking does not). No files (batgraph.associate.session).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Rig
-from . import affine, gaps, refine, segments, tracks, verify, views
+from . import affine, gaps, jitter, refine, segments, tracks, verify, views
 from .detections import Detections
 
 PAIRS_UP_TO_CAMERAS = 8  # larger rigs find points from the markers' predictions (views.projected_points)
@@ -41,7 +43,9 @@ class AssociateOptions:
 class Association:
     """Per detection (in the order of ``Detections``): label (N,) marker index (-1: unnamed), confidence (N,),
     candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
-    an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker."""
+    an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker;
+    moved (F, C) bool: the camera-frames found out of step or shaken and moved (batgraph.associate.jitter; None:
+    none), moved_px (N,) how far each detection was moved [raw px]."""
 
     label: np.ndarray
     confidence: np.ndarray
@@ -50,6 +54,8 @@ class Association:
     how: np.ndarray
     pixel_sigma_px: float
     sweep: tracks.Sweep
+    moved: np.ndarray | None = None
+    moved_px: np.ndarray | None = None
 
 
 def frame_index(dets: Detections, ideal: np.ndarray, sig: np.ndarray) -> tracks.FrameDetections:
@@ -182,6 +188,53 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     geom = views.geometry(rig)
     ideal, scale = views.undistort(rig, dets.camera, dets.uv_px)
     fi = frame_index(dets, ideal, scale)
+    t = _track(geom, fi, scale, seed_det, seed_lab, n_labels, pairs, fps, opt)
+    label = _name(geom, fi, t, t.swept, n_labels, pairs, fps, opt)
+    if len(rig) > PAIRS_UP_TO_CAMERAS:  # a large rig's points come from the markers' predictions, not t.points
+        return t.association(*label)
+    jit = jitter.measure(geom, fi, label[0], n_labels, fps, t.noise_m)
+    if not jit.moved.any():
+        return t.association(*label)
+    fi.uv = jitter.moved(geom, fi, jit)
+    for k in np.flatnonzero(jit.moved.any(axis=1)):
+        t.points[fi.first + int(k)] = frame_points(geom, fi, fi.first + int(k))
+    label = _name(geom, fi, t, label[0], n_labels, pairs, fps, opt)
+    return dataclasses.replace(t.association(*label), moved=jit.moved,
+                               moved_px=np.linalg.norm(fi.uv - ideal, axis=1) / scale)
+
+
+@dataclass
+class _Tracked:
+    """What the tracking from the seed left for the naming (:func:`_track`)."""
+
+    sigma: float
+    noise_m: float
+    track_options: tracks.TrackOptions
+    sweep: tracks.Sweep
+    swept: np.ndarray  # (N,) the tracker's names, checked
+    how: np.ndarray  # (N,) HOW index of the tracker's names
+    track: np.ndarray  # (N,) track id
+    fixed: np.ndarray  # (N,) the seed's names (-1 elsewhere)
+    seeded: np.ndarray  # (F, L) bool
+    doubt: np.ndarray  # (F, L) bool: the tracker's links in doubt
+    points: dict  # frame -> views.FramePoints (small rigs; empty for a large one)
+    points_at: object  # (frame, xyz, std) -> views.FramePoints
+
+    def association(self, label, conf, cand, filled) -> Association:
+        """The names (N,) with their confidence, candidates and gap fills as an Association."""
+        how = np.where(filled > 0, filled + 1, self.how)
+        how = np.where(self.fixed >= 0, 1, np.where(label < 0, 0, np.where((label == self.swept) | (filled > 0),
+                                                                            how, 4)))
+        track = np.where((label >= 0) & (label == self.swept), self.track, -1)
+        return Association(label, conf, cand, track, how, self.sigma, self.sweep)
+
+
+def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
+           seed_lab: np.ndarray, n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions
+           ) -> _Tracked:
+    """The noise measured (sets fi.sig), each frame's points found, the seed placed and its markers tracked forwards
+    and backwards from it, and the tracker's names checked (steps 1-2 and 4 of docs/associate.md)."""
+    rig = geom.rig
     large = len(rig) > PAIRS_UP_TO_CAMERAS
     sigma = opt.pixel_sigma_px
     if sigma is None:
@@ -221,7 +274,7 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track, first)
     tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
                  else {}, pairs, sw, opt.track, first)
-    N = len(dets.frame)
+    N = len(fi.frame)
     label, kind, track = tracks.per_detection(sw, N)
     how = np.where(kind > 0, kind + 1, 0)
     fixed = np.full(N, -1, np.int64)
@@ -232,9 +285,19 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     ref = opt.track.segment_lengths
     doubt = tracks.doubtful(sw, start - fi.first)
     label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
-    swept = label.copy()
+    return _Tracked(sigma, noise_m, opt.track, sw, label, how, track, fixed, seeded, doubt, points, points_at)
+
+
+def _name(geom: views.Geometry, fi: tracks.FrameDetections, t: _Tracked, label: np.ndarray, n_labels: int,
+          pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions) -> tuple[np.ndarray, ...]:
+    """Every detection named from the names ``label`` (N,) by where the markers are, the gaps tracked again and the
+    names checked (steps 3-6 of docs/associate.md): (label, confidence, candidate, filled) (N,) each."""
+    large = len(geom.rig) > PAIRS_UP_TO_CAMERAS
+    N = len(fi.frame)
+    fixed, seeded, doubt, noise_m = t.fixed, t.seeded, t.doubt, t.noise_m
+    ref = t.track_options.segment_lengths
     conf, cand = np.where(label >= 0, 1.0, 0.0), np.full(N, -1, np.int64)
-    det_xyz, det_std = _detection_points(geom, fi, points)
+    det_xyz, det_std = _detection_points(geom, fi, t.points)
     for _ in range(1 if large else opt.rounds):  # one round in a large rig: each costs as much as the tracking
         xyz, std, label = refine.positions(geom, fi, label, n_labels)
         xyz, std = refine.carry(xyz, std, fps, noise_m, patch=not large)
@@ -243,16 +306,13 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
     filled = np.zeros(N, np.int64)
     if not large:  # two more sweeps: in a large rig they would cost as much as the first two
-        label, filled, gap_conf, gap_doubt = gaps.fill(geom, fi, points_at, label, n_labels, pairs, fps, opt.track,
-                                                       noise_m)
+        label, filled, gap_conf, gap_doubt = gaps.fill(geom, fi, t.points_at, label, n_labels, pairs, fps,
+                                                       t.track_options, noise_m)
         label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt | gap_doubt)
         conf = np.where(filled > 0, gap_conf, conf)
     shared = refine.shared_views(geom, fi, label, fixed, n_labels)
     cand, label = np.where(shared, label, cand), np.where(shared, -1, label)
-    how = np.where(filled > 0, filled + 1, how)
-    how = np.where(fixed >= 0, 1, np.where(label < 0, 0, np.where((label == swept) | (filled > 0), how, 4)))
-    track = np.where((label >= 0) & (label == swept), track, -1)
-    return Association(label, conf, cand, track, how, sigma, sw)
+    return label, conf, cand, filled
 
 
 def _detection_points(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints]

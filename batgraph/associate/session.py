@@ -100,7 +100,7 @@ def associate_session(folder: str | Path, options: AssociateOptions | None = Non
                         "marker": named["marker"].to_numpy(), "u": named["u"].to_numpy(), "v": named["v"].to_numpy(),
                         "weight": weight})
     obs = obs.sort_values(["frame", "camera", "marker"], kind="stable").reset_index(drop=True)
-    return obs, labels, _figures(dets, markers, res, det_path)
+    return obs, labels, _figures(dets, rig.names, markers, res, det_path)
 
 
 def _labels_table(dets: Detections, cameras: list[str], markers: list[str], res: Association) -> pd.DataFrame:
@@ -131,7 +131,7 @@ def _modes(group: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return g[start][first], v[start][first]
 
 
-def _figures(dets: Detections, markers: list[str], res: Association, det_path: Path,
+def _figures(dets: Detections, cameras: list[str], markers: list[str], res: Association, det_path: Path,
              suspect_below: float = DOUBT_BELOW) -> Figures:
     """The marker x frame map of how names were obtained, and the suspected switches (see :class:`Figures`)."""
     first = int(dets.frame.min())
@@ -155,7 +155,35 @@ def _figures(dets: Detections, markers: list[str], res: Association, det_path: P
                "suspected_switches": int(suspect.sum()), "detections_file": str(det_path)}
     for i, h in enumerate(HOW):
         summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
+    summary["out_of_step"] = _out_of_step(dets, cameras, res)
     return Figures(np.arange(first, first + F), markers, how, switches, summary, suspect_below)
+
+
+def _out_of_step(dets: Detections, cameras: list[str], res: Association) -> dict:
+    """{camera: {frames, of_frames, median_px}} for the cameras whose detections were moved on some frames
+    (batgraph.associate.jitter): on how many of the frames it has detections, and the median move there [px]."""
+    if res.moved is None:
+        return {}
+    first = int(dets.frame.min())
+    out = {}
+    for c in np.flatnonzero(res.moved.any(axis=0)):
+        mine = dets.camera == c
+        on = res.moved[dets.frame[mine] - first, c]
+        out[cameras[c]] = {"frames": int(res.moved[:, c].sum()), "of_frames": int(len(np.unique(dets.frame[mine]))),
+                           "median_px": round(float(np.median(res.moved_px[mine][on])), 2)}
+    return out
+
+
+def out_of_step_text(summary: dict) -> str:
+    """One sentence on the cameras found out of step or shaken ('' where none)."""
+    moved = summary.get("out_of_step") or {}
+    if not moved:
+        return ""
+    each = ", ".join(f"{c} on {m['frames']} of {m['of_frames']} frames ({m['median_px']:.1f} px)"
+                     for c, m in moved.items())
+    return (f"detections out of step with the other cameras (a free-running or shaken camera) were moved to be "
+            f"named: {each}; the estimators take them as they are (where a camera's offset is constant, "
+            "reconstruct --sync estimate models it)")
 
 
 def write_associated(folder: str | Path, out: str | Path, observations: pd.DataFrame, labels: pd.DataFrame,
