@@ -409,7 +409,8 @@ def test_track_ends_are_logged_apart_and_the_recording_names_its_opening_frame(s
 def test_a_headless_viewer_opens_the_recording_on_its_opening_frame(tmp_path):
     """A real Rerun viewer (headless: a software rasterizer such as Mesa's lavapipe is enough) shown the bundled
     sample's recording, its cursor moved as `batgraph view` moves it: it stands on summary.json's opening frame,
-    and its screenshot of the 3D view is not blank. Skipped where no viewer can start (no graphics driver)."""
+    and its screenshot of the 3D view is not blank. Skipped where no viewer can start or render (no graphics driver:
+    the viewer then starts, panics "Failed to get render context" and drops the connection)."""
     from pathlib import Path
 
     from batgraph.pipeline import reconstruct
@@ -430,7 +431,10 @@ def test_a_headless_viewer_opens_the_recording_on_its_opening_frame(tmp_path):
     except Exception as e:  # noqa: BLE001 - no graphics adapter here
         pytest.skip(f"no headless Rerun viewer here: {e}")
     try:
-        client.open(str(tmp_path / "out" / "recording.rrd"))
+        try:
+            client.open(str(tmp_path / "out" / "recording.rrd"))
+        except ConnectionError as e:  # started, then died: no render context (no Vulkan or GL driver here)
+            pytest.skip(f"the headless Rerun viewer cannot render here: {e}")
         assert viewer.move_cursor(port, frame, timeout_s=60)
         (rec,) = client.get_state().recordings
         assert rec.current_timeline == "frame" and rec.current_time == frame
