@@ -136,8 +136,8 @@ def moved(geom: Geometry, fi: FrameDetections, jit: Jitter) -> np.ndarray:
     for k, c in zip(*np.nonzero(jit.moved), strict=True):
         rows = fi.rows(fi.first + int(k))
         rc = rows[fi.camera[rows] == c]
-        x = jit.xyz[k][np.isfinite(jit.xyz[k]).all(axis=1) & np.isfinite(jit.vel[k]).all(axis=1)]
-        v = jit.vel[k][np.isfinite(jit.xyz[k]).all(axis=1) & np.isfinite(jit.vel[k]).all(axis=1)]
+        known = np.isfinite(jit.xyz[k]).all(axis=1) & np.isfinite(jit.vel[k]).all(axis=1)
+        x, v = jit.xyz[k, known], jit.vel[k, known]
         h = x @ geom.P[c][:, :3].T + geom.P[c][:, 3]
         front = h[:, 2] > 0
         proj = h[front, :2] / h[front, 2:3]
