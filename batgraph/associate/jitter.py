@@ -87,10 +87,9 @@ def measure(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: in
 def _pairs(proj: np.ndarray, uv: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Projections (P, 2) and detections (n, 2) paired (projection indices, detection indices): each projection
     with the detection nearest it where each is the other's nearest and RATIO times nearer than the next, both
-    ways, after a shift. Where half the projections or more have a detection within tol [px], none; else the
-    shift from a projection to one of its CANDIDATES nearest detections that brings the most projections within
-    tol of a detection (the least among equals): a camera whose detections are all off by more than their
-    spacing's half-ratio is still paired."""
+    ways, after the shift that brings the most projections within tol [px] of a detection (the least among equals;
+    tried: none, and from each projection to its CANDIDATES nearest detections): a camera whose detections are all
+    off by more than their spacing's half-ratio is still paired."""
     from scipy.spatial import cKDTree  # 50 ms to import: only associate needs it
 
     if len(proj) < 2 or len(uv) < 2:
@@ -100,7 +99,7 @@ def _pairs(proj: np.ndarray, uv: np.ndarray, tol: float) -> tuple[np.ndarray, np
     shifts = np.concatenate([np.zeros((1, 2)), (uv[near.reshape(len(proj), -1)] - proj[:, None]).reshape(-1, 2)])
     dist, _ = tree.query((proj[None] + shifts[:, None]).reshape(-1, 2), k=1)
     count = (dist.reshape(len(shifts), len(proj)) <= tol).sum(axis=1)
-    best = 0 if 2 * count[0] >= len(proj) else np.lexsort((np.linalg.norm(shifts, axis=1), -count))[0]
+    best = np.lexsort((np.linalg.norm(shifts, axis=1), -count))[0]
     d = np.linalg.norm(proj[:, None] + shifts[best] - uv[None], axis=-1)
     i, j = np.argmin(d, axis=1), np.argmin(d, axis=0)
     p = np.flatnonzero(j[i] == np.arange(len(proj)))
