@@ -228,12 +228,14 @@ def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path
 
 
 def _association_warning(counts: dict) -> str:
-    """The warning every run on names from unlabelled detections carries: how many, and where to check them."""
+    """The warning every run on names from unlabelled detections carries: how many, where to check them, and the
+    cameras whose detections were moved out of step."""
+    moved = associate_mod.out_of_step_text(counts)
     return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
             f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
             f"{counts['suspected_switches']} suspected identity switch(es), but most wrong names are not among them: "
             "check the 3D paths where a marker reappears after a gap before relying on them"
-            + (f"; {associate_mod.out_of_step_text(counts)}" if associate_mod.out_of_step_text(counts) else ""))
+            + (f"; {moved}" if moved else ""))
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

@@ -20,8 +20,9 @@ def run(args) -> int:
     s = fig.summary
     print(f"{folder}: named {s['named']} of {s['detections']} detections ({100 * s['named_fraction']:.1f} %), "
           f"pixel noise {s['pixel_sigma_px']:.2f} px, {s['suspected_switches']} suspected identity switch(es)")
-    if out_of_step_text(s):
-        print(f"batgraph: warning: {out_of_step_text(s)}", file=sys.stderr)
+    moved = out_of_step_text(s)
+    if moved:
+        print(f"batgraph: warning: {moved}", file=sys.stderr)
     print(f"wrote observations.csv, labels.csv and association.json to {out} "
           f"(`batgraph reconstruct {out}` takes it as it is)")
     return 0

@@ -195,7 +195,7 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     jit = jitter.measure(geom, fi, label[0], n_labels, fps, t.noise_m)
     if not jit.moved.any():
         return t.association(*label)
-    fi.uv = jitter.moved(geom, fi, jit)
+    fi.uv = jitter.moved_back(geom, fi, jit)
     for k in np.flatnonzero(jit.moved.any(axis=1)):
         t.points[fi.first + int(k)] = frame_points(geom, fi, fi.first + int(k))
     label = _name(geom, fi, t, label[0], n_labels, pairs, fps, opt)

@@ -128,7 +128,7 @@ def _fit(r: np.ndarray, g: np.ndarray, s2: np.ndarray, threshold: float) -> tupl
     return (x[:2], float(x[2])) if gain > threshold else None
 
 
-def moved(geom: Geometry, fi: FrameDetections, jit: Jitter) -> np.ndarray:
+def moved_back(geom: Geometry, fi: FrameDetections, jit: Jitter) -> np.ndarray:
     """The detections' ideal pixels (N, 2) with each moved camera-frame's fit taken out: moved back by the shift
     and dt times the image velocity of the marker projected nearest the detection."""
     uv = fi.uv.copy()
