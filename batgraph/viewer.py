@@ -762,23 +762,27 @@ def run_child(cmd: list[str], env: dict | None = None, grace_s: float = 5.0, on_
     import signal
     import threading
 
-    proc = subprocess.Popen(cmd, env=env, start_new_session=True)
-    if on_start is not None:
-        threading.Thread(target=on_start, name="batgraph viewer control", daemon=True).start()
     received: list[int] = []
+    proc: subprocess.Popen | None = None
 
     def forward(signum, _frame):
         received.append(signum)
         try:
-            proc.send_signal(signum)
+            if proc is not None:
+                proc.send_signal(signum)
         except (ProcessLookupError, OSError):
             pass
 
     sigs = [signal.SIGINT, signal.SIGTERM]
     previous = {}
-    if threading.current_thread() is threading.main_thread():
+    if threading.current_thread() is threading.main_thread():  # before the child starts: no signal goes unseen
         previous = {sig: signal.signal(sig, forward) for sig in sigs}
     try:
+        proc = subprocess.Popen(cmd, env=env, start_new_session=True)
+        if received:  # a signal while it was starting
+            proc.send_signal(received[0])
+        if on_start is not None:
+            threading.Thread(target=on_start, name="batgraph viewer control", daemon=True).start()
         deadline = None
         while True:
             try:
@@ -792,7 +796,7 @@ def run_child(cmd: list[str], env: dict | None = None, grace_s: float = 5.0, on_
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        if proc.poll() is None:  # an exception (e.g. from another thread's interrupt) while waiting
+        if proc is not None and proc.poll() is None:  # an exception (e.g. from another thread's interrupt)
             proc.kill()
             proc.wait()
     if received:

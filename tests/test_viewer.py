@@ -493,6 +493,27 @@ def test_view_passes_signals_on_and_never_leaves_the_viewer_running(tmp_path, si
     assert "Traceback" not in proc.stderr.read()
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
+def test_a_signal_while_the_viewer_starts_still_reaches_it(monkeypatch):
+    """Ctrl-C in the instant after the child is spawned, before its wait begins: the child is still stopped, not
+    orphaned (on a loaded machine the test above once sent its signal in that instant)."""
+    spawned = []
+    popen = subprocess.Popen
+
+    def spawn_then_interrupt(*args, **kwargs):
+        spawned.append(popen(*args, **kwargs))
+        os.kill(os.getpid(), signal.SIGINT)
+        return spawned[-1]
+
+    monkeypatch.setattr(subprocess, "Popen", spawn_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        viewer.run_child([sys.executable, "-c", "import time; time.sleep(60)"], grace_s=5.0)
+    alive = spawned and spawned[0].poll() is None
+    if alive:
+        spawned[0].kill()
+    assert spawned and not alive
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="display detection is X11/Wayland specific")
 def test_view_without_display_names_no_option_it_does_not_have(tmp_path, monkeypatch, capsys):
     """`batgraph view` has no --viewer option: its message must not suggest one; it says how to use Rerun's web
