@@ -20,9 +20,9 @@ demo: install
 	$(BIN)/batgraph reconstruct data/samples/flight_5cam --out out/flight_5cam --compare
 	$(BIN)/batgraph reconstruct data/samples/ear_2cam --out out/ear_2cam --compare
 
-## test: the test suite (what CI runs)
+## test: the test suite (what CI runs), one worker per core (pytest-xdist; about 7 minutes on 2 cores)
 test: install
-	$(BIN)/python -m pytest -q -ra
+	$(BIN)/python -m pytest -q -ra -n auto
 
 ## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 17 minutes on 2 cores)
 bench: install
