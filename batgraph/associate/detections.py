@@ -3,6 +3,9 @@
 ``detections.csv`` (or ``.parquet``): one row per blob, ``frame, camera, u, v`` and optionally ``size`` (area,
 px^2) and ``score`` (a detector's confidence); u, v are raw (distorted) pixels in the OpenCV convention, as in
 observations.csv. ``seed_labels.csv``: ``frame, camera, marker, u, v``, the user's clicks naming markers.
+``frame`` is each camera's own frame number, as in observations.csv; a rig whose calibration.toml gives a camera
+its own ``fps`` or a ``time_offset_s`` has its detections put on the session clock (batgraph.session.session_frames):
+association pairs the cameras' detections by session frame.
 Every problem is one :class:`batgraph.errors.InputError` naming the file, the row and the problem. This module
 matches nothing and estimates nothing.
 """
@@ -18,7 +21,7 @@ import pandas as pd
 from .. import inputs
 from ..camera import Rig
 from ..errors import InputError
-from ..session import read_calibration
+from ..session import check_clock, read_calibration, session_frames
 
 DETECTION_COLUMNS = ["frame", "camera", "u", "v"]
 OPTIONAL_COLUMNS = ["size", "score"]
@@ -30,10 +33,11 @@ SNAP_PX = 5.0
 
 @dataclass
 class Detections:
-    """Detections sorted by frame then camera (file order within), as arrays.
+    """Detections sorted by session frame then camera (file order within), as arrays.
 
-    frame: (N,) int64; camera: (N,) int64 index into the rig; uv_px: (N, 2) raw pixels; size, score: (N,)
-    float or None when the file has no such column; row: (N,) each detection's 0-based data row in the file.
+    frame: (N,) int64 session frame; camera: (N,) int64 index into the rig; uv_px: (N, 2) raw pixels; size, score:
+    (N,) float or None when the file has no such column; row: (N,) each detection's 0-based data row in the file;
+    own_frame: (N,) int64 the file's frame (the camera's own; the same as frame for a rig on the session clock).
     """
 
     frame: np.ndarray
@@ -42,6 +46,7 @@ class Detections:
     size: np.ndarray | None
     score: np.ndarray | None
     row: np.ndarray
+    own_frame: np.ndarray
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -98,8 +103,8 @@ def read_setup(path: Path) -> SessionSetup:
     return SessionSetup(fps, list(names), pairs["rigid"], pairs["skeleton"], sigma)
 
 
-def read_detections(path: Path, rig: Rig, calibration_name: str = "calibration.toml") -> Detections:
-    """Read and check detections.csv / .parquet against the rig (see module docstring).
+def read_detections(path: Path, rig: Rig, fps: float, calibration_name: str = "calibration.toml") -> Detections:
+    """Read and check detections.csv / .parquet against the rig (see module docstring); fps: the session's [Hz].
 
     Refused: a ``marker`` column (labelled observations belong in observations.csv), frames out of order (a
     detector writes them in order; a shuffled file is a sign of a merge gone wrong), a camera not in the rig,
@@ -129,6 +134,9 @@ def read_detections(path: Path, rig: Rig, calibration_name: str = "calibration.t
                                  "negative")
             extra[col] = x
     inputs.check_frame_gaps(frame, path, is_csv)
+    check_clock(rig, fps, calibration_name)
+    own = frame
+    frame = own if rig.on_session_clock(fps) else session_frames(own, np.asarray(rig.names)[cam], rig, fps)
     order = np.lexsort((cam, frame))  # stable: file order within a frame and camera
     key = np.stack([frame, cam, u, v], axis=1)[order]
     dup = np.flatnonzero((key[1:] == key[:-1]).all(axis=1))
@@ -138,11 +146,12 @@ def read_detections(path: Path, rig: Rig, calibration_name: str = "calibration.t
                          f"twice (frame {frame[a]}, camera {rig.names[cam[a]]!r}, u {u[a]!r}, v {v[a]!r})")
     return Detections(frame[order], cam[order], np.stack([u, v], axis=1)[order],
                       extra["size"][order] if "size" in extra else None,
-                      extra["score"][order] if "score" in extra else None, order)
+                      extra["score"][order] if "score" in extra else None, order, own[order])
 
 
-def read_seed(path: Path, rig: Rig, detections: Detections, marker_names: list[str]) -> pd.DataFrame:
-    """Read seed_labels.csv and snap every click to its detection: a table ``detection, marker, row``.
+def read_seed(path: Path, rig: Rig, fps: float, detections: Detections, marker_names: list[str]) -> pd.DataFrame:
+    """Read seed_labels.csv (frames: the cameras' own) and snap every click to its detection: a table ``detection,
+    marker, row``.
 
     detection: index into ``detections``; marker: the name clicked; row: the click's 0-based data row.
     Refused: a marker not in ``marker_names`` (when session.toml names its markers), a camera not in the rig,
@@ -153,6 +162,7 @@ def read_seed(path: Path, rig: Rig, detections: Detections, marker_names: list[s
     frame = inputs.frame_column(df, path, is_csv)
     cam = _camera_positions(df, rig, path, is_csv, "the rig")
     marker = inputs.label_codes(df, "marker", path, is_csv)
+    k = frame if rig.on_session_clock(fps) else session_frames(frame, np.asarray(rig.names)[cam], rig, fps)
     names = marker.names[marker.codes]
     if marker_names:
         unknown = ~np.isin(names, marker_names)
@@ -164,7 +174,7 @@ def read_seed(path: Path, rig: Rig, detections: Detections, marker_names: list[s
     v = inputs.numeric_column(df, "v", path, is_csv, allow_missing=False)
     det = np.full(len(df), -1, np.int64)
     for i in range(len(df)):
-        lo, hi = np.searchsorted(detections.frame, [frame[i], frame[i] + 1])
+        lo, hi = np.searchsorted(detections.frame, [k[i], k[i] + 1])
         pool = lo + np.flatnonzero(detections.camera[lo:hi] == cam[i])
         if len(pool):
             d = np.hypot(*(detections.uv_px[pool] - [u[i], v[i]]).T)
@@ -202,7 +212,7 @@ def read_inputs(folder: Path, calibration: Path | None = None) -> tuple[SessionS
     cal = calibration if calibration is not None else folder / "calibration.toml"
     rig = read_calibration(cal)
     path = find_detections(folder)
-    return setup, rig, read_detections(path, rig, cal.name), path
+    return setup, rig, read_detections(path, rig, setup.fps, cal.name), path
 
 
 def _camera_positions(df, rig, path, is_csv: bool, rig_name: str) -> np.ndarray:

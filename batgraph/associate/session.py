@@ -81,7 +81,7 @@ def associate_session(folder: str | Path, options: AssociateOptions | None = Non
     if not seed_path.exists():
         raise InputError(f"{seed_path}: file not found; name the markers once: frame, camera, marker, u, v for the "
                          "markers of one frame (or a few clicks)")
-    seed = read_seed(seed_path, rig, dets, setup.marker_names)
+    seed = read_seed(seed_path, rig, setup.fps, dets, setup.marker_names)
     markers = _markers(setup, seed, seed_path)
     index = {m: i for i, m in enumerate(markers)}
     pairs = [(index[a], index[b]) for a, b in dict.fromkeys(setup.rigid + setup.skeleton) if a in index and b in index]
@@ -107,7 +107,7 @@ def _labels_table(dets: Detections, cameras: list[str], markers: list[str], res:
     """One row per detection in the file's order (see LABEL_COLUMNS)."""
     names = np.array(markers + [""], dtype=object)
     out = pd.DataFrame({
-        "frame": dets.frame, "camera": np.asarray(cameras, dtype=object)[dets.camera], "u": dets.uv_px[:, 0],
+        "frame": dets.own_frame, "camera": np.asarray(cameras, dtype=object)[dets.camera], "u": dets.uv_px[:, 0],
         "v": dets.uv_px[:, 1], "marker": names[np.where(res.label >= 0, res.label, -1)],
         "track": res.track, "confidence": np.round(np.where(res.label >= 0, res.confidence, 0.0), 4),
         "how": np.asarray(HOW, dtype=object)[res.how]})
