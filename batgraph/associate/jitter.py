@@ -113,7 +113,7 @@ def _fit(r: np.ndarray, g: np.ndarray, s2: np.ndarray, threshold: float) -> tupl
     g (n, 2) [px/s], weights 1 / s2 (n,) [px^2]; None unless chi-square drops by more than ``threshold``. Where
     every g is alike, shift and offset cannot be told apart: the least-norm solution, whose sum is what counts."""
     keep = np.ones(len(r), bool)
-    for _ in range(2):
+    for refit in (False, True):
         if keep.sum() < LEAST_PAIRS:
             return None
         w = np.repeat(1.0 / np.sqrt(s2[keep]), 2)
@@ -122,8 +122,9 @@ def _fit(r: np.ndarray, g: np.ndarray, s2: np.ndarray, threshold: float) -> tupl
         A[:, 2] = g[keep].ravel()
         A, b = A * w[:, None], r[keep].ravel() * w
         x = np.linalg.lstsq(A, b, rcond=1e-9)[0]
-        e = r - x[:2] - x[2] * g
-        keep = np.sum(e * e, axis=1) / s2 < CHI2_2DOF_GATE
+        if not refit:
+            e = r - x[:2] - x[2] * g
+            keep = np.sum(e * e, axis=1) / s2 < CHI2_2DOF_GATE
     gain = float(b @ b - np.sum((A @ x - b) ** 2))
     return (x[:2], float(x[2])) if gain > threshold else None
 
