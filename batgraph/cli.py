@@ -738,6 +738,9 @@ def _add_associate(sub):
     p.add_argument("--out", metavar="DIR", help="output session folder (default SESSION/associated)")
     p.add_argument("--pixel-sigma", type=positive_float, metavar="PX",
                    help="detection noise std [px] (default: session.toml [noise] pixel_sigma_px, else measured)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="use this calibration.toml instead of the session's (e.g. a reconstruct's rig.toml, with the "
+                        "cameras' time offsets from --sync estimate); the output session holds it as calibration.toml")
 
     def run(args) -> int:
         return associate(args)

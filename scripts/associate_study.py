@@ -38,10 +38,11 @@ OUT_OF_STEP_S = (0.0, 3.1e-3, -2.4e-3, 1.7e-3, -4.0e-3)  # a free-running rig at
 
 def simulate(scene: str, seed: int):
     """The simulated session of a case: 'flightN' (N markers, 160 frames) or 'wingbeat' (14 markers, 72 frames);
-    with '_steps' the 5 cameras are out of step by OUT_OF_STEP_S (unknown to the association)."""
+    with '_steps' the 5 cameras are out of step by OUT_OF_STEP_S (unknown to the association), with '_stated' by the
+    same, stated in calibration.toml (time_offset_s)."""
     rng = np.random.default_rng(seed)
     base, _, steps = scene.partition("_")
-    timing = Timing(time_offsets_s=OUT_OF_STEP_S) if steps == "steps" else None
+    timing = Timing(time_offsets_s=OUT_OF_STEP_S, known=steps == "stated") if steps else None
     if base.startswith("flight"):
         return simulate_flight(rng, n_markers=int(base[6:] or 14), n_frames=160, pixel_sigma_px=1.0, timing=timing)
     return simulate_wingbeat(rng, pixel_sigma_px=1.0, timing=timing)
@@ -67,7 +68,7 @@ def run_case(scene: str, seed: int, work: Path, with_smoother: bool) -> dict:
     write_associated(case / "input", case / "associated", obs, labels, fig)
     figures = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), session.fps,
                           len(session.marker_names))
-    row = {"scene": scene, "seed": seed, "associate_s": wall, **figures}
+    row = {"scene": scene, "seed": seed, "associate_s": wall, "clock_rounds": fig.summary["clock_rounds"], **figures}
     if with_smoother:
         real = (sc.truth["kind"] == "marker").to_numpy()
         true_obs = sc.detections[real].assign(marker=sc.truth["marker"][real].to_numpy(), weight=1.0)

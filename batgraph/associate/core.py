@@ -4,7 +4,10 @@ markers tracked away from the seed (batgraph.associate.tracks) -> every detectio
 (batgraph.associate.gaps), each step's names checked (batgraph.associate.verify); last, a named detection that
 another marker could as well have made is unnamed (refine.shared_views). Where some cameras are out of step or
 shaken on some frames, their detections are moved there by what the names tell (batgraph.associate.jitter), and the
-naming runs again from the names it gave (the tracking does not). No files (batgraph.associate.session).
+naming runs again from the names it gave (the tracking does not). Before that, where the rig's stated clocks put a
+camera's captures within a frame of the session's instants, the detections are moved to those instants along the
+named markers' motion and the whole association runs again, round after round (:func:`_on_the_clock`). No files
+(batgraph.associate.session).
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ class Association:
     candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
     an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker;
     moved (F, C) bool: the camera-frames found out of step or shaken and moved (batgraph.associate.jitter; None:
-    none), moved_px (N,) how far each detection was moved [raw px]."""
+    none), moved_px (N,) how far each detection was moved there [raw px]; clock_rounds: how many times the
+    detections were moved to their frames' instants and named again (:func:`_on_the_clock`; 0: on the clock)."""
 
     label: np.ndarray
     confidence: np.ndarray
@@ -56,6 +60,7 @@ class Association:
     sweep: tracks.Sweep
     moved: np.ndarray | None = None
     moved_px: np.ndarray | None = None
+    clock_rounds: int = 0
 
 
 def frame_index(dets: Detections, ideal: np.ndarray, sig: np.ndarray) -> tracks.FrameDetections:
@@ -192,15 +197,45 @@ def associate(rig: Rig, dets: Detections, seed_det: np.ndarray, seed_lab: np.nda
     label = _name(geom, fi, t, t.swept, n_labels, pairs, fps, opt)
     if len(rig) > PAIRS_UP_TO_CAMERAS:  # a large rig's points come from the markers' predictions, not t.points
         return t.association(*label)
+    clock = 0
+    if dets.time_frac.any():
+        t, label, clock = _on_the_clock(geom, fi, ideal, scale, dets.time_frac / fps, t, label, seed_det, seed_lab,
+                                        n_labels, pairs, fps, opt)
     jit = jitter.measure(geom, fi, label[0], n_labels, fps, t.noise_m)
     if not jit.moved.any():
-        return t.association(*label)
+        return dataclasses.replace(t.association(*label), clock_rounds=clock)
+    before = fi.uv
     fi.uv = jitter.moved_back(geom, fi, jit)
     for k in np.flatnonzero(jit.moved.any(axis=1)):
         t.points[fi.first + int(k)] = frame_points(geom, fi, fi.first + int(k))
     label = _name(geom, fi, t, label[0], n_labels, pairs, fps, opt)
     return dataclasses.replace(t.association(*label), moved=jit.moved,
-                               moved_px=np.linalg.norm(fi.uv - ideal, axis=1) / scale)
+                               moved_px=np.linalg.norm(fi.uv - before, axis=1) / scale, clock_rounds=clock)
+
+
+CLOCK_ROUNDS = 8  # at most: each round is a whole association
+CLOCK_GROWTH = 0.005  # another round while the names grow by more than this fraction of the detections
+
+
+def _on_the_clock(geom: views.Geometry, fi: tracks.FrameDetections, ideal: np.ndarray, scale: np.ndarray,
+                  dt: np.ndarray, t: _Tracked, label: tuple, seed_det: np.ndarray, seed_lab: np.ndarray,
+                  n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions
+                  ) -> tuple[_Tracked, tuple, int]:
+    """Detections captured dt (N,) [s] after their session frame's instant (what a stated time offset leaves within
+    a frame, a rolling shutter's readout) moved back to it along their marker's image motion, from the paths of
+    the names so far (batgraph.associate.jitter.along_motion), and steps 1-6 run again from the seed; repeated while
+    the names grow by more than CLOCK_GROWTH of the detections (each round's paths reach further), at most
+    CLOCK_ROUNDS times. Returns the last round's tracking and names, and the number of rounds."""
+    named, rounds, grown = int((label[0] >= 0).sum()), 0, len(ideal)
+    while rounds < CLOCK_ROUNDS and grown > CLOCK_GROWTH * len(ideal):
+        rounds += 1
+        xyz, _, _, vel = jitter.paths(geom, fi, label[0], n_labels, fps, t.noise_m)
+        fi.uv = jitter.along_motion(geom, fi, ideal, xyz, vel, np.zeros_like(ideal), dt)
+        t = _track(geom, fi, scale, seed_det, seed_lab, n_labels, pairs, fps, opt)
+        label = _name(geom, fi, t, t.swept, n_labels, pairs, fps, opt)
+        grown = int((label[0] >= 0).sum()) - named
+        named += grown
+    return t, label, rounds
 
 
 @dataclass

@@ -21,7 +21,7 @@ import pandas as pd
 from .. import inputs
 from ..camera import Rig
 from ..errors import InputError
-from ..session import check_clock, read_calibration, session_frames
+from ..session import check_clock, exposure_frames, read_calibration, session_frames
 
 DETECTION_COLUMNS = ["frame", "camera", "u", "v"]
 OPTIONAL_COLUMNS = ["size", "score"]
@@ -37,7 +37,9 @@ class Detections:
 
     frame: (N,) int64 session frame; camera: (N,) int64 index into the rig; uv_px: (N, 2) raw pixels; size, score:
     (N,) float or None when the file has no such column; row: (N,) each detection's 0-based data row in the file;
-    own_frame: (N,) int64 the file's frame (the camera's own; the same as frame for a rig on the session clock).
+    own_frame: (N,) int64 the file's frame (the camera's own; the same as frame for a rig on the session clock);
+    time_frac: (N,) when the detection was captured, less its session frame [session frames]: what a stated
+    time_offset_s leaves within a frame, plus readout_s * v / height (0 on the session clock).
     """
 
     frame: np.ndarray
@@ -47,6 +49,7 @@ class Detections:
     score: np.ndarray | None
     row: np.ndarray
     own_frame: np.ndarray
+    time_frac: np.ndarray
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -137,6 +140,11 @@ def read_detections(path: Path, rig: Rig, fps: float, calibration_name: str = "c
     check_clock(rig, fps, calibration_name)
     own = frame
     frame = own if rig.on_session_clock(fps) else session_frames(own, np.asarray(rig.names)[cam], rig, fps)
+    frac = np.zeros(len(frame))
+    for c, camera in enumerate(rig):
+        mine = cam == c
+        frac[mine] = (exposure_frames(own[mine], camera, fps) - frame[mine]
+                      + camera.readout_s * fps * v[mine] / camera.size_wh[1])
     order = np.lexsort((cam, frame))  # stable: file order within a frame and camera
     key = np.stack([frame, cam, u, v], axis=1)[order]
     dup = np.flatnonzero((key[1:] == key[:-1]).all(axis=1))
@@ -146,7 +154,8 @@ def read_detections(path: Path, rig: Rig, fps: float, calibration_name: str = "c
                          f"twice (frame {frame[a]}, camera {rig.names[cam[a]]!r}, u {u[a]!r}, v {v[a]!r})")
     return Detections(frame[order], cam[order], np.stack([u, v], axis=1)[order],
                       extra["size"][order] if "size" in extra else None,
-                      extra["score"][order] if "score" in extra else None, order, own[order])
+                      extra["score"][order] if "score" in extra else None, order, own[order],
+                      frac[order])
 
 
 def read_seed(path: Path, rig: Rig, fps: float, detections: Detections, marker_names: list[str]) -> pd.DataFrame:

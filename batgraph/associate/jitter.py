@@ -1,6 +1,6 @@
 """Cameras out of step or shaken, frame by frame: per camera and frame, the image shift and time offset that move
 its detections onto where the other cameras put the markers; measured on a first association and taken out of the
-detections before steps 3-6 run again (batgraph.associate.core; docs/associate.md, step 7).
+detections before steps 3-6 run again (batgraph.associate.core; docs/associate.md, step 8).
 
 Free-running cameras paired by the nearest frame (webcams by sync index) see a moving marker up to half a frame
 early or late, by an amount that changes from frame to frame, and a camera on a light mount shakes. Either puts a
@@ -51,12 +51,8 @@ def measure(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: in
             noise_m: float) -> Jitter:
     """Fit every camera and frame against the markers' paths from the named detections label (N,) (see module
     docstring); noise_m [m]: the seeded points' noise (refine.carry's floor)."""
-    xyz, std, _ = refine.positions(geom, fi, label, n_labels)
-    triangulated = np.isfinite(std)
-    xyz, std = refine.carry(xyz, std, fps, noise_m)
+    xyz, std, triangulated, vel = paths(geom, fi, label, n_labels, fps, noise_m)
     F, C = fi.n_frames, len(geom.rig)
-    vel = np.full_like(xyz, np.nan)
-    vel[1:-1] = (xyz[2:] - xyz[:-2]) * fps / 2
     out = Jitter(np.zeros((F, C, 2)), np.zeros((F, C)), xyz, vel)
     focal = np.array([c.K[0, 0] for c in geom.rig])
     from scipy.stats import chi2  # 0.9 s to import: not at batgraph's start-up
@@ -82,6 +78,19 @@ def measure(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: in
             if fit is not None:
                 out.shift[k, c], out.dt[k, c] = fit
     return out
+
+
+def paths(geom: Geometry, fi: FrameDetections, label: np.ndarray, n_labels: int, fps: float, noise_m: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The markers' paths from the named detections label (N,): positions xyz (F, L, 3) [m] and their std (F, L)
+    [m] (triangulated, or carried across short gaps: refine.carry), where triangulated (F, L) bool, and velocities
+    vel (F, L, 3) [m/s] from the frames either side (NaN where unknown)."""
+    xyz, std, _ = refine.positions(geom, fi, label, n_labels)
+    triangulated = np.isfinite(std)
+    xyz, std = refine.carry(xyz, std, fps, noise_m)
+    vel = np.full_like(xyz, np.nan)
+    vel[1:-1] = (xyz[2:] - xyz[:-2]) * fps / 2
+    return xyz, std, triangulated, vel
 
 
 def _pairs(proj: np.ndarray, uv: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -132,16 +141,28 @@ def _fit(r: np.ndarray, g: np.ndarray, s2: np.ndarray, threshold: float) -> tupl
 def moved_back(geom: Geometry, fi: FrameDetections, jit: Jitter) -> np.ndarray:
     """The detections' ideal pixels (N, 2) with each moved camera-frame's fit taken out: moved back by the shift
     and dt times the image velocity of the marker projected nearest the detection."""
-    uv = fi.uv.copy()
-    for k, c in zip(*np.nonzero(jit.moved), strict=True):
+    k = fi.frame - fi.first
+    return along_motion(geom, fi, fi.uv, jit.xyz, jit.vel, jit.shift[k, fi.camera], jit.dt[k, fi.camera])
+
+
+def along_motion(geom: Geometry, fi: FrameDetections, uv: np.ndarray, xyz: np.ndarray, vel: np.ndarray,
+                 shift: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Ideal pixels uv (N, 2) less shift (N, 2) [px] and dt (N,) [s] times the image velocity of the marker
+    projected nearest each detection (positions xyz and velocities vel (F, L, 3) [m, m/s], NaN where unknown).
+    Detections with neither, or with no marker known on their frame, stay where they are."""
+    out = uv.copy()
+    move = shift.any(axis=1) | (dt != 0)
+    for k, c in np.unique(np.stack([fi.frame[move] - fi.first, fi.camera[move]], axis=1), axis=0):
         rows = fi.rows(fi.first + int(k))
-        rc = rows[fi.camera[rows] == c]
-        known = np.isfinite(jit.xyz[k]).all(axis=1) & np.isfinite(jit.vel[k]).all(axis=1)
-        x, v = jit.xyz[k, known], jit.vel[k, known]
+        rc = rows[(fi.camera[rows] == c) & move[rows]]
+        known = np.isfinite(xyz[k]).all(axis=1) & np.isfinite(vel[k]).all(axis=1)
+        x, v = xyz[k, known], vel[k, known]
         h = x @ geom.P[c][:, :3].T + geom.P[c][:, 3]
         front = h[:, 2] > 0
+        if not front.any():
+            continue
         proj = h[front, :2] / h[front, 2:3]
         g = np.einsum("pij,pj->pi", jacobian(geom.P[c], x[front]), v[front])
-        near = np.argmin(np.linalg.norm(fi.uv[rc][:, None] - proj[None], axis=-1), axis=1)
-        uv[rc] = fi.uv[rc] - jit.shift[k, c] - jit.dt[k, c] * g[near]
-    return uv
+        near = np.argmin(np.linalg.norm(uv[rc][:, None] - proj[None], axis=-1), axis=1)
+        out[rc] = uv[rc] - shift[rc] - dt[rc, None] * g[near]
+    return out

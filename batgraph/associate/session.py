@@ -156,6 +156,7 @@ def _figures(dets: Detections, cameras: list[str], markers: list[str], res: Asso
     for i, h in enumerate(HOW):
         summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
     summary["out_of_step"] = _out_of_step(dets, cameras, res)
+    summary["clock_rounds"] = res.clock_rounds
     return Figures(np.arange(first, first + F), markers, how, switches, summary, suspect_below)
 
 
@@ -187,10 +188,11 @@ def out_of_step_text(summary: dict) -> str:
 
 
 def write_associated(folder: str | Path, out: str | Path, observations: pd.DataFrame, labels: pd.DataFrame,
-                     figures: Figures) -> Path:
+                     figures: Figures, calibration: str | Path | None = None) -> Path:
     """Write the associated session into ``out`` (atomically, as one result): the session's other files copied
     (session.toml, calibration.toml, truth.csv, ...; not the detections, the seed or an earlier observations.csv),
-    observations.csv, labels.csv and association.json (figures.summary)."""
+    observations.csv, labels.csv and association.json (figures.summary). calibration: the file the association
+    used instead of the session's, written as calibration.toml."""
     import json
 
     folder, out = Path(folder), Path(out)
@@ -198,9 +200,12 @@ def write_associated(folder: str | Path, out: str | Path, observations: pd.DataF
         raise InputError(f"{out}: is the session folder itself; give another --out (inputs are never modified)")
     inputs.check_output_dir(out)
     copied = [p for p in sorted(folder.iterdir()) if p.is_file() and p.name not in NOT_COPIED]
-    with atomic.result_folder(out, [p.name for p in copied] + list(OUTPUT_FILES)) as stage:
+    names = {p.name for p in copied} | set(OUTPUT_FILES) | ({"calibration.toml"} if calibration is not None else set())
+    with atomic.result_folder(out, sorted(names)) as stage:
         for p in copied:
             shutil.copy2(p, stage / p.name)
+        if calibration is not None:
+            shutil.copy2(calibration, stage / "calibration.toml")
         write_observations(stage / "observations.csv", observations)
         write_csv(stage / "labels.csv", labels.reset_index(drop=True), "%.6f")
         (stage / "association.json").write_text(json.dumps(figures.summary, indent=2) + "\n")
