@@ -190,16 +190,7 @@ def test_real_board_corners_are_named_back(tmp_path, late):
     wing's acceleration noise, 50 m^2/s^3, and kept q above 10 m^2/s^3: its 26 mm prediction std at 30 fps made
     every corner ambiguous). ``late``: cam1's frames numbered as if it had started that many frames late, and
     calibration.toml saying so (time_offset_s): the same names (measured: the same 97.9 %)."""
-    import real_dlt
-
-    from batgraph.session import Session
-
-    rig, obs, _ = real_dlt.load_caliscope()
-    session = Session("caliscope", 30.0, rig, obs, pixel_sigma_px=None)
-    sc = scenes.strip_labels(session)
-    folder = tmp_path / "caliscope"
-    scenes.write_scene(session, sc, folder)
-    truth = sc.truth
+    rig, folder, truth, n_markers = _board(tmp_path)
     if late:
         i = rig.names.index("cam1")
         rig.cameras[i] = dataclasses.replace(rig.cameras[i], time_offset_s=late / 30.0)
@@ -212,10 +203,40 @@ def test_real_board_corners_are_named_back(tmp_path, late):
             if name == "detections.csv":
                 truth = truth.iloc[order].reset_index(drop=True)
     _, labels, fig = associate_session(folder)
-    r = score.score(truth, labels["frame"].to_numpy(), labels["marker"].to_numpy(), 30.0, obs["marker"].nunique())
+    r = score.score(truth, labels["frame"].to_numpy(), labels["marker"].to_numpy(), 30.0, n_markers)
     assert r["real_correct"] >= 0.97 and r["real_wrong"] == 0.0, r
     moved = fig.summary["out_of_step"]
     assert max(moved, key=lambda c: moved[c]["frames"]) == "cam1", moved
+
+
+def _board(tmp_path: Path) -> tuple:
+    """Caliscope's corners as a detections session with its identities stripped: (rig, folder, truth, markers)."""
+    import real_dlt
+
+    from batgraph.session import Session
+
+    rig, obs, _ = real_dlt.load_caliscope()
+    session = Session("caliscope", 30.0, rig, obs, pixel_sigma_px=None)
+    sc = scenes.strip_labels(session)
+    folder = tmp_path / "caliscope"
+    scenes.write_scene(session, sc, folder)
+    return rig, folder, sc.truth, obs["marker"].nunique()
+
+
+def test_real_board_with_its_estimated_timing_is_named_to_98_percent(tmp_path):
+    """Caliscope's board with the timing `reconstruct --sync estimate` finds on its labelled corners stated in
+    calibration.toml (cam1 -3.1 ms, cam2 -0.25 ms, cam3 -0.01 ms, a 7.5 ms readout for all): the detections are
+    moved to their frames' instants (step 7) before step 8. Measured 98.3 % named correctly, none wrongly (97.9 %
+    without the timing). Before step 8 stopped trying shifts of half the corners' spacing or more, 98.0 % and 0.3 %
+    wrongly: cam1's 7 corners on frame 84 were named one row off (a 46 px shift; the corners lie 43 px apart)."""
+    rig, folder, truth, n_markers = _board(tmp_path)
+    timing = {"cam0": 0.0, "cam1": -3.1e-3, "cam2": -0.25e-3, "cam3": -0.014e-3}
+    timed = type(rig)([dataclasses.replace(c, time_offset_s=timing[c.name], readout_s=7.5e-3) for c in rig])
+    (folder / "calibration.toml").write_text(calibration_toml(timed))
+    _, labels, fig = associate_session(folder)
+    r = score.score(truth, labels["frame"].to_numpy(), labels["marker"].to_numpy(), 30.0, n_markers)
+    assert fig.summary["clock_rounds"] > 0
+    assert r["real_correct"] >= 0.98 and r["real_wrong"] == 0.0, r
 
 
 def test_cameras_off_the_session_clock_are_paired_on_it(tmp_path, capsys):

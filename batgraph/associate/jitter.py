@@ -98,7 +98,9 @@ def _pairs(proj: np.ndarray, uv: np.ndarray, tol: float) -> tuple[np.ndarray, np
     with the detection nearest it where each is the other's nearest and RATIO times nearer than the next, both
     ways, after the shift that brings the most projections within tol [px] of a detection (the least among equals;
     tried: none, and from each projection to its CANDIDATES nearest detections): a camera whose detections are all
-    off by more than their spacing's half-ratio is still paired."""
+    off by more than their spacing's half-ratio is still paired. A shift of half the projections' spacing or more
+    (the median distance to the nearest other) is not tried: it cannot be told from naming every marker as its
+    neighbour (a board's corners lie on a grid)."""
     from scipy.spatial import cKDTree  # 50 ms to import: only associate needs it
 
     if len(proj) < 2 or len(uv) < 2:
@@ -106,6 +108,8 @@ def _pairs(proj: np.ndarray, uv: np.ndarray, tol: float) -> tuple[np.ndarray, np
     tree = cKDTree(uv)
     _, near = tree.query(proj, k=min(CANDIDATES, len(uv)))
     shifts = np.concatenate([np.zeros((1, 2)), (uv[near.reshape(len(proj), -1)] - proj[:, None]).reshape(-1, 2)])
+    spacing = float(np.median(cKDTree(proj).query(proj, k=2)[0][:, 1]))
+    shifts = shifts[(np.linalg.norm(shifts, axis=1) < 0.5 * spacing) | (np.arange(len(shifts)) == 0)]
     dist, _ = tree.query((proj[None] + shifts[:, None]).reshape(-1, 2), k=1)
     count = (dist.reshape(len(shifts), len(proj)) <= tol).sum(axis=1)
     best = np.lexsort((np.linalg.norm(shifts, axis=1), -count))[0]
