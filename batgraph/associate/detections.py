@@ -21,7 +21,7 @@ import pandas as pd
 from .. import inputs
 from ..camera import Rig
 from ..errors import InputError
-from ..session import check_clock, exposure_frames, read_calibration, session_frames
+from ..session import capture_fractions, check_clock, read_calibration, session_frames
 
 DETECTION_COLUMNS = ["frame", "camera", "u", "v"]
 OPTIONAL_COLUMNS = ["size", "score"]
@@ -140,11 +140,7 @@ def read_detections(path: Path, rig: Rig, fps: float, calibration_name: str = "c
     check_clock(rig, fps, calibration_name)
     own = frame
     frame = own if rig.on_session_clock(fps) else session_frames(own, np.asarray(rig.names)[cam], rig, fps)
-    frac = np.zeros(len(frame))
-    for c, camera in enumerate(rig):
-        mine = cam == c
-        frac[mine] = (exposure_frames(own[mine], camera, fps) - frame[mine]
-                      + camera.readout_s * fps * v[mine] / camera.size_wh[1])
+    frac, _ = capture_fractions(rig, pd.DataFrame({"frame": frame, "camera_frame": own, "v": v}), cam, fps)
     order = np.lexsort((cam, frame))  # stable: file order within a frame and camera
     key = np.stack([frame, cam, u, v], axis=1)[order]
     dup = np.flatnonzero((key[1:] == key[:-1]).all(axis=1))
