@@ -33,6 +33,10 @@ class Options:
     progress: bool = True
     solver: str = "fast"
 
+    def estimates_sync(self, session) -> bool:
+        """Whether the timing is estimated on ``session``: ``sync``, or its session.toml's [sync] estimate."""
+        return self.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+
 
 @dataclass
 class Estimate:

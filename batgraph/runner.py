@@ -70,7 +70,7 @@ def run_methods(session: Session, methods: list[str], options: Options, live=Non
     processes (batgraph.forked.map_jobs; the first method here or in a child, its estimate pickled back),
     the first listed (the costliest of the defaults, the smoother) showing its progress.
     """
-    sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+    sync = options.estimates_sync(session)
     dense = dense_observations(session, timing=True if sync else None)  # the timing's estimate needs the rows
     pre = checks.preflight(session, dense)  # raises InputError when the geometry cannot be right
     if sync:  # the lag scan first: the smoother refines offsets within a frame or so

@@ -173,7 +173,7 @@ def shared_variables(session: Session, options: Options) -> shared.Shared:
     poses of cameras with a pose covariance, or of every camera with ``refine_rig`` (prior REFINE_SD where none)."""
     rig = session.rig
     C = len(rig)
-    sync = options.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+    sync = options.estimates_sync(session)
     pose = np.array([options.refine_rig or c.pose_cov is not None for c in rig])
     default = np.diag(np.repeat(np.square(REFINE_SD), 3))
     cov = np.stack([c.pose_cov if c.pose_cov is not None else default for c in rig])
