@@ -21,7 +21,6 @@ import numpy as np
 import pandas as pd
 from numba.core.errors import NumbaWarning
 
-from .associate.command import run as associate
 from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
 from .calibrate import calibrate_session, write_calibration
 from .camera import Rig
@@ -49,6 +48,7 @@ from .inputs import (
 )
 from .intrinsics import Board, calibrate_intrinsics
 from .methods import help_text as methods_help
+from .naming import associate_command as associate
 from .pipeline import DEFAULT_METHODS, parse_methods, read_result_tables, reconstruct
 from .result import Options
 from .session import read_session, write_session
@@ -741,6 +741,11 @@ def _add_associate(sub):
     p.add_argument("--calibration", metavar="FILE",
                    help="use this calibration.toml instead of the session's (e.g. a reconstruct's rig.toml, with the "
                         "cameras' time offsets from --sync estimate); the output session holds it as calibration.toml")
+    p.add_argument("--sync", choices=["estimate", "given"],
+                   help="estimate: measure each camera's time offset and rolling shutter from the names (the "
+                        "smoother, as reconstruct --sync estimate) and name the detections again on those clocks; "
+                        "the output session holds them as calibration.toml (default: session.toml [sync] estimate, "
+                        "else given)")
 
     def run(args) -> int:
         return associate(args)

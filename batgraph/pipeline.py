@@ -20,7 +20,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from . import associate as associate_mod
-from . import atomic, forked, inputs
+from . import atomic, forked, inputs, naming
 from . import methods as methods_registry
 from . import report as report_mod
 from . import summary as summary_mod
@@ -69,7 +69,6 @@ def export_method(result: Run) -> str:
 #: so one of these that a run does not write is not carried over from the previous result.
 OUTPUT_FILES = ("trajectories.csv", "reprojection.csv", "summary.json", "report.html", "trajectories.c3d",
                 "trajectories.trc", "recording.rrd", "validation.csv", "rig.toml", "labels.csv", "association.json")
-OBS_NAME = "observations.csv"  # the names given to unlabelled detections, in reconstruct's scratch folder
 
 
 def write_outputs(result: Run, out_dir: str | Path, viewer: str = "save", options: Options | None = None,
@@ -185,11 +184,11 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
     # the report's child, forked before the estimators' memory grows; cancelled on failure
     with report_standby(viewer) as report, tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
-        named = _associate_first(Path(session_dir), calibration, Path(scratch))
+        named = _associate_first(Path(session_dir), calibration, Path(scratch), options)
         session = (read_session(session_dir, calibration) if named is None else
-                   read_session(session_dir, calibration, Path(scratch) / OBS_NAME, named[2]))
+                   read_session(session_dir, calibration, Path(scratch) / naming.OBS_NAME, named.shown_as))
         if named is not None:
-            session.warnings.append(_association_warning(named[1].summary))
+            session.warnings.append(_association_warning(named.figures.summary))
         methods = list(methods or DEFAULT_METHODS)
         if viewer == "spawn":
             with LiveViewer(session, dense_observations(session), method="filter") as live:
@@ -198,7 +197,7 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
             run = run_methods(session, methods, options)
         result = Result(**vars(run), out_dir=out)
         if named is not None:
-            result.summary["association"] = named[1].to_summary()
+            result.summary["association"] = named.figures.to_summary()
         validation = None
         if validate:
             validation = validate_session(session, methods, options, summary=result.summary, workers=validate_workers)
@@ -208,23 +207,19 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         # (it would be read as this result's)
         result.files = write_outputs(result, out, viewer, options,
                                      validation_table=None if validation is None else validation.table, report=report,
-                                     association=None if named is None else (named[0], named[1].summary))
+                                     association=None if named is None else (named.labels, named.figures.summary))
         return result
 
 
-def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path
-                     ) -> tuple[pd.DataFrame, associate_mod.Figures, str] | None:
-    """For a session folder that holds unlabelled detections (detections.csv or .parquet) and no observations:
-    name them (batgraph.associate, from seed_labels.csv) and write the named ones to ``scratch``/observations.csv,
-    for read_session. Returns (labels table, figures, how warnings name the named detections), or None for a
-    folder with observations."""
+def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path, options: Options
+                     ) -> naming.Named | None:
+    """For a session folder that holds unlabelled detections (detections.csv or .parquet) and no observations: name
+    them (batgraph.naming; again on estimated clocks where the timing is estimated), the names left in
+    ``scratch``/observations.csv for read_session. None for a folder with observations."""
     has = [(folder / f"{stem}.{ext}").exists() for stem in ("observations", "detections") for ext in ("csv", "parquet")]
     if any(has[:2]) or not any(has[2:]):
         return None
-    obs, labels, figures = associate_mod.associate_session(folder, calibration=calibration)
-    associate_mod.require_named(folder, obs)
-    associate_mod.write_observations(scratch / OBS_NAME, obs)
-    return labels, figures, f"{figures.summary['detections_file']} (the detections named)"
+    return naming.name_detections(folder, scratch, options, calibration)
 
 
 def _association_warning(counts: dict) -> str:

@@ -524,7 +524,10 @@ def _association_section(r: _Report) -> str | None:
         f'<p>The observations are the names <code>batgraph associate</code> gave {a.get("detections")} unlabelled '
         f'detections from your seed frame: {a.get("named")} named ({100 * float(a.get("named_fraction", 0)):.1f} %), '
         f'pixel noise {_fmt(a.get("pixel_sigma_px"))} px, {a.get("suspected_switches")} suspected identity '
-        "switch(es). labels.csv gives every detection's name, track and confidence; a detection left unnamed "
+        "switch(es)"
+        + (", named again on the cameras' clocks measured from the first names (--sync estimate)"
+           if a.get("clocks_estimated") else "")
+        + ". labels.csv gives every detection's name, track and confidence; a detection left unnamed "
         "(spurious, merged or in doubt) is not used.</p>"]
     if markers and codes:
         first = int(a.get("first_frame", 0))

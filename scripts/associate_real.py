@@ -9,7 +9,8 @@
 
 Each: the observations without their markers become detections.csv, the frame where the most markers are seen by
 three cameras or more (nearest the middle) is the seed, ``associate_session`` names the rest; printed: the scores
-of batgraph.associate.score. Needs ../shared/data/real. Usage: ``python scripts/associate_real.py [--out DIR]``.
+of batgraph.associate.score. Needs ../shared/data/real. Usage: ``python scripts/associate_real.py [--out DIR] [--sync]
+[--only NAME]``.
 """
 
 from __future__ import annotations
@@ -63,24 +64,31 @@ def dannce(out: Path) -> Path:
     return out
 
 
-def relabel(labelled: Path, work: Path) -> dict:
-    from batgraph.associate import associate_session, scenes, score
+def relabel(labelled: Path, work: Path, sync: bool = False) -> dict:
+    from batgraph.associate import scenes, score
+    from batgraph.naming import name_detections
+    from batgraph.result import Options
     from batgraph.session import read_session
 
     session = read_session(labelled)
     sc = scenes.strip_labels(session)
     scenes.write_scene(session, sc, work)
     t0 = time.perf_counter()
-    _, labels, fig = associate_session(work)
+    with tempfile.TemporaryDirectory() as scratch:
+        named = name_detections(work, Path(scratch), Options(sync=sync, progress=False))
     wall = time.perf_counter() - t0
-    r = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), session.fps,
+    r = score.score(sc.truth, sc.detections["frame"].to_numpy(), named.labels["marker"].to_numpy(), session.fps,
                     len(session.markers))
-    return {"seconds": wall, "pixel_sigma_px": fig.summary["pixel_sigma_px"], **r}
+    s = named.figures.summary
+    return {"seconds": wall, "pixel_sigma_px": s["pixel_sigma_px"], "clocks_estimated": s["clocks_estimated"], **r}
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", help="keep the sessions here (default: a temporary folder)")
+    p.add_argument("--sync", action="store_true", help="as associate --sync estimate: name again on the clocks the "
+                   "smoother measures from the first names")
+    p.add_argument("--only", help="one of pose2sim, caliscope, dannce")
     args = p.parse_args(argv)
     if not REAL.is_dir():
         print(f"{REAL}: not found", file=sys.stderr)
@@ -88,7 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
         for name, make in (("pose2sim", pose2sim), ("caliscope", caliscope), ("dannce", dannce)):
-            r = relabel(make(work / name), work / f"{name}_stripped")
+            if args.only and name != args.only:
+                continue
+            r = relabel(make(work / name), work / f"{name}_stripped", args.sync)
             print(name, " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()),
                   flush=True)
     return 0

@@ -143,16 +143,17 @@ def test_start_noise_is_what_the_seeded_markers_do():
     assert at_120.q_min == default.q_min and at_120.accel_psd_m2_s3 == default.accel_psd_m2_s3
 
 
-def test_offsets_stated_within_a_frame_are_taken_out(tmp_path):
-    """Four cameras exposed 0, +0.4, -0.4 and +0.3 of a frame after the session's instants (markers moving up to
-    1.6 cm per frame, 1500 px focal, 0.5 px noise): with calibration.toml stating those offsets the detections are
-    moved to the frames' instants along their markers' motion and named again (clock_rounds), measured 99.6 %
-    named correctly and none wrongly; with the offsets unstated 97.1 % and 0.1 %; the same scene in step 100 %."""
+CLOCK_FRACS = (0.0, 0.4, -0.4, 0.3)  # each camera's exposure after the session's instants [frames at 100 fps]
+
+
+def _clock_scene():
+    """Four cameras exposed CLOCK_FRACS of a frame after the session's instants (6 markers moving up to 1.6 cm per
+    frame, 40 frames at 100 fps, 1500 px focal, 0.5 px noise, the offsets not stated): (session, scene)."""
     from conftest import observations_table, tiny_rig
 
     from batgraph.session import Session
 
-    F, M, fracs = 40, 6, (0.0, 0.4, -0.4, 0.3)
+    F, M = 40, 6
     rng = np.random.default_rng(0)
     base, phase = rng.uniform(-0.2, 0.2, size=(1, M, 3)), rng.uniform(0, 2 * np.pi, size=(1, M, 3))
 
@@ -161,24 +162,64 @@ def test_offsets_stated_within_a_frame_are_taken_out(tmp_path):
 
     rig = tiny_rig(4, focal_px=1500.0)
     names = [f"m{j}" for j in range(M)]
-    obs = pd.concat([observations_table(type(rig)([cam]), xyz(np.arange(F) + fracs[c]), names)
+    obs = pd.concat([observations_table(type(rig)([cam]), xyz(np.arange(F) + CLOCK_FRACS[c]), names)
                      for c, cam in enumerate(rig)]).sort_values(["frame", "camera", "marker"], kind="stable")
     obs[["u", "v"]] += 0.5 * rng.standard_normal((len(obs), 2))
     session = Session("clock", 100.0, rig, obs.reset_index(drop=True), marker_names=names)
-    sc = scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0, seed_frame=F // 2))
+    return session, scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0,
+                                                                        seed_frame=F // 2))
+
+
+def _score(sc, labels: pd.DataFrame) -> dict:
+    return score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), 100.0, 6)
+
+
+def test_offsets_stated_within_a_frame_are_taken_out(tmp_path):
+    """The clock scene (_clock_scene): with calibration.toml stating the offsets the detections are moved to the
+    frames' instants along their markers' motion and named again (clock_rounds), measured 99.6 % named correctly
+    and none wrongly; with the offsets unstated 97.1 % and 0.1 %; the same scene in step 100 %."""
+    session, sc = _clock_scene()
+    rig = session.rig
     scores = {}
     for stated in (False, True):
         folder = tmp_path / f"stated_{stated}"
         scenes.write_scene(session, sc, folder)
         if stated:
-            timed = type(rig)([dataclasses.replace(cam, time_offset_s=fracs[c] / 100.0) for c, cam in enumerate(rig)])
+            timed = type(rig)([dataclasses.replace(cam, time_offset_s=CLOCK_FRACS[c] / 100.0)
+                               for c, cam in enumerate(rig)])
             (folder / "calibration.toml").write_text(calibration_toml(timed))
         _, labels, fig = associate_session(folder)
-        scores[stated] = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), 100.0,
-                                     M)
+        scores[stated] = _score(sc, labels)
         assert (fig.summary["clock_rounds"] > 0) == stated
     assert scores[True]["real_correct"] >= 0.99 and scores[True]["real_wrong"] == 0.0
     assert scores[False]["real_correct"] < 0.985
+
+
+def test_offsets_nobody_stated_are_measured_from_the_first_names(tmp_path, capsys):
+    """The clock scene with its offsets unstated (97.1 % named correctly, 0.1 % wrongly: above): ``associate
+    --sync estimate`` measures the offsets from those names with the smoother (found within 0.1 frame) and names
+    the detections again on them: measured 99.6 % and none wrongly, as with the offsets stated; its output session
+    holds the estimated clocks as calibration.toml. ``reconstruct --sync estimate`` of the detections gives the
+    same names."""
+    import tomllib
+
+    session, sc = _clock_scene()
+    folder = tmp_path / "clock"
+    scenes.write_scene(session, sc, folder)
+    assert main(["associate", str(folder), "--out", str(tmp_path / "named"), "--sync", "estimate"]) == 0
+    assert "named again on the clocks estimated" in capsys.readouterr().out
+    labels = pd.read_csv(tmp_path / "named" / "labels.csv", keep_default_na=False)
+    scored = _score(sc, labels)
+    assert scored["real_correct"] >= 0.99 and scored["real_wrong"] == 0.0
+    assert json.loads((tmp_path / "named" / "association.json").read_text())["clocks_estimated"] is True
+    cal = tomllib.loads((tmp_path / "named" / "calibration.toml").read_text())
+    offsets = np.array([cal[f"cam_{c}"].get("time_offset_s", 0.0) for c in range(4)]) * 100.0
+    assert np.abs(offsets - offsets[0] - np.array(CLOCK_FRACS)).max() < 0.1
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(folder), "--sync", "estimate", "--methods", "smoother", "--viewer", "none",
+                 "--quiet", "--out", str(out)]) == 0
+    assert (out / "labels.csv").read_bytes() == (tmp_path / "named" / "labels.csv").read_bytes()
+    assert json.loads((out / "association.json").read_text())["clocks_estimated"] is True
 
 
 @pytest.mark.parametrize("late", [0, 2])
@@ -223,20 +264,26 @@ def _board(tmp_path: Path) -> tuple:
     return rig, folder, sc.truth, obs["marker"].nunique()
 
 
-def test_real_board_with_its_estimated_timing_is_named_to_98_percent(tmp_path):
-    """Caliscope's board with the timing `reconstruct --sync estimate` finds on its labelled corners stated in
-    calibration.toml (cam1 -3.1 ms, cam2 -0.25 ms, cam3 -0.01 ms, a 7.5 ms readout for all): the detections are
-    moved to their frames' instants (step 7) before step 8. Measured 98.3 % named correctly, none wrongly (97.9 %
-    without the timing). Before step 8 stopped trying shifts of half the corners' spacing or more, 98.0 % and 0.3 %
-    wrongly: cam1's 7 corners on frame 84 were named one row off (a 46 px shift; the corners lie 43 px apart)."""
-    rig, folder, truth, n_markers = _board(tmp_path)
-    timing = {"cam0": 0.0, "cam1": -3.1e-3, "cam2": -0.25e-3, "cam3": -0.014e-3}
-    timed = type(rig)([dataclasses.replace(c, time_offset_s=timing[c.name], readout_s=7.5e-3) for c in rig])
-    (folder / "calibration.toml").write_text(calibration_toml(timed))
-    _, labels, fig = associate_session(folder)
-    r = score.score(truth, labels["frame"].to_numpy(), labels["marker"].to_numpy(), 30.0, n_markers)
-    assert fig.summary["clock_rounds"] > 0
+def test_real_board_is_named_to_98_percent_on_the_clocks_measured_from_its_names(tmp_path):
+    """Caliscope's board (4 free-running webcams), no timing stated: ``--sync estimate`` measures the cameras'
+    offsets and readouts from the first names (97.9 % named correctly) and names the corners again on them, the
+    detections moved to their frames' instants (step 7) before step 8. Measured 98.4 % named correctly, none
+    wrongly, on cam1 -3.3 ms and an 8.2 ms readout (98.3 % with the timing `reconstruct --sync estimate` finds on
+    the labelled corners stated: cam1 -3.1 ms, a 7.5 ms readout). Before step 8 stopped trying shifts of half the
+    corners' spacing or more, that stated timing gave 98.0 % and 0.3 % wrongly: cam1's 7 corners on frame 84 named
+    one row off (a 46 px shift; the corners lie 43 px apart)."""
+    from batgraph.naming import name_detections
+    from batgraph.result import Options
+
+    _, folder, truth, n_markers = _board(tmp_path)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    named = name_detections(folder, scratch, Options(sync=True, progress=False))
+    r = score.score(truth, named.labels["frame"].to_numpy(), named.labels["marker"].to_numpy(), 30.0, n_markers)
+    assert named.figures.summary["clocks_estimated"] and named.figures.summary["clock_rounds"] > 0
     assert r["real_correct"] >= 0.98 and r["real_wrong"] == 0.0, r
+    cam1 = read_calibration(named.calibration).cameras[1]  # measured -3.3 ms and 8.2 ms
+    assert abs(cam1.time_offset_s + 3.1e-3) < 0.5e-3 and abs(cam1.readout_s - 7.5e-3) < 1.5e-3
 
 
 def test_cameras_off_the_session_clock_are_paired_on_it(tmp_path, capsys):

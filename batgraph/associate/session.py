@@ -184,7 +184,7 @@ def out_of_step_text(summary: dict) -> str:
                      for c, m in moved.items())
     return (f"detections out of step with the other cameras (a free-running or shaken camera) were moved to be "
             f"named: {each}; the estimators take them as they are (where a camera's offset is constant, "
-            "reconstruct --sync estimate models it)")
+            "--sync estimate measures it from the names and names the detections again on it)")
 
 
 def write_associated(folder: str | Path, out: str | Path, observations: pd.DataFrame, labels: pd.DataFrame,
