@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from . import atomic
+from . import atomic, inputs
 from .associate import (
     AssociateOptions,
     Figures,
@@ -64,6 +64,8 @@ def name_detections(folder: str | Path, scratch: Path, options: Options | None =
     calibration = None if calibration is None else Path(calibration)
     named = _name(folder, associate, calibration)
     write_observations(scratch / OBS_NAME, named.observations)
+    if not (options.sync or "sync" in inputs.read_toml(folder / "session.toml")):  # no session to read
+        return named
     session = read_session(folder, calibration, scratch / OBS_NAME, named.shown_as)
     if not options.estimates_sync(session):
         return named
