@@ -9,7 +9,7 @@ detections) and on the recovered labels less the wrong ones, for the RMSE on obs
 last says whether the names left out or the wrong ones cost accuracy. Prints one line per case and the medians.
 
 Usage: ``python scripts/associate_study.py [--scenes flight14,flight24,wingbeat] [--seeds 0,1,2] [--out DIR]
-[--no-smoother]``.
+[--no-smoother] [--sync]``.
 """
 
 from __future__ import annotations
@@ -27,8 +27,10 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from batgraph.associate import associate_session, scenes, score, write_associated  # noqa: E402
+from batgraph.associate import scenes, score, write_associated  # noqa: E402
 from batgraph.cli import main  # noqa: E402
+from batgraph.naming import name_detections  # noqa: E402
+from batgraph.result import Options  # noqa: E402
 from batgraph.session import write_session  # noqa: E402
 from batgraph.simulate import Timing, simulate_flight  # noqa: E402
 from batgraph.wingbeat import simulate_wingbeat  # noqa: E402
@@ -48,40 +50,43 @@ def simulate(scene: str, seed: int):
     return simulate_wingbeat(rng, pixel_sigma_px=1.0, timing=timing)
 
 
-def smoother_rmse(session_dir: Path, out: Path) -> float:
-    """The smoother's RMSE on observed points against truth.csv [m]."""
+def smoother_rmse(session_dir: Path, out: Path, sync: bool = False) -> float:
+    """The smoother's RMSE on observed points against truth.csv [m] (with ``sync``, with --sync estimate)."""
     rc = main(["reconstruct", str(session_dir), "--methods", "smoother", "--viewer", "none", "--quiet", "--out",
-               str(out)])
+               str(out), *(["--sync", "estimate"] if sync else [])])
     if rc != 0:
         return float("nan")
     return json.loads((out / "summary.json").read_text())["methods"]["smoother"]["truth"]["rmse_m"]["observed"]
 
 
-def run_case(scene: str, seed: int, work: Path, with_smoother: bool) -> dict:
+def run_case(scene: str, seed: int, work: Path, with_smoother: bool, sync: bool = False) -> dict:
     session = simulate(scene, seed)
     sc = scenes.make_scene(session, np.random.default_rng(1000 + seed), scenes.SceneOptions())
     case = work / f"{scene}_{seed}"
     scenes.write_scene(session, sc, case / "input")
     t0 = time.perf_counter()
-    obs, labels, fig = associate_session(case / "input")
-    wall = time.perf_counter() - t0
-    write_associated(case / "input", case / "associated", obs, labels, fig)
+    with tempfile.TemporaryDirectory() as scratch:
+        named = name_detections(case / "input", Path(scratch), Options(sync=sync, progress=False))
+        wall = time.perf_counter() - t0
+        obs, labels, fig = named.observations, named.labels, named.figures
+        write_associated(case / "input", case / "associated", obs, labels, fig, named.calibration)
     figures = score.score(sc.truth, sc.detections["frame"].to_numpy(), labels["marker"].to_numpy(), session.fps,
                           len(session.marker_names))
-    row = {"scene": scene, "seed": seed, "associate_s": wall, "clock_rounds": fig.summary["clock_rounds"], **figures}
+    row = {"scene": scene, "seed": seed, "associate_s": wall, "clock_rounds": fig.summary["clock_rounds"],
+           "clocks_estimated": fig.summary["clocks_estimated"], **figures}
     if with_smoother:
         real = (sc.truth["kind"] == "marker").to_numpy()
         true_obs = sc.detections[real].assign(marker=sc.truth["marker"][real].to_numpy(), weight=1.0)
         session.observations = true_obs[["frame", "camera", "marker", "u", "v", "weight"]].reset_index(drop=True)
         write_session(session, case / "true_labels")
-        row["rmse_true_mm"] = 1e3 * smoother_rmse(case / "true_labels", case / "true_labels" / "out")
-        row["rmse_recovered_mm"] = 1e3 * smoother_rmse(case / "associated", case / "associated" / "out")
+        row["rmse_true_mm"] = 1e3 * smoother_rmse(case / "true_labels", case / "true_labels" / "out", sync)
+        row["rmse_recovered_mm"] = 1e3 * smoother_rmse(case / "associated", case / "associated" / "out", sync)
         row["rmse_ratio"] = row["rmse_recovered_mm"] / row["rmse_true_mm"]
         right = (labels["marker"].to_numpy() == sc.truth["marker"].to_numpy()) & real
         session.observations = sc.detections[right].assign(marker=labels["marker"][right].to_numpy(), weight=1.0)[
             ["frame", "camera", "marker", "u", "v", "weight"]].reset_index(drop=True)
         write_session(session, case / "right_only")
-        row["rmse_right_only_ratio"] = 1e3 * smoother_rmse(case / "right_only", case / "right_only" / "out") / \
+        row["rmse_right_only_ratio"] = 1e3 * smoother_rmse(case / "right_only", case / "right_only" / "out", sync) / \
             row["rmse_true_mm"]
     return row
 
@@ -92,13 +97,15 @@ def main_study(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--out", help="keep the case folders here (default: a temporary folder)")
     p.add_argument("--no-smoother", action="store_true", help="skip the two reconstructs per case")
+    p.add_argument("--sync", action="store_true", help="as associate --sync estimate (the clocks measured from the "
+                   "first names, the detections named again on them); the reconstructs with --sync estimate too")
     args = p.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
         for scene in args.scenes.split(","):
             for seed in (int(s) for s in args.seeds.split(",")):
-                row = run_case(scene, seed, work, not args.no_smoother)
+                row = run_case(scene, seed, work, not args.no_smoother, args.sync)
                 rows.append(row)
                 print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
                       flush=True)
