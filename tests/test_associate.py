@@ -220,6 +220,7 @@ def test_offsets_nobody_stated_are_measured_from_the_first_names(tmp_path, capsy
                  "--quiet", "--out", str(out)]) == 0
     assert (out / "labels.csv").read_bytes() == (tmp_path / "named" / "labels.csv").read_bytes()
     assert json.loads((out / "association.json").read_text())["clocks_estimated"] is True
+    assert "named again on the cameras' clocks measured from the first names" in (out / "report.html").read_text()
 
 
 @pytest.mark.parametrize("late", [0, 2])
