@@ -748,7 +748,7 @@ def _add_associate(sub):
                         "else given)")
 
     def run(args) -> int:
-        return associate(args)
+        return associate(args, _progress_bars(args))
 
     p.set_defaults(func=run)
 

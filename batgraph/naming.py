@@ -61,6 +61,7 @@ def name_detections(folder: str | Path, scratch: Path, options: Options | None =
     """
     folder = Path(folder)
     options = options or Options()
+    associate = associate or AssociateOptions(progress=options.progress)
     calibration = None if calibration is None else Path(calibration)
     named = _name(folder, associate, calibration)
     write_observations(scratch / OBS_NAME, named.observations)
@@ -88,15 +89,15 @@ def _name(folder: Path, associate: AssociateOptions | None, calibration: Path | 
     return Named(obs, labels, figures, calibration, f"{figures.summary['detections_file']} (the detections named)")
 
 
-def associate_command(args) -> int:
+def associate_command(args, progress: bool = False) -> int:
     """``batgraph associate SESSION [--out DIR] [--pixel-sigma PX] [--calibration FILE] [--sync estimate]``: name
     the detections, write DIR (batgraph.associate.write_associated; with the estimated clocks as its
-    calibration.toml where they were kept), print a summary."""
+    calibration.toml where they were kept), print a summary. progress: show progress bars."""
     folder = Path(args.session)
     out = Path(args.out) if args.out else folder / "associated"
     with tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
-        named = name_detections(folder, Path(scratch), Options(sync=args.sync == "estimate"), args.calibration,
-                                AssociateOptions(pixel_sigma_px=args.pixel_sigma))
+        named = name_detections(folder, Path(scratch), Options(sync=args.sync == "estimate", progress=progress),
+                                args.calibration, AssociateOptions(pixel_sigma_px=args.pixel_sigma, progress=progress))
         write_associated(folder, out, named.observations, named.labels, named.figures, named.calibration)
     s = named.figures.summary
     print(f"{folder}: named {s['named']} of {s['detections']} detections ({100 * s['named_fraction']:.1f} %), "

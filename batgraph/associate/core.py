@@ -17,6 +17,7 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from ..camera import Rig
 from . import affine, gaps, jitter, refine, segments, tracks, verify, views
@@ -34,12 +35,14 @@ detection the tracker joined along its marker's predicted ray, or matched to whe
 class AssociateOptions:
     """pixel_sigma_px: the detections' noise [px] (None: measured from points seen by 4 cameras or more);
     margin: the least extra cost (chi-square units) for a detection's name to be kept (4.6: confidence 0.9);
-    rounds: matching rounds (batgraph.associate.refine); track: the tracker's options."""
+    rounds: matching rounds (batgraph.associate.refine); track: the tracker's options; progress: a bar over the
+    rounds of step 7 (each a whole association: minutes on a long session)."""
 
     pixel_sigma_px: float | None = None
     margin: float = 4.6
     rounds: int = 2
     track: tracks.TrackOptions = field(default_factory=tracks.TrackOptions)
+    progress: bool = False
 
 
 @dataclass
@@ -227,14 +230,18 @@ def _on_the_clock(geom: views.Geometry, fi: tracks.FrameDetections, ideal: np.nd
     the names grow by more than CLOCK_GROWTH of the detections (each round's paths reach further), at most
     CLOCK_ROUNDS times. Returns the last round's tracking and names, and the number of rounds."""
     named, rounds, grown = int((label[0] >= 0).sum()), 0, len(ideal)
+    bar = tqdm(total=CLOCK_ROUNDS, desc="naming on the stated clocks: rounds", disable=not opt.progress, leave=False)
     while rounds < CLOCK_ROUNDS and grown > CLOCK_GROWTH * len(ideal):
         rounds += 1
+        bar.set_postfix_str(f"{100 * named / len(ideal):.0f} % named")
         xyz, _, _, vel = jitter.paths(geom, fi, label[0], n_labels, fps, t.noise_m)
         fi.uv = jitter.along_motion(geom, fi, ideal, xyz, vel, np.zeros_like(ideal), dt)
         t = _track(geom, fi, scale, seed_det, seed_lab, n_labels, pairs, fps, opt)
         label = _name(geom, fi, t, t.swept, n_labels, pairs, fps, opt)
         grown = int((label[0] >= 0).sum()) - named
         named += grown
+        bar.update()
+    bar.close()
     return t, label, rounds
 
 

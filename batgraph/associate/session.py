@@ -8,7 +8,7 @@ instead of observations.csv, ``reconstruct`` call it); ``write_associated`` writ
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,7 +87,7 @@ def associate_session(folder: str | Path, options: AssociateOptions | None = Non
     pairs = [(index[a], index[b]) for a, b in dict.fromkeys(setup.rigid + setup.skeleton) if a in index and b in index]
     opt = options or AssociateOptions()
     if opt.pixel_sigma_px is None and setup.pixel_sigma_px is not None:
-        opt = AssociateOptions(setup.pixel_sigma_px, opt.margin, opt.rounds, opt.track)
+        opt = replace(opt, pixel_sigma_px=setup.pixel_sigma_px)
     res = associate(rig, dets, seed["detection"].to_numpy(), seed["marker"].map(index).to_numpy(), len(markers),
                     pairs, setup.fps, opt)
     labels = _labels_table(dets, rig.names, markers, res)
