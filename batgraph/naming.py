@@ -40,9 +40,8 @@ OBS_NAME = "observations.csv"  # the names, in the caller's scratch folder, for 
 class Named:
     """A naming's result: observations (observations.csv's layout, the named detections), labels (one row per
     detection), figures (batgraph.associate.Figures; summary["clocks_estimated"]: whether the names are those given
-    on the estimated clocks),
-    calibration: the calibration.toml the names were given on (None: the folder's own), and ``shown_as``: how
-    warnings name the named detections."""
+    on the estimated clocks), calibration (the calibration.toml the names were given on; None: the folder's own)
+    and shown_as (how warnings name the named detections)."""
 
     observations: pd.DataFrame
     labels: pd.DataFrame
