@@ -69,9 +69,11 @@ def name_detections(folder: str | Path, scratch: Path, options: Options | None =
     session = read_session(folder, calibration, scratch / OBS_NAME, named.shown_as)
     if not options.estimates_sync(session):
         return named
-    run = run_methods(session, ["smoother"], dataclasses.replace(options, sync=True))
+    rig = run_methods(session, ["smoother"], dataclasses.replace(options, sync=True)).estimates["smoother"].rig
+    if rig is None:  # no timing variable was solved (schedule.run's est.rig): nothing measured to name again on
+        return named
     clocks = scratch / "clocks.toml"
-    atomic.write_text(clocks, calibration_toml(run.estimates["smoother"].rig))
+    atomic.write_text(clocks, calibration_toml(rig))
     again = _name(folder, associate, clocks)
     if len(again.observations) <= len(named.observations):
         return named

@@ -164,8 +164,9 @@ def run_by_take(run: RunFunction, session: Session, dense: DenseObservations, id
     run: the method's run function (:data:`RUN`). on_frame(frame number, xyz (M, 3), cov (M, 3, 3)):
     the filter's per-frame callback (the live viewer), given the original frame number. Takes are runs
     of frames separated by long runs without observations (batgraph.session.frame_axis): no motion model
-    bridges such a gap, and a stray frame costs only its own take. With several takes, ``info`` is the
-    longest take's, plus ``takes``: each take's first and last frame and iterations where reported.
+    bridges such a gap, and a stray frame costs only its own take. With several takes, ``info`` and ``rig`` (the
+    timing and poses as estimated: OUT/rig.toml) are the longest take's, plus ``takes`` in info: each take's first
+    and last frame and iterations where reported.
     """
     parts = []
     for sl in dense.take_slices:
@@ -184,4 +185,4 @@ def run_by_take(run: RunFunction, session: Session, dense: DenseObservations, id
     info["info_of_take"] = longest
     return Estimate(parts[0].method, np.concatenate([p.xyz_m for p in parts]),
                     np.concatenate([p.cov_m2 for p in parts]), np.concatenate([p.outlier for p in parts], axis=1),
-                    sum(p.runtime_s for p in parts), info)
+                    sum(p.runtime_s for p in parts), info, rig=parts[longest].rig)

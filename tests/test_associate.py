@@ -234,6 +234,28 @@ def test_offsets_nobody_stated_are_measured_from_the_first_names(tmp_path, capsy
     assert "named again on the cameras' clocks measured from the first names" in (out / "report.html").read_text()
 
 
+def test_clocks_are_measured_on_a_session_of_two_takes(tmp_path, capsys):
+    """The clock scene split into two takes (frames 0-4, then 15-39 moved 150 frames on: 1.5 s without a detection),
+    seeded in both: the smoother solves each take on its own, and the clocks are the longest take's (as its info
+    and rig.toml are); the detections are named again on them. This ended in a TypeError when only one take's
+    estimate carried a rig. Measured 97.2 % of the detections named, then 98.7 % on the measured clocks."""
+    session, sc = _clock_scene()
+    folder = tmp_path / "takes"
+    scenes.write_scene(session, sc, folder)
+    dets = pd.read_csv(folder / "detections.csv")
+    real = (sc.truth["kind"] == "marker").to_numpy()
+    keep = ((dets["frame"] < 5) | (dets["frame"] >= 15)).to_numpy()
+    dets["frame"] += np.where(dets["frame"] >= 15, 150, 0)
+    early = keep & real & (dets["frame"] == 2).to_numpy()
+    seed = pd.concat([dets[early].assign(marker=sc.truth["marker"][early].to_numpy()),
+                      pd.read_csv(folder / "seed_labels.csv").assign(frame=lambda t: t["frame"] + 150)])
+    dets[keep].to_csv(folder / "detections.csv", index=False)
+    seed[["frame", "camera", "marker", "u", "v"]].to_csv(folder / "seed_labels.csv", index=False)
+    assert main(["associate", str(folder), "--out", str(tmp_path / "named"), "--sync", "estimate"]) == 0
+    assert "named again on the clocks estimated" in capsys.readouterr().out
+    assert json.loads((tmp_path / "named" / "association.json").read_text())["clocks_estimated"] is True
+
+
 @pytest.mark.parametrize("late", [0, 2])
 def test_real_board_corners_are_named_back(tmp_path, late):
     """Caliscope's ChArUco corners (real: 4 webcams at 30 fps, a board moved by hand, 2175 corners) with their
