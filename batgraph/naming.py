@@ -24,6 +24,7 @@ from .associate import (
     AssociateOptions,
     Figures,
     associate_session,
+    check_out,
     out_of_step_text,
     require_named,
     write_associated,
@@ -96,6 +97,7 @@ def associate_command(args, progress: bool = False) -> int:
     calibration.toml where they were kept), print a summary. progress: show progress bars."""
     folder = Path(args.session)
     out = Path(args.out) if args.out else folder / "associated"
+    check_out(folder, out)
     with tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
         named = name_detections(folder, Path(scratch), Options(sync=args.sync == "estimate", progress=progress),
                                 args.calibration, AssociateOptions(pixel_sigma_px=args.pixel_sigma, progress=progress))

@@ -7,7 +7,15 @@ some frames (.jitter), the whole on arrays (.core), and test scenes with their s
 """
 
 from .core import AssociateOptions
-from .session import Figures, associate_session, out_of_step_text, require_named, write_associated, write_observations
+from .session import (
+    Figures,
+    associate_session,
+    check_out,
+    out_of_step_text,
+    require_named,
+    write_associated,
+    write_observations,
+)
 
-__all__ = ["AssociateOptions", "Figures", "associate_session", "out_of_step_text", "require_named",
+__all__ = ["AssociateOptions", "Figures", "associate_session", "check_out", "out_of_step_text", "require_named",
            "write_associated", "write_observations"]

@@ -187,6 +187,14 @@ def out_of_step_text(summary: dict) -> str:
             "--sync estimate measures it from the names and names the detections again on it)")
 
 
+def check_out(folder: Path, out: Path) -> None:
+    """InputError where ``out`` cannot take an associated session: the session folder itself, or not a folder that
+    can be written (batgraph.inputs.check_output_dir). Before any work: a naming can take minutes."""
+    if out.resolve() == folder.resolve():
+        raise InputError(f"{out}: is the session folder itself; give another --out (inputs are never modified)")
+    inputs.check_output_dir(out)
+
+
 def write_associated(folder: str | Path, out: str | Path, observations: pd.DataFrame, labels: pd.DataFrame,
                      figures: Figures, calibration: str | Path | None = None) -> Path:
     """Write the associated session into ``out`` (atomically, as one result): the session's other files copied
@@ -196,9 +204,7 @@ def write_associated(folder: str | Path, out: str | Path, observations: pd.DataF
     import json
 
     folder, out = Path(folder), Path(out)
-    if out.resolve() == folder.resolve():
-        raise InputError(f"{out}: is the session folder itself; give another --out (inputs are never modified)")
-    inputs.check_output_dir(out)
+    check_out(folder, out)
     copied = [p for p in sorted(folder.iterdir()) if p.is_file() and p.name not in NOT_COPIED]
     names = {p.name for p in copied} | set(OUTPUT_FILES) | ({"calibration.toml"} if calibration is not None else set())
     with atomic.result_folder(out, sorted(names)) as stage:
