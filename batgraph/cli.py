@@ -50,7 +50,7 @@ from .intrinsics import Board, calibrate_intrinsics
 from .methods import help_text as methods_help
 from .naming import associate_command as associate
 from .pipeline import DEFAULT_METHODS, parse_methods, read_result_tables, reconstruct
-from .result import Options
+from .result import SYNC, Options
 from .session import read_session, write_session
 from .simulate import Timing, simulate_ear, simulate_flight, simulate_wand
 from .solver import kernels
@@ -159,7 +159,7 @@ def _cmd_reconstruct(args) -> int:
         _check_not_a_result(session)
     methods = parse_methods(args.methods, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", refine_rig=args.refine_rig,
+                      accel_psd_m2_s3=args.accel_psd, sync=SYNC[args.sync], refine_rig=args.refine_rig,
                       progress=_progress_bars(args), solver=args.solver)
     batch = is_batch(args.sessions) or args.scheduler is not None
     if args.out is not None or (not batch and Path(args.sessions[0]).is_dir()):
@@ -250,7 +250,7 @@ def _cmd_validate(args) -> int:
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
     options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, sync=args.sync == "estimate", progress=_progress_bars(args),
+                      accel_psd_m2_s3=args.accel_psd, sync=SYNC[args.sync], progress=_progress_bars(args),
                       solver=args.solver)
     _compile_note(args)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,

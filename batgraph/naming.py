@@ -30,7 +30,7 @@ from .associate import (
     write_associated,
     write_observations,
 )
-from .result import Options
+from .result import SYNC, Options
 from .runner import run_methods
 from .session import calibration_toml, read_session
 
@@ -65,7 +65,7 @@ def name_detections(folder: str | Path, scratch: Path, options: Options | None =
     calibration = None if calibration is None else Path(calibration)
     named = _name(folder, associate, calibration)
     write_observations(scratch / OBS_NAME, named.observations)
-    if not (options.sync or "sync" in inputs.read_toml(folder / "session.toml")):  # no session to read
+    if options.sync is False or (options.sync is None and "sync" not in inputs.read_toml(folder / "session.toml")):
         return named
     session = read_session(folder, calibration, scratch / OBS_NAME, named.shown_as)
     if not options.estimates_sync(session):
@@ -99,7 +99,7 @@ def associate_command(args, progress: bool = False) -> int:
     out = Path(args.out) if args.out else folder / "associated"
     check_out(folder, out)
     with tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
-        named = name_detections(folder, Path(scratch), Options(sync=args.sync == "estimate", progress=progress),
+        named = name_detections(folder, Path(scratch), Options(sync=SYNC[args.sync], progress=progress),
                                 args.calibration, AssociateOptions(pixel_sigma_px=args.pixel_sigma, progress=progress))
         write_associated(folder, out, named.observations, named.labels, named.figures, named.calibration)
     s = named.figures.summary

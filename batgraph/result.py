@@ -6,6 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+SYNC = {"estimate": True, "given": False, None: None}
+"""The ``--sync`` flag's value as Options.sync (None: not given, so session.toml's [sync] estimate decides)."""
+
 
 @dataclass
 class Options:
@@ -16,8 +19,8 @@ class Options:
     robust: loss on projection rows: "huber", "cauchy" or "none"; robust_k its threshold [sigmas].
     outlier_rejection: with a robust loss, the smoother's rejection schedule (batgraph.solver.schedule).
     accel_psd_m2_s3: constant-velocity noise; None = session value, else chosen from the data.
-    sync: estimate each camera's time offset and rolling-shutter readout with the trajectories (also
-        session.toml's [sync] estimate = true).
+    sync: estimate each camera's time offset and rolling-shutter readout with the trajectories (True), take the
+        calibration's timing as it is (False), or do as session.toml's [sync] estimate says (None).
     refine_rig: refine every camera's pose with the trajectories (under its pose covariance, or a default).
     progress: show progress bars.
     solver: "fast" (batgraph's solver) or "gtsam" (GTSAM's Levenberg-Marquardt and iSAM2 on the same cost).
@@ -28,14 +31,17 @@ class Options:
     robust_k: float = 2.0
     outlier_rejection: bool = True
     accel_psd_m2_s3: float | None = None
-    sync: bool = False
+    sync: bool | None = None
     refine_rig: bool = False
     progress: bool = True
     solver: str = "fast"
 
     def estimates_sync(self, session) -> bool:
-        """Whether the timing is estimated on ``session``: ``sync``, or its session.toml's [sync] estimate."""
-        return self.sync or bool(session.extra_toml.get("sync", {}).get("estimate", False))
+        """Whether the timing is estimated on ``session``: ``sync`` where set, else its session.toml's [sync]
+        estimate."""
+        if self.sync is not None:
+            return self.sync
+        return bool(session.extra_toml.get("sync", {}).get("estimate", False))
 
 
 @dataclass

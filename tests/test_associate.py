@@ -207,17 +207,23 @@ def test_offsets_stated_within_a_frame_are_taken_out(tmp_path, capsys):
 
 
 def test_offsets_nobody_stated_are_measured_from_the_first_names(tmp_path, capsys):
-    """The clock scene with its offsets unstated (97.1 % named correctly, 0.1 % wrongly: above): ``associate
-    --sync estimate`` measures the offsets from those names with the smoother (found within 0.1 frame) and names
-    the detections again on them: measured 99.6 % and none wrongly, as with the offsets stated; its output session
-    holds the estimated clocks as calibration.toml. ``reconstruct --sync estimate`` of the detections gives the
-    same names."""
+    """The clock scene with its offsets unstated (97.1 % named correctly, 0.1 % wrongly: above) and session.toml's
+    ``[sync] estimate = true``: ``associate`` measures the offsets from those names with the smoother (found within
+    0.1 frame) and names the detections again on them: measured 99.6 % and none wrongly, as with the offsets
+    stated; its output session holds the estimated clocks as calibration.toml. ``--sync given`` overrides
+    session.toml (the first names). ``reconstruct --sync estimate`` of the detections gives the same names."""
     import tomllib
 
     session, sc = _clock_scene()
     folder = tmp_path / "clock"
     scenes.write_scene(session, sc, folder)
-    assert main(["associate", str(folder), "--out", str(tmp_path / "named"), "--sync", "estimate"]) == 0
+    toml = folder / "session.toml"
+    assert "[sync]" not in toml.read_text()
+    toml.write_text(toml.read_text() + "\n[sync]\nestimate = true\n")
+    assert main(["associate", str(folder), "--out", str(tmp_path / "given"), "--sync", "given"]) == 0
+    assert "named again on the clocks estimated" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "given" / "association.json").read_text())["clocks_estimated"] is False
+    assert main(["associate", str(folder), "--out", str(tmp_path / "named")]) == 0
     assert "named again on the clocks estimated" in capsys.readouterr().out
     labels = pd.read_csv(tmp_path / "named" / "labels.csv", keep_default_na=False)
     scored = _score(sc, labels)
