@@ -651,6 +651,21 @@ def test_positions_one_frame_before_a_stretch_are_tested_for_a_jump():
     assert not keep[14:17].any() and keep[18:].all()
 
 
+def test_jump_fits_are_polyfits_of_their_windows():
+    """verify._fit_at (the jump test's fits, all windows in one solve) gives np.polyfit's value at the break (a
+    quadratic through 4 frames or more, a line through 3) to 1e-9 m, with NaN positions outside the windows."""
+    from batgraph.associate import verify
+
+    rng = np.random.default_rng(3)
+    x = np.cumsum(rng.normal(0, 0.01, (60, 3)), axis=0)
+    x[rng.random(60) < 0.3] = np.nan
+    named = np.flatnonzero(np.isfinite(x[:, 0]))
+    frames = [np.sort(rng.choice(named, size=int(rng.integers(3, 6)), replace=False)) for _ in range(200)]
+    at = np.array([f[-1] + 0.5 for f in frames])
+    want = np.array([np.polyfit(f - a, x[f], 2 if len(f) >= 4 else 1)[-1] for f, a in zip(frames, at, strict=True)])
+    assert np.abs(verify._fit_at(x, frames, at) - want).max() < 1e-9
+
+
 def test_mahalanobis_within_the_gate_is_mahalanobis():
     """associate.assignment.mahalanobis_within: mahalanobis's value to the bit wherever that is below the gate (and
     wanted), inf only where it is not, on covariances from sharp to wide, near-singular and indefinite ones included."""
