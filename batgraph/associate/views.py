@@ -176,20 +176,22 @@ def _prune(geom: Geometry, uv: np.ndarray, sig: np.ndarray, llr0: np.ndarray, vi
     (error^2 / 2 > its log likelihood ratio, :func:`view_llr`); candidates left with one view go. Returns
     (views, xyz, r2, kept): the candidates left, their points, errors and indices into ``views``."""
     kept = np.arange(len(views))
+    xyz = triangulate(geom, uv, views)
+    r2 = residuals(geom, uv, sig, views, xyz)
     for _ in range(rounds):
-        xyz = triangulate(geom, uv, views)
-        r2 = residuals(geom, uv, sig, views, xyz)
         worth = np.where(views >= 0, llr0[np.maximum(views, 0)] - 0.5 * np.nan_to_num(r2, nan=0.0), np.inf)
         worth = np.where(r2 > CHI2_2DOF_GATE, -np.inf, worth)
         worst = np.argmin(worth, axis=1)
         bad = worth[np.arange(len(views)), worst] < 0
         if not bad.any():
-            return views, xyz, r2, kept
+            break
         views[np.flatnonzero(bad), worst[bad]] = -1
         keep = (views >= 0).sum(axis=1) >= 2
-        views, kept = views[keep], kept[keep]
-    xyz = triangulate(geom, uv, views)
-    return views, xyz, residuals(geom, uv, sig, views, xyz), kept
+        views, kept, xyz, r2, bad = views[keep], kept[keep], xyz[keep], r2[keep], bad[keep]
+        if bad.any():  # only the candidates that lost a view move
+            xyz[bad] = triangulate(geom, uv, views[bad])
+            r2[bad] = residuals(geom, uv, sig, views[bad], xyz[bad])
+    return views, xyz, r2, kept
 
 
 def view_llr(uv: np.ndarray, sig: np.ndarray, by_cam: list[np.ndarray], trees: list, area_px2: np.ndarray
