@@ -82,6 +82,8 @@ def _fit_at(x: np.ndarray, frames: list[np.ndarray], at: np.ndarray) -> np.ndarr
     A[~quad, 2, 2] = 1.0  # a line: the quadratic's coefficient solved as 0
     coef = np.linalg.solve(A, np.einsum("nwi,nwd->nid", V, np.where(on[..., None], x[idx], 0.0)))
     return coef[:, 0]
+
+
 def _stretches(have: np.ndarray, jump: np.ndarray, doubt: np.ndarray) -> list[np.ndarray]:
     """Runs of frames with a position, cut before each break, at gaps of more than MAX_GAP frames and where a
     doubtful link lies between two frames (``doubt`` (F,) the count of doubtful links up to each frame)."""
