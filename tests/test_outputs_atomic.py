@@ -192,11 +192,12 @@ def test_reconstruct_killed_at_each_output_step(small_session, tmp_path):
     old = _snapshot(base)
     new_names = {*OUTPUT_FILES} - {"validation.csv", "rig.toml", *NAMES} | {"notes.txt"}  # rig.toml: refined rigs
     outcomes = []
+    scratch = {**os.environ, "TMPDIR": str(tmp_path)}  # a killed run's scratch folder is left here, not in /tmp
     for k in range(1, 40):
         out = tmp_path / f"out{k}"
         subprocess.run(["cp", "-a", str(base), str(out)], check=True)
         rc = subprocess.run([sys.executable, str(script), str(small_session), str(out), str(k)], timeout=300,
-                            capture_output=True).returncode
+                            capture_output=True, env=scratch).returncode
         if out.exists():
             now = _snapshot(out)
             assert now == old or set(now) == new_names, (k, sorted(now))
