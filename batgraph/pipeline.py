@@ -183,10 +183,13 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
     out = Path(out_dir) if out_dir is not None else Path(session_dir) / "out"
     inputs.check_output_dir(out)  # before any work (a batch item fails alone; the CLI checks too)
     # the report's child, forked before the estimators' memory grows; cancelled on failure
-    with report_standby(viewer) as report, tempfile.TemporaryDirectory(prefix="batgraph-names-") as scratch:
-        named = _associate_first(Path(session_dir), calibration, Path(scratch), options)
+    with report_standby(viewer) as report, contextlib.ExitStack() as names_dir:
+        named = None
+        if _detections_only(Path(session_dir)):  # a scratch folder for the names only then (a killed run leaves it)
+            scratch = Path(names_dir.enter_context(tempfile.TemporaryDirectory(prefix="batgraph-names-")))
+            named = naming.name_detections(Path(session_dir), scratch, options, calibration)
         session = (read_session(session_dir, calibration) if named is None else
-                   read_session(session_dir, calibration, Path(scratch) / naming.OBS_NAME, named.shown_as))
+                   read_session(session_dir, calibration, scratch / naming.OBS_NAME, named.shown_as))
         if named is not None:
             session.warnings.append(_association_warning(named.figures.summary))
         methods = list(methods or DEFAULT_METHODS)
@@ -211,15 +214,11 @@ def reconstruct(session_dir: str | Path, out_dir: str | Path | None = None,
         return result
 
 
-def _associate_first(folder: Path, calibration: str | Path | None, scratch: Path, options: Options
-                     ) -> naming.Named | None:
-    """For a session folder that holds unlabelled detections (detections.csv or .parquet) and no observations: name
-    them (batgraph.naming; again on estimated clocks where the timing is estimated), the names left in
-    ``scratch``/observations.csv for read_session. None for a folder with observations."""
+def _detections_only(folder: Path) -> bool:
+    """Whether a session folder holds unlabelled detections (detections.csv or .parquet) and no observations: its
+    detections are named first (batgraph.naming; again on estimated clocks where the timing is estimated)."""
     has = [(folder / f"{stem}.{ext}").exists() for stem in ("observations", "detections") for ext in ("csv", "parquet")]
-    if any(has[:2]) or not any(has[2:]):
-        return None
-    return naming.name_detections(folder, scratch, options, calibration)
+    return not any(has[:2]) and any(has[2:])
 
 
 def _association_warning(counts: dict) -> str:

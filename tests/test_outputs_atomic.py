@@ -122,6 +122,28 @@ def test_kill_at_every_step_leaves_old_or_new_and_the_next_run_recovers(tmp_path
     assert seen == {"old", "new"} and k > 5  # 3 files, 3 renames, the removal of the old folder
 
 
+def test_only_a_session_of_detections_makes_a_scratch_folder(small_session, tmp_path, monkeypatch):
+    """reconstruct makes its scratch folder for the names only where it names detections, so a killed or
+    interrupted run of a labelled session (a batch's workers stopped by Ctrl-C) leaves nothing in the system's
+    temporary folder."""
+    import tempfile
+
+    from batgraph.pipeline import reconstruct
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "system-tmp"))
+    (tmp_path / "system-tmp").mkdir()
+    made = []
+    real = tempfile.TemporaryDirectory
+
+    def spy(*args, **kwargs):
+        made.append(kwargs.get("prefix"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryDirectory", spy)
+    reconstruct(small_session, tmp_path / "out", ["triangulate"], viewer="none")
+    assert "batgraph-names-" not in made and list((tmp_path / "system-tmp").iterdir()) == []
+
+
 def test_running_writer_temporaries_are_left_alone(tmp_path):
     """Only temporaries of processes that are gone are removed (this process's own are kept)."""
     target = tmp_path / "out"
@@ -192,12 +214,11 @@ def test_reconstruct_killed_at_each_output_step(small_session, tmp_path):
     old = _snapshot(base)
     new_names = {*OUTPUT_FILES} - {"validation.csv", "rig.toml", *NAMES} | {"notes.txt"}  # rig.toml: refined rigs
     outcomes = []
-    scratch = {**os.environ, "TMPDIR": str(tmp_path)}  # a killed run's scratch folder is left here, not in /tmp
     for k in range(1, 40):
         out = tmp_path / f"out{k}"
         subprocess.run(["cp", "-a", str(base), str(out)], check=True)
         rc = subprocess.run([sys.executable, str(script), str(small_session), str(out), str(k)], timeout=300,
-                            capture_output=True, env=scratch).returncode
+                            capture_output=True).returncode
         if out.exists():
             now = _snapshot(out)
             assert now == old or set(now) == new_names, (k, sorted(now))
