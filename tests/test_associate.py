@@ -36,7 +36,7 @@ def detections_folder(tmp: Path, n_cams: int = 4, n_frames: int = 40, n_markers:
     rng = np.random.default_rng(seed)
     session.observations[["u", "v"]] += noise_px * rng.standard_normal((len(session.observations), 2))
     sc = scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=spurious_rate, merge_px=0.0,
-                                                             seed_frame=n_frames // 2))
+                                                             seed_frames=(n_frames // 2,)))
     scenes.write_scene(session, sc, tmp / "detections")
     return tmp / "detections", sc
 
@@ -53,6 +53,36 @@ def test_well_separated_markers_are_all_named_correctly(tmp_path):
     folder, sc = detections_folder(tmp_path)
     r = named(folder, sc)
     assert r["real_correct"] >= 0.99 and r["real_wrong"] == 0.0 and r["switches"] == 0
+
+
+def test_a_click_on_another_frame_names_as_many(tmp_path):
+    """One marker clicked in one camera on frame 2 besides the seeded middle frame: the markers are tracked from the
+    frame with the most clicks, so all but 2 of 960 are named, none wrongly, as with the seed frame alone (tracked
+    from the earliest frame clicked, 12 more were left unnamed: measured)."""
+    folder, sc = detections_folder(tmp_path)
+    alone = named(folder, sc)
+    on2 = (sc.detections["frame"] == 2).to_numpy() & (sc.truth["kind"] == "marker").to_numpy()
+    click = sc.detections[on2].iloc[:1].assign(marker=sc.truth["marker"][on2].iloc[0])
+    seed = pd.read_csv(folder / "seed_labels.csv")
+    pd.concat([click[seed.columns], seed]).to_csv(folder / "seed_labels.csv", index=False)
+    r = named(folder, sc)
+    assert r["real_correct"] >= alone["real_correct"] >= 0.99 and r["real_wrong"] == 0.0
+
+
+def test_a_single_click_is_not_placed_on_a_point_holding_another_click():
+    """Markers A and B each clicked in one camera, on a point pairing A's view in camera 0 with B's in camera 1 (a
+    marker seen by one camera has only such points): neither is placed there; A clicked alone takes the point."""
+    from conftest import tiny_rig
+
+    from batgraph.associate import core, views
+
+    geom = views.geometry(tiny_rig(2))
+    fi = tracks.FrameDetections(np.zeros(2, np.int64), np.arange(2), np.zeros((2, 2)), np.ones(2), 0,
+                                np.array([0, 2]))
+    points = {0: views.FramePoints(np.array([[0, 1]]), np.array([[0.0, 0.0, 0.2]]), np.zeros(1))}
+    both = core.seeds(geom, fi, points, np.array([0, 1]), np.array([0, 1]))
+    alone = core.seeds(geom, fi, points, np.array([0]), np.array([0]))
+    assert both == {} and alone[0].label.tolist() == [0] and alone[0].xyz.tolist() == [[0.0, 0.0, 0.2]]
 
 
 def test_spurious_blobs_stay_unnamed(tmp_path):
@@ -176,7 +206,7 @@ def _clock_scene():
     obs[["u", "v"]] += 0.5 * rng.standard_normal((len(obs), 2))
     session = Session("clock", 100.0, rig, obs.reset_index(drop=True), marker_names=names)
     return session, scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0,
-                                                                        seed_frame=F // 2))
+                                                                        seed_frames=(F // 2,)))
 
 
 def _score(sc, labels: pd.DataFrame) -> dict:
@@ -476,6 +506,12 @@ def test_scene_maker_merges_close_blobs_and_adds_spurious_ones():
     assert len(session.observations) == (kind == "marker").sum() + 2 * len(merged)
     assert (sc.seed["frame"] == sc.seed["frame"].iloc[0]).all()
     assert set(sc.seed["marker"]) <= set(session.marker_names)
+    # three frames labelled: one in each third of the recording, the first third's as seed_frame picks it there
+    three = scenes.make_scene(session, np.random.default_rng(1), scenes.SceneOptions(seed_frames=3)).seed
+    frames = three["frame"].unique()
+    assert len(frames) == 3 and list(frames // 7) == [0, 1, 2] and three["frame"].is_monotonic_increasing
+    first = session.observations[session.observations["frame"] < 20 / 3]
+    assert frames[0] == scenes.seed_frame(first)
 
 
 def test_score_counts_switches_per_marker_in_frame_order():

@@ -161,7 +161,8 @@ def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarr
 def seeds(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, views.FramePoints],
           seed_det: np.ndarray, seed_lab: np.ndarray) -> dict[int, tracks.Seed]:
     """The user's clicks as 3D placements per frame: a marker clicked in two cameras or more is triangulated from
-    its clicks; one clicked in one camera takes the point that holds that detection, if any."""
+    its clicks; one clicked in one camera takes the point that holds that detection, if any and if none of its
+    other views is clicked (as another marker: the point pairs two markers' views)."""
     out = {}
     C = len(geom.rig)
     for f in np.unique(fi.frame[seed_det]):
@@ -179,6 +180,8 @@ def seeds(geom: views.Geometry, fi: tracks.FrameDetections, points: dict[int, vi
                 if not len(hit):
                     continue
                 x, row = pts.xyz[hit[0]], pts.views[hit[0]]
+                if np.isin(row[row >= 0], seed_det[on]).sum() > 1:
+                    continue
             if np.isfinite(x).all():
                 labs.append(lab)
                 v.append(row)
@@ -274,8 +277,9 @@ class _Tracked:
 def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
            seed_lab: np.ndarray, n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions
            ) -> _Tracked:
-    """The noise measured (sets fi.sig), each frame's points found, the seed placed and its markers tracked forwards
-    and backwards from it, and the tracker's names checked (steps 1-2 and 4 of docs/associate.md)."""
+    """The noise measured (sets fi.sig), each frame's points found, the markers tracked forwards and backwards from
+    the seed frame with the most clicks (other seed frames placed where the sweeps reach them), and the tracker's
+    names checked (steps 1-2 and 4 of docs/associate.md)."""
     rig = geom.rig
     large = len(rig) > PAIRS_UP_TO_CAMERAS
     sigma = opt.pixel_sigma_px
@@ -307,15 +311,17 @@ def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, 
                                                                  noise_m=noise_m,
                                                                  segment_lengths=_seed_lengths(placed, pairs)))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
-    start = min(placed) if placed else int(frames[0])
+    # from the frame with the most clicks (of equals, the earliest); the other seed frames are placed when reached
+    start = max(placed, key=lambda f: (int((placed[f].views >= 0).sum()), -f)) if placed else int(frames[0])
     first = functools.lru_cache(_subset_points(rig, fi, seed_det)) if large else None  # start_noise, then sweep
     if placed:
         near = first or (lambda f: points.get(int(f), empty))
         opt = dataclasses.replace(opt, track=tracks.start_noise(placed[start], near(start - 1).xyz,
                                                                 near(start + 1).xyz, 1.0 / fps, noise_m, opt.track))
-    tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, placed, pairs, sw, opt.track, first)
-    tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, {start: placed[start]} if placed
-                 else {}, pairs, sw, opt.track, first)
+    ahead = {f: sd for f, sd in placed.items() if f >= start}
+    behind = {f: sd for f, sd in placed.items() if f <= start}
+    tracks.sweep(geom, points_at, fi, frames[frames >= start], 1.0 / fps, ahead, pairs, sw, opt.track, first)
+    tracks.sweep(geom, points_at, fi, frames[frames <= start][::-1], -1.0 / fps, behind, pairs, sw, opt.track, first)
     N = len(fi.frame)
     label, kind, track = tracks.per_detection(sw, N)
     how = np.where(kind > 0, kind + 1, 0)

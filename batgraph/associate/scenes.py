@@ -24,12 +24,12 @@ NEAR_FRACTION = 0.5  # spurious blobs inside the bat's box in the image (reflect
 @dataclass
 class SceneOptions:
     """spurious_rate: spurious blobs per real detection; merge_px: two markers whose blobs' centres are closer than
-    this in an image give one blob at their mean (0: never); seed_frame: the frame a user labels (None:
-    :func:`seed_frame`)."""
+    this in an image give one blob at their mean (0: never); seed_frames: the frames a user labels, or how many
+    (:func:`seed_frames` picks them)."""
 
     spurious_rate: float = 0.02
     merge_px: float = 3.0
-    seed_frame: int | None = None
+    seed_frames: int | tuple[int, ...] = 1
 
 
 @dataclass
@@ -37,7 +37,7 @@ class Scene:
     """detections: frame, camera, u, v, size (a detector's output, in frame order).
     truth: per detection row, ``marker`` (its true marker; '' for a spurious blob; 'a+b' for a merged one) and
     ``kind`` ('marker', 'spurious', 'merged'). seed: frame, camera, marker, u, v of every real, unmerged
-    detection on the seed frame."""
+    detection on the seed frames."""
 
     detections: pd.DataFrame
     truth: pd.DataFrame
@@ -98,6 +98,14 @@ def seed_frame(obs: pd.DataFrame) -> int:
     return int(best[np.argmin(np.abs(best - middle))])
 
 
+def seed_frames(obs: pd.DataFrame, n: int) -> list[int]:
+    """The frames a user labels to name the markers from n frames: the recording cut into n equal parts, and in each
+    the frame :func:`seed_frame` picks (n = 1: that frame)."""
+    cuts = np.linspace(obs["frame"].min(), obs["frame"].max() + 1, n + 1)
+    parts = zip(cuts[:-1], cuts[1:], strict=True)
+    return [seed_frame(obs[(obs["frame"] >= a) & (obs["frame"] < b)]) for a, b in parts]
+
+
 def strip_labels(session: Session, seed_at: int | None = None) -> Scene:
     """A labelled session (real data: its identities are the truth) as a scene: its observations without their
     markers, in frame order, and every observation of one frame as the seed (``seed_at``, default
@@ -127,10 +135,10 @@ def make_scene(session: Session, rng: np.random.Generator, options: SceneOptions
     table = pd.concat([real, fake], ignore_index=True)
     table = table.iloc[rng.permutation(len(table))]  # a detector lists blobs in no particular order within a frame
     table = table.sort_values("frame", kind="stable").reset_index(drop=True)
-    frame = seed_frame(obs) if o.seed_frame is None else int(o.seed_frame)
-    seed = table[(table["frame"] == frame) & (table["kind"] == "marker")][["frame", "camera", "marker", "u", "v"]]
+    frames = seed_frames(obs, o.seed_frames) if isinstance(o.seed_frames, int) else list(o.seed_frames)
+    seed = table[table["frame"].isin(frames) & (table["kind"] == "marker")][["frame", "camera", "marker", "u", "v"]]
     return Scene(table[["frame", "camera", "u", "v", "size"]], table[["marker", "kind"]],
-                 seed.sort_values(["camera", "marker"]).reset_index(drop=True))
+                 seed.sort_values(["frame", "camera", "marker"]).reset_index(drop=True))
 
 
 def write_scene(session: Session, scene: Scene, folder) -> None:
