@@ -312,7 +312,7 @@ def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, 
                                                                  segment_lengths=_seed_lengths(placed, pairs)))
     sw = tracks.Sweep.empty(fi.n_frames, n_labels, len(rig))
     # from the frame with the most clicks (of equals, the earliest); the other seed frames are placed when reached
-    start = max(placed, key=lambda f: (int((placed[f].views >= 0).sum()), -f)) if placed else int(frames[0])
+    start = max(placed, key=lambda f: (int(np.sum(fi.frame[seed_det] == f)), -f)) if placed else int(frames[0])
     first = functools.lru_cache(_subset_points(rig, fi, seed_det)) if large else None  # start_noise, then sweep
     if placed:
         near = first or (lambda f: points.get(int(f), empty))
