@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from batgraph.associate import scenes, score, write_associated  # noqa: E402
 from batgraph.cli import main  # noqa: E402
+from batgraph.evaluate import dense_from_table  # noqa: E402
 from batgraph.naming import name_detections  # noqa: E402
 from batgraph.result import Options  # noqa: E402
 from batgraph.session import write_session  # noqa: E402
@@ -66,15 +67,12 @@ def hidden_rivals(session) -> dict:
     in the image tells which marker the camera sees). Returns the share of the detections an ideal namer would name
     wrongly if it named them all (``hidden_wrong``: the mean chance) and the share it would leave unnamed if it named
     only those with a chance of at most 1 % (``hidden_doubt``)."""
-    obs, truth = session.observations, session.truth
-    names = sorted(truth["marker"].unique())
-    index = {m: i for i, m in enumerate(names)}
-    F = int(truth["frame"].max()) + 1
-    X = np.full((F, len(names), 3), np.nan)
-    X[truth["frame"].to_numpy(), truth["marker"].map(index).to_numpy()] = truth[["x", "y", "z"]].to_numpy()
-    uv = session.rig.project(X.reshape(-1, 3)).reshape(len(session.rig), F, len(names), 2)
+    obs = session.observations
+    X, _, frames, names = dense_from_table(session.truth)  # (F, M, 3) [m]
+    uv = session.rig.project(X.reshape(-1, 3)).reshape(len(session.rig), *X.shape[:2], 2)
     c = obs["camera"].map({n: i for i, n in enumerate(session.rig.names)}).to_numpy()
-    f, m = obs["frame"].to_numpy(), obs["marker"].map(index).to_numpy()
+    f = obs["frame"].to_numpy() - frames[0]
+    m = obs["marker"].map({n: i for i, n in enumerate(names)}).to_numpy()
     seen = np.zeros(uv.shape[:3], bool)
     seen[c, f, m] = True
     d2 = np.nan_to_num(((uv[c, f] - obs[["u", "v"]].to_numpy()[:, None]) ** 2).sum(axis=-1), nan=np.inf)  # (N, M)
