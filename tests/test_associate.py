@@ -582,6 +582,20 @@ def test_a_marker_tracked_point_to_point_becomes_steady():
     assert tg.q[0] == opt.accel_psd_m2_s3  # not adapted while young
 
 
+def test_a_patch_prediction_follows_its_neighbours_turn():
+    """A marker at the edge of its neighbours, the patch turning 0.15 rad about an axis 10 cm away: the affine
+    shift lands within its std of the marker's move, where the mean shift of the neighbours is 8 mm off."""
+    p0 = np.array([[0.05, 0, 0], [0, 0, 0], [-0.03, 0.01, 0], [0, 0.03, 0.005], [0.02, -0.03, 0], [-0.02, -0.02, 0.01]])
+    a = 0.15
+    turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    axis = np.array([-0.1, 0, 0])
+    X = np.stack([p0, (p0 - axis) @ turn.T + axis + np.array([0.02, 0, 0])])
+    shift, std = tracks.patch_shift(X, np.ones((2, 6), bool), 0, 0, 1)
+    move = X[1, 0] - X[0, 0]
+    assert np.linalg.norm(shift - move) < std
+    assert np.linalg.norm(shift - move) < 0.5 * np.linalg.norm((X[1, 1:] - X[0, 1:]).mean(axis=0) - move)
+
+
 def test_a_neighbours_detection_does_not_vouch_for_itself():
     """A marker seen by 4 cameras whose view in camera 0 is a neighbour's detection 6 px off: triangulated with
     that view, the point is pulled towards it (its reprojection error shrinks); matched to where the other 3
