@@ -877,3 +877,32 @@ def test_a_gap_name_on_a_point_where_another_unnamed_marker_may_be_is_dropped():
     ok = gaps.exclusive(xyz, have, carried, carried_std, np.full((F, L), 1e-4), 0.0,
                         np.array([[0, 0], [1, 0], [2, 0]]))
     assert not ok[0, 0] and ok[1, 0] and ok[2, 0]
+
+
+def test_study_bound_counts_the_blob_a_hidden_marker_projects_onto():
+    """associate_study.hidden_rivals: marker b sits on the ray of cam0 through marker a, 1.1 times as far, and cam0
+    does not see b: a's blob there is b's as likely as a's (chance 0.5); the other 4 detections have no hidden rival.
+    So an ideal namer names 0.5 / 5 of them wrongly naming all, and leaves 1 / 5 unnamed naming only the sure ones.
+    With b seen by cam0 too (its own blob), nothing is in doubt."""
+    import importlib.util
+
+    from conftest import observations_table, tiny_rig
+
+    from batgraph.session import Session
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "associate_study.py"
+    spec = importlib.util.spec_from_file_location("associate_study", path)
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    rig = tiny_rig(3)
+    a = np.array([0.0, 0.0, 0.1])
+    c0 = rig[0].center_world
+    xyz = np.stack([a, c0 + 1.1 * (a - c0)])[None]  # (1 frame, 2 markers, 3)
+    truth = pd.DataFrame({"frame": 0, "marker": ["a", "b"], "x": xyz[0, :, 0], "y": xyz[0, :, 1], "z": xyz[0, :, 2]})
+    obs = observations_table(rig, xyz, ["a", "b"])
+    assert len(obs) == 6
+    hidden = obs[~((obs["camera"] == rig[0].name) & (obs["marker"] == "b"))].reset_index(drop=True)
+    got = study.hidden_rivals(Session("bound", 100.0, rig, hidden, marker_names=["a", "b"], truth=truth))
+    assert got["hidden_wrong"] == pytest.approx(0.1) and got["hidden_doubt"] == pytest.approx(0.2)
+    got = study.hidden_rivals(Session("bound", 100.0, rig, obs, marker_names=["a", "b"], truth=truth))
+    assert got["hidden_wrong"] < 1e-6 and got["hidden_doubt"] == 0.0
