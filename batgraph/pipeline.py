@@ -222,14 +222,14 @@ def _detections_only(folder: Path) -> bool:
 
 
 def _association_warning(counts: dict) -> str:
-    """The warning every run on names from unlabelled detections carries: how many, where to check them, and the
-    cameras whose detections were moved out of step."""
-    moved = associate_mod.out_of_step_text(counts)
+    """The warning every run on names from unlabelled detections carries: how many, where to check them, the frames
+    without names where they are most, and the cameras whose detections were moved out of step."""
+    more = [t for t in (associate_mod.coverage_text(counts), associate_mod.out_of_step_text(counts)) if t]
     return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
             f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
             f"{counts['suspected_switches']} suspected identity switch(es), but most wrong names are not among them: "
             "check the 3D paths where a marker reappears after a gap before relying on them"
-            + (f"; {moved}" if moved else ""))
+            + "".join(f"; {t}" for t in more))
 
 
 _TEXT_COLUMNS = ("method", "marker", "camera", "status", "span")

@@ -450,6 +450,33 @@ def test_parquet_detections_and_score_column(tmp_path):
     assert np.allclose(obs["weight"], 0.5)
 
 
+def test_names_on_few_frames_are_warned(tmp_path, capsys):
+    """The tiny scene with its frames shuffled (each frame's detections those of another, the seed frame's kept):
+    the markers jump 0.1-0.4 m from frame to frame, so the names lie on a few of the 40 frames (3: measured), and
+    associate and reconstruct say on how many and where; on the scene as recorded (every frame named) not a word."""
+    folder, _ = detections_folder(tmp_path)
+    out = tmp_path / "out"
+    assert main(["associate", str(folder), "--out", str(out)]) == 0
+    assert "names on" not in capsys.readouterr().err
+    assert json.loads((out / "association.json").read_text())["named_spans"] == [[0, 39]]
+    det = pd.read_csv(folder / "detections.csv")
+    order = np.random.default_rng(3).permutation(40)
+    j = int(np.flatnonzero(order == 20)[0])
+    order[[20, j]] = order[[j, 20]]  # the seed frame stays
+    det.assign(frame=order[det["frame"]]).sort_values("frame", kind="stable").to_csv(folder / "detections.csv",
+                                                                                      index=False)
+    assert main(["associate", str(folder), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    spans = json.loads((out / "association.json").read_text())["named_spans"]
+    n = sum(b - a + 1 for a, b in spans)
+    assert n < 20
+    assert f"names on {n} of the 40 frames only" in err
+    assert main(["reconstruct", str(folder), "--out", str(tmp_path / "rec"), "--methods", "triangulate",
+                 "--viewer", "none", "--quiet"]) == 0
+    warns = json.loads((tmp_path / "rec" / "summary.json").read_text())["warnings"]
+    assert any(f"names on {n} of the 40 frames only" in w for w in warns)
+
+
 def _fails(args: list[str], capsys) -> str:
     assert main(args) == 2
     err = capsys.readouterr().err.strip()

@@ -157,6 +157,8 @@ def _figures(dets: Detections, cameras: list[str], markers: list[str], res: Asso
         summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
     summary["out_of_step"] = _out_of_step(dets, cameras, res)
     summary["clock_rounds"] = res.clock_rounds
+    summary["frames"] = F
+    summary["named_spans"] = _spans(np.unique(dets.frame[named]))
     return Figures(np.arange(first, first + F), markers, how, switches, summary, suspect_below)
 
 
@@ -173,6 +175,34 @@ def _out_of_step(dets: Detections, cameras: list[str], res: Association) -> dict
         out[cameras[c]] = {"frames": int(res.moved[:, c].sum()), "of_frames": int(len(np.unique(dets.frame[mine]))),
                            "median_px": round(float(np.median(res.moved_px[mine][on])), 2)}
     return out
+
+
+def _spans(frames: np.ndarray) -> list[list[int]]:
+    """Runs of consecutive frames [[first, last], ...] of sorted unique frames."""
+    if not len(frames):
+        return []
+    cut = np.flatnonzero(np.diff(frames) > 1)
+    return [[int(a), int(b)] for a, b in zip(frames[np.r_[0, cut + 1]], frames[np.r_[cut, len(frames) - 1]],
+                                             strict=True)]
+
+
+SPANS_SHOWN = 3
+
+
+def coverage_text(summary: dict) -> str:
+    """One sentence where the names lie on fewer than half of the detections' frames ('' elsewhere): the tracker
+    lost the markers near the labelled frame (wing markers that turn faster than their motion predicts, frames
+    sampled too far apart to track), and the estimators would take the few names left without a word."""
+    spans, frames = summary.get("named_spans"), summary.get("frames")
+    if spans is None or not frames:
+        return ""
+    n = sum(b - a + 1 for a, b in spans)
+    if 2 * n >= frames:
+        return ""
+    shown = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans[:SPANS_SHOWN])
+    return (f"names on {n} of the {frames} frames only ({shown}{', ...' if len(spans) > SPANS_SHOWN else ''}): the "
+            "markers were lost on the others (they moved or turned faster than the tracker predicts, or the frames "
+            "lie too far apart to track); to name them, label a frame where they are lost (seed_labels.csv)")
 
 
 def out_of_step_text(summary: dict) -> str:
