@@ -157,7 +157,7 @@ def _figures(dets: Detections, cameras: list[str], markers: list[str], res: Asso
         summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
     summary["out_of_step"] = _out_of_step(dets, cameras, res)
     summary["clock_rounds"] = res.clock_rounds
-    summary["frames"] = F
+    summary["frames"] = int(len(np.unique(dets.frame)))  # frames without a detection (between takes) do not count
     summary["named_spans"] = _spans(np.unique(dets.frame[named]))
     return Figures(np.arange(first, first + F), markers, how, switches, summary, suspect_below)
 
@@ -190,9 +190,9 @@ SPANS_SHOWN = 3
 
 
 def coverage_text(summary: dict) -> str:
-    """One sentence where the names lie on fewer than half of the detections' frames ('' elsewhere): the tracker
-    lost the markers near the labelled frame (wing markers that turn faster than their motion predicts, frames
-    sampled too far apart to track), and the estimators would take the few names left without a word."""
+    """One sentence where the names lie on fewer than half of the frames that hold detections ('' elsewhere): the
+    tracker lost the markers near the labelled frame (wing markers that turn faster than their motion predicts,
+    frames sampled too far apart to track), and the estimators would take the few names left without a word."""
     spans, frames = summary.get("named_spans"), summary.get("frames")
     if spans is None or not frames:
         return ""
