@@ -19,8 +19,8 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
+from .frames import VIDEO_SUFFIXES, Recording
 
-VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".m4v", ".mts", ".wmv"}
 DIST_MODELS = {"k1k2p1p2k3": 0, "k1k2p1p2": cv2.CALIB_FIX_K3}
 
 
@@ -100,18 +100,9 @@ def iter_frames(sources: Iterable[str | Path], every_nth: int = 1) -> Iterator[t
         if not path.is_file():
             raise InputError(f"{path}: file not found")
         if path.suffix.lower() in VIDEO_SUFFIXES:
-            cap = cv2.VideoCapture(str(path))
-            if not cap.isOpened():
-                raise InputError(f"{path}: cannot open the video")
-            k = 0
-            while True:
-                ok, frame = cap.read()
-                if not ok:
-                    break
+            for k, frame in Recording.open(path).frames():
                 if k % every_nth == 0:
-                    yield f"{path.name}#{k}", cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                k += 1
-            cap.release()
+                    yield f"{path.name}#{k}", frame
         else:
             img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             if img is None:
