@@ -24,9 +24,11 @@ from numba.core.errors import NumbaWarning
 from .batch import exit_code, format_batch_table, is_batch, reconstruct_many
 from .calibrate import calibrate_session, write_calibration
 from .camera import Rig
+from .detect import BlobOptions, detect, report_lines
 from .errors import InputError
 from .formats.anipose import import_anipose
 from .formats.c3d_trc import write_c3d, write_table, write_trc
+from .formats.csv_text import write_csv
 from .formats.deeplabcut import import_deeplabcut
 from .formats.dltdv import export_dltdv, import_dltdv, point_names
 from .formats.pose2sim import import_pose2sim
@@ -753,6 +755,55 @@ def _add_associate(sub):
     p.set_defaults(func=run)
 
 
+# ----- detect ----------------------------------------------------------------------------------
+def _add_detect(sub):
+    p = sub.add_parser("detect", help="find marker blobs in each camera's video (writes detections.csv)",
+                       description="Find bright (or dark) marker blobs in each camera's video or image folder: "
+                                   "background subtracted, thresholded, contrast-weighted centroids. Writes the "
+                                   "unlabelled detections (frame, camera, u, v, size) that `batgraph associate` "
+                                   "names. See docs/detect.md.")
+    p.add_argument("sources", nargs="+", metavar="VIDEO",
+                   help="one video file or folder of images (frames in name order) per camera")
+    p.add_argument("--out", required=True, metavar="FILE", help="detections.csv to write (e.g. SESSION/detections.csv)")
+    p.add_argument("--cameras", metavar="NAMES",
+                   help="comma-separated camera names as in calibration.toml, one per VIDEO (default: each "
+                        "VIDEO's name without its suffix)")
+    p.add_argument("--polarity", choices=["bright", "dark"], default="bright",
+                   help="markers brighter than their surround (default) or darker")
+    p.add_argument("--threshold", type=positive_float, metavar="GRAY",
+                   help="contrast a marker's pixels exceed, in gray levels (default: 6 x the measured image "
+                        "noise, at least 5)")
+    p.add_argument("--min-area", type=positive_int, default=4, metavar="PX", help="smallest blob [pixels] (default 4)")
+    p.add_argument("--max-area", type=positive_int, default=400, metavar="PX",
+                   help="largest blob [pixels] (default 400; the bat's body is larger)")
+    p.add_argument("--background", choices=["median", "flat"], default="median",
+                   help="median: per-pixel median of 25 frames spread over the recording (default); flat: each "
+                        "frame's median gray level (markers on a plain backdrop)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar nor per-camera lines")
+    p.set_defaults(func=_cmd_detect)
+
+
+def _cmd_detect(args) -> int:
+    out = check_output_file(args.out, "detections file (--out)")
+    if out.suffix.lower() != ".csv":
+        raise InputError(f"{out}: --out must be a .csv file (detections.csv)")
+    cameras = ([c.strip() for c in args.cameras.split(",")] if args.cameras
+               else [Path(s).stem if Path(s).suffix else Path(s).name for s in args.sources])
+    if any(not c for c in cameras):
+        raise InputError(f"--cameras: an empty name in {args.cameras!r}")
+    options = BlobOptions(polarity=args.polarity, threshold=args.threshold, min_area_px=args.min_area,
+                          max_area_px=args.max_area, background=args.background)
+    table, per_camera = detect(args.sources, cameras, options, progress=_progress_bars(args))
+    write_csv(out, table, "%.3f")
+    lines, warnings = report_lines(per_camera)
+    if not args.quiet:
+        print("\n".join(lines))
+    for w in warnings:
+        print(f"batgraph: warning: {w}", file=sys.stderr)
+    print(f"wrote {out} ({len(table)} detections from {len(per_camera)} cameras)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="batgraph", description="3D trajectories of markers on flying animals from multi-camera 2D tracks.")
@@ -765,6 +816,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_export(sub)
     _add_view(sub)
     _add_associate(sub)
+    _add_detect(sub)
     return parser
 
 
