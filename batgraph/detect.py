@@ -4,11 +4,12 @@
 Per camera: the background is the per-pixel median of frames spread over the recording (a bat flying through
 covers a pixel on few of them); each frame's contrast is its difference from the background (``bright``
 markers: frame - background; ``dark``: background - frame); pixels whose contrast exceeds the threshold are
-grouped into 8-connected blobs (OpenCV's connected components); a blob's position is its contrast-weighted
-centroid, as DLTdv snaps a click to its blob's weighted centre. u, v are in the OpenCV pixel convention (the
-centre of the top-left pixel is 0, 0), raw (distorted), as observations.csv. The threshold defaults to
-NOISE_SIGMAS times the image noise, measured as the robust std of the sampled frames' contrast. Blobs smaller or
-larger than the area bounds are dropped (a noise speck; the bat's body). Names nothing (batgraph.associate).
+grouped into 8-connected blobs (OpenCV's connected components), a blob split where it holds separate peaks (two
+markers' blobs touching); a blob's position is its contrast-weighted centroid, as DLTdv snaps a click to its blob's
+weighted centre. u, v are in the OpenCV pixel convention (the centre of the top-left pixel is 0, 0), raw
+(distorted), as observations.csv. The threshold defaults to NOISE_SIGMAS times the image noise, measured as the
+robust std of the sampled frames' contrast. Blobs smaller or larger than the area bounds are dropped (a noise
+speck; the bat's body). Names nothing (batgraph.associate).
 
 OpenCV's SimpleBlobDetector is not used: it takes a blob's centre from the binarised shape, unweighted, and has
 no background to subtract (a bat's silhouette and a lamp would be blobs as much as the markers).
@@ -92,9 +93,9 @@ def blobs(c: np.ndarray, threshold: float, min_area_px: int, max_area_px: int) -
     """Blobs of the contrast image ``c`` (H, W) above ``threshold``: (n, 2) contrast-weighted centroids (u, v)
     [px, OpenCV convention] and (n,) areas [px], of the blobs whose area lies within the bounds.
 
-    A blob holding two peaks that each stand above the lowest contrast on the straight line between them by the
-    threshold (two markers' blobs touching) is split: each pixel goes to its nearest such peak. Peaks closer than
-    that stay one blob, at their weighted mean (two markers a few pixels apart: no image tells them apart)."""
+    A blob holding two peaks that each rise above the highest pass between them to a higher peak by the threshold
+    (two markers' blobs touching) is split: each pixel goes to its nearest such peak. Peaks closer than that stay
+    one blob, at their weighted mean (two markers a few pixels apart: no image tells them apart)."""
     mask = (c > threshold).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if n <= 1:
