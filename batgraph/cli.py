@@ -53,7 +53,7 @@ from .methods import help_text as methods_help
 from .naming import associate_command as associate
 from .pipeline import DEFAULT_METHODS, parse_methods, read_result_tables, reconstruct
 from .result import SYNC, Options
-from .session import read_session, write_session
+from .session import read_calibration, read_session, write_session
 from .simulate import Timing, simulate_ear, simulate_flight, simulate_wand
 from .solver import kernels
 from .summary import terminal_lines
@@ -791,6 +791,13 @@ def _cmd_detect(args) -> int:
                else [Path(s).stem if Path(s).suffix else Path(s).name for s in args.sources])
     if any(not c for c in cameras):
         raise InputError(f"--cameras: an empty name in {args.cameras!r}")
+    calibration = out.parent / "calibration.toml"
+    if calibration.is_file():  # writing into a session: its cameras' names, checked before minutes of video
+        known = read_calibration(calibration, warnings=[]).names
+        for c in cameras:
+            if c not in known:
+                raise InputError(f"{calibration}: no camera {c!r} (cameras: {', '.join(known)}); name the "
+                                 "recordings as its cameras with --cameras")
     options = BlobOptions(polarity=args.polarity, threshold=args.threshold, min_area_px=args.min_area,
                           max_area_px=args.max_area, background=args.background)
     table, per_camera = detect(args.sources, cameras, options, progress=_progress_bars(args))

@@ -192,6 +192,9 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     shutil.copy(paths[0] / "000000.png", one)
     assert "--background flat" in _fails(["detect", str(one), "--out", out], capsys)
     assert "must be a .csv" in _fails(["detect", *cams, "--out", str(tmp_path / "det.txt")], capsys)
+    msg = _fails(["detect", *cams, "--out", str(tmp_path / "labelled" / "detections.csv"), "--cameras",
+                  "cam1,cam2,cam3,cam9"], capsys)
+    assert "calibration.toml: no camera 'cam9'" in msg and not (tmp_path / "labelled" / "detections.csv").exists()
     assert not Path(out).exists()
 
 
