@@ -29,6 +29,7 @@ bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
 	$(BIN)/python scripts/bench_associate.py --repeats 3
+	$(BIN)/python scripts/bench_detect.py --repeats 3
 	test -x .venv-bench/bin/python || ($(PYTHON) -m venv .venv-bench && .venv-bench/bin/python -m pip install --quiet aniposelib)
 	$(BIN)/python scripts/bench_aniposelib.py export bench_out/aniposelib
 	.venv-bench/bin/python scripts/bench_aniposelib.py run bench_out/aniposelib

@@ -1,0 +1,91 @@
+#!/usr/bin/env python3
+"""`batgraph detect`'s speed and memory against decoding the same videos, and against `batgraph associate` of what
+it finds: whole commands in child processes, alternated, medians printed with the ratios.
+
+The footage: batgraph.simulate.simulate_flight (seed 3, 14 markers, 5 cameras of 1280 x 720, 160 frames) drawn by
+batgraph.render as MPEG-4 videos (lossy, as a camera's own encoder). Runs: ``detect`` as it is (the cameras shared
+over the cores), ``detect`` on one core (``BATGRAPH_FORK=0``), a plain decode of every frame of every video
+(batgraph.frames, one core: what reading alone costs), and ``associate`` of the detections (one seed frame clicked).
+
+Usage: ``python scripts/bench_detect.py [--frames 160] [--repeats 3]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench_associate import _PEAK  # noqa: E402  (scripts/ is on the path when run as a script)
+
+_DECODE = ("import resource, sys\nfrom batgraph.frames import Recording\n"
+           "n = sum(1 for p in sys.argv[1:] for _ in Recording.open(p).frames())\n"
+           "print('peak_kib', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n")
+
+
+def _child(code: str, args: list[str], one_core: bool = False) -> tuple[float, float]:
+    """(wall [s], peak RSS [MiB]) of ``python -c CODE ARGS`` in a child process."""
+    env = dict(os.environ, BATGRAPH_FORK="0") if one_core else None
+    t0 = time.perf_counter()
+    run = subprocess.run([sys.executable, "-c", code, *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True, env=env)
+    wall = time.perf_counter() - t0
+    peak = [line for line in run.stderr.splitlines() if line.startswith("peak_kib")]
+    return wall, float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from batgraph.associate import scenes
+    from batgraph.formats.csv_text import write_csv
+    from batgraph.render import render_session
+    from batgraph.session import write_session
+    from batgraph.simulate import simulate_flight
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=160)
+    p.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        session = simulate_flight(np.random.default_rng(3), n_markers=14, n_frames=args.frames)
+        obs = session.observations
+        videos = [str(v) for v in render_session(session.rig, obs, args.frames, tmp / "footage",
+                                                 np.random.default_rng(3), video=".mp4")]
+        folder = tmp / "session"
+        write_session(session, folder)
+        (folder / "observations.csv").unlink()
+        seed = obs[obs["frame"] == scenes.seed_frames(obs, 1)[0]][["frame", "camera", "marker", "u", "v"]]
+        write_csv(folder / "seed_labels.csv", seed, "%.6f")
+        detections = str(folder / "detections.csv")
+        size = sum(Path(v).stat().st_size for v in videos) / 1e6
+        print(f"5 cameras x {args.frames} frames of 1280 x 720 (MPEG-4, {size:.0f} MB), {len(obs)} observations",
+              flush=True)
+        runs: dict[str, list[tuple[float, float]]] = {"detect": [], "detect, one core": [], "decode only": [],
+                                                      "associate": []}
+        for r in range(args.repeats):  # alternated, so that a busy machine slows all alike
+            runs["detect"].append(_child(_PEAK, ["detect", *videos, "--out", detections, "--quiet"]))
+            runs["detect, one core"].append(_child(_PEAK, ["detect", *videos, "--out", detections, "--quiet"],
+                                                   one_core=True))
+            runs["decode only"].append(_child(_DECODE, videos))
+            runs["associate"].append(_child(_PEAK, ["associate", str(folder), "--out", str(tmp / "named")]))
+            print(f"  run {r + 1}: " + ", ".join(f"{k} {v[-1][0]:.2f} s" for k, v in runs.items()), flush=True)
+        base = statistics.median(w for w, _ in runs["decode only"])
+        for k, v in runs.items():
+            walls = [w for w, _ in v]
+            print(f"{k:18s} wall {statistics.median(walls):7.2f} s ({min(walls):.2f}-{max(walls):.2f}), "
+                  f"{statistics.median(walls) / base:5.2f} x decode only, peak {max(m for _, m in v):.0f} MiB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
