@@ -24,7 +24,7 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q -ra -n auto
 
-## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 17 minutes on 2 cores)
+## bench: speed, ratios against baselines measured in the same run (BENCHMARKS.md; about 19 minutes on 2 cores)
 bench: install
 	$(BIN)/python scripts/bench.py
 	$(BIN)/python scripts/bench_growth.py
