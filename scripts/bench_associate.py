@@ -33,12 +33,13 @@ _PEAK = ("import resource, runpy, sys\n"
          "finally:\n    print('peak_kib', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n")
 
 
-def _child(args: list[str]) -> tuple[float, float]:
-    """(wall [s], peak RSS [MiB]) of ``python -m batgraph ARGS`` in a child process (the child reports its own
-    peak: the parent's RUSAGE_CHILDREN would give the largest of all children so far)."""
+def _child(args: list[str], code: str = _PEAK, env: dict | None = None) -> tuple[float, float]:
+    """(wall [s], peak RSS [MiB]) of ``python -m batgraph ARGS`` (or ``python -c CODE ARGS``, CODE printing its
+    peak as _PEAK does) in a child process (the child reports its own peak: the parent's RUSAGE_CHILDREN would give
+    the largest of all children so far)."""
     t0 = time.perf_counter()
-    run = subprocess.run([sys.executable, "-c", _PEAK, *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, text=True)
+    run = subprocess.run([sys.executable, "-c", code, *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True, env=env)
     wall = time.perf_counter() - t0
     peak = [line for line in run.stderr.splitlines() if line.startswith("peak_kib")]
     return wall, float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")

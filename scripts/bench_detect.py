@@ -15,10 +15,8 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,22 +24,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench_associate import _PEAK  # noqa: E402  (scripts/ is on the path when run as a script)
+from bench_associate import _child  # noqa: E402  (scripts/ is on the path when run as a script)
 
 _DECODE = ("import resource, sys\nfrom batgraph.frames import Recording\n"
            "n = sum(1 for p in sys.argv[1:] for _ in Recording.open(p).frames())\n"
            "print('peak_kib', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n")
-
-
-def _child(code: str, args: list[str], one_core: bool = False) -> tuple[float, float]:
-    """(wall [s], peak RSS [MiB]) of ``python -c CODE ARGS`` in a child process."""
-    env = dict(os.environ, BATGRAPH_FORK="0") if one_core else None
-    t0 = time.perf_counter()
-    run = subprocess.run([sys.executable, "-c", code, *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, text=True, env=env)
-    wall = time.perf_counter() - t0
-    peak = [line for line in run.stderr.splitlines() if line.startswith("peak_kib")]
-    return wall, float(peak[-1].split()[1]) / 1024.0 if peak else float("nan")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,11 +60,11 @@ def main(argv: list[str] | None = None) -> int:
         runs: dict[str, list[tuple[float, float]]] = {"detect": [], "detect, one core": [], "decode only": [],
                                                       "associate": []}
         for r in range(args.repeats):  # alternated, so that a busy machine slows all alike
-            runs["detect"].append(_child(_PEAK, ["detect", *videos, "--out", detections, "--quiet"]))
-            runs["detect, one core"].append(_child(_PEAK, ["detect", *videos, "--out", detections, "--quiet"],
-                                                   one_core=True))
-            runs["decode only"].append(_child(_DECODE, videos))
-            runs["associate"].append(_child(_PEAK, ["associate", str(folder), "--out", str(tmp / "named")]))
+            runs["detect"].append(_child(["detect", *videos, "--out", detections, "--quiet"]))
+            runs["detect, one core"].append(_child(["detect", *videos, "--out", detections, "--quiet"],
+                                                   env=dict(os.environ, BATGRAPH_FORK="0")))
+            runs["decode only"].append(_child(videos, code=_DECODE))
+            runs["associate"].append(_child(["associate", str(folder), "--out", str(tmp / "named")]))
             print(f"  run {r + 1}: " + ", ".join(f"{k} {v[-1][0]:.2f} s" for k, v in runs.items()), flush=True)
         base = statistics.median(w for w, _ in runs["decode only"])
         for k, v in runs.items():
