@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench_associate import _child  # noqa: E402  (scripts/ is on the path when run as a script)
+from detect_study import alone  # noqa: E402
 
 _DECODE = ("import resource, sys\nfrom batgraph.frames import Recording\n"
            "n = sum(1 for p in sys.argv[1:] for _ in Recording.open(p).frames())\n"
@@ -51,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
         folder = tmp / "session"
         write_session(session, folder)
         (folder / "observations.csv").unlink()
-        seed = obs[obs["frame"] == scenes.seed_frames(obs, 1)[0]][["frame", "camera", "marker", "u", "v"]]
+        on_seed = obs[obs["frame"] == scenes.seed_frames(obs, 1)[0]].reset_index(drop=True)
+        seed = on_seed[alone(on_seed)][["frame", "camera", "marker", "u", "v"]]  # two clicks on one blob: refused
         write_csv(folder / "seed_labels.csv", seed, "%.6f")
         detections = str(folder / "detections.csv")
         size = sum(Path(v).stat().st_size for v in videos) / 1e6
