@@ -861,8 +861,11 @@ def _library_noise_off(command: str) -> None:
     """Switch off what batgraph's libraries would print to a user who can do nothing about it, for the commands
     that compute: numba's compiler warnings (a NumbaPerformanceWarning on the first run after an install is
     advice to batgraph's authors) and Rerun's Rust log lines (a failed write of recording.rrd logs three lines
-    before the error that batgraph reports in one). A RUST_LOG the user set is kept. Child processes forked
+    before the error that batgraph reports in one); for ``detect``, FFmpeg's log lines (a file that is no video gets
+    its own one-line error). A RUST_LOG or OPENCV_FFMPEG_LOGLEVEL the user set is kept. Child processes forked
     later inherit both."""
+    if command == "detect":
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET; read when the first video opens
     if command not in _COMPUTING:
         return
     os.environ.setdefault("RUST_LOG", "off")  # read once, when Rerun's bindings load (lazily, later)

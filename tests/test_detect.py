@@ -3,7 +3,10 @@ associate from there."""
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -196,6 +199,17 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
                   "cam1,cam2,cam3,cam9"], capsys)
     assert "calibration.toml: no camera 'cam9'" in msg and not (tmp_path / "labelled" / "detections.csv").exists()
     assert not Path(out).exists()
+
+
+def test_a_file_that_is_no_video_is_one_line_in_a_real_process(tmp_path):
+    """FFmpeg's own log lines (written by C code, past Python's stderr) are off: the one line is batgraph's."""
+    (tmp_path / "junk.mp4").write_bytes(b"not a video")
+    r = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "scripts" / "detect.py"),
+                        str(tmp_path / "junk.mp4"), "--out", str(tmp_path / "d.csv")], capture_output=True, text=True,
+                       timeout=300, env={k: v for k, v in os.environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"})
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [f"batgraph: error: {tmp_path / 'junk.mp4'}: cannot open the video (not a "
+                                             "video OpenCV's FFmpeg reads)"], r.stderr
 
 
 @pytest.mark.parametrize("bad", [dict(polarity="up"), dict(background="mean"), dict(min_area_px=9, max_area_px=4)])
