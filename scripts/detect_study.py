@@ -92,12 +92,13 @@ def centre_errors(obs: pd.DataFrame, found: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def simple_blob_detector(path: Path, camera: str, threshold: float) -> pd.DataFrame:
+def simple_blob_detector(path: Path, camera: str) -> pd.DataFrame:
     """OpenCV's SimpleBlobDetector on detect's contrast images (the same background subtracted), its defaults
     but the shape filters off and detect's threshold and area bounds."""
     opts = BlobOptions()
     rec = Recording.open(path)
-    background, _ = background_of(rec, opts)
+    background, noise = background_of(rec, opts)
+    threshold = max(NOISE_SIGMAS * noise, MIN_THRESHOLD)  # detect's default, as it finds it for this camera
     p = cv2.SimpleBlobDetector_Params()
     p.minThreshold, p.maxThreshold, p.thresholdStep = threshold, 255.0, 10.0
     p.filterByColor, p.blobColor = True, 255
@@ -145,9 +146,7 @@ def run_footage(scene: str, seed: int, work: Path, codec: str) -> dict:
     rmse_true = smoother_rmse(case / "true_labels", case / "true_labels" / "out")
     rmse = smoother_rmse(case / "associated", case / "associated" / "out")
     cam = session.rig.names[0]
-    _, noise = background_of(Recording.open(footage[0]), BlobOptions())
-    threshold = max(NOISE_SIGMAS * noise, MIN_THRESHOLD)  # detect's default, as it found it for this camera
-    sbd = simple_blob_detector(footage[0], cam, threshold)
+    sbd = simple_blob_detector(footage[0], cam)
     mine = obs["camera"] == cam
     sbd_err = centre_errors(obs[mine].reset_index(drop=True), sbd)
     own_err = centre_errors(obs[mine].reset_index(drop=True), det)
