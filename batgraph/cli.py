@@ -432,7 +432,8 @@ def _add_import(sub):
     o = fmt.add_parser("pose2sim", help="Pose2Sim / OpenPose JSON folders (one per camera) + calibration")
     o.add_argument("json_dirs", nargs="+", help="one folder of OpenPose JSON files per camera")
     o.add_argument("--calibration", required=True, help="Pose2Sim Calib_*.toml (aniposelib format)")
-    o.add_argument("--keypoints", default="BODY_25B", help="keypoint model (default BODY_25B)")
+    o.add_argument("--keypoints", default="BODY_25B", help="keypoint model (default BODY_25B; its bones become "
+                   "session.toml's skeleton)")
     o.add_argument("--camera-names", nargs="+", help="camera of each folder (default: matched from folder names)")
     o.add_argument("--threshold", type=probability, default=0.3,
                    help="drop keypoints below this confidence (default 0.3)")

@@ -570,9 +570,11 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "pose2
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real/pose2sim_demo_4cam_human is absent")
 def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
     """The Pose2Sim demo's OpenPose keypoints (4 cameras, 25 keypoints, 60 fps) with their names stripped and the
-    frame where most are seen three times as the seed: measured 5.7 % of the 8987 detections named correctly, 0.2 %
-    wrongly (5.3 px of keypoint noise: the tracker loses most keypoints within a few frames; docs/associate.md).
-    Bounds: at least 5 % named correctly, at most 2 % wrongly."""
+    frame where most are seen three times as the seed, BODY_25B's bones as the import writes them: measured 31.6 %
+    of the 8987 detections named correctly, 1.4 % wrongly (5.7 % and 0.2 % without the bones: the checks had no
+    segment to vouch for a path past the tracker's first doubted link; the face and the feet are lost near the seed
+    with 5.3 px of keypoint noise; docs/associate.md). Bounds: at least 25 % named correctly, at most 2.5 %
+    wrongly."""
     trial = REAL / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"
     argv = ["import", "pose2sim", *sorted(str(p) for p in (trial / "pose-associated").iterdir()), "--calibration",
             str(REAL / "S00_Calibration" / "Calib_qualisys.toml"), "--fps", "60", "--out", str(tmp_path / "p2s")]
@@ -581,7 +583,7 @@ def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
     sc = scenes.strip_labels(session)
     scenes.write_scene(session, sc, tmp_path / "stripped")
     r = named(tmp_path / "stripped", sc, fps=60.0, n_markers=len(session.markers))
-    assert r["real_correct"] >= 0.05 and r["real_wrong"] <= 0.02
+    assert r["real_correct"] >= 0.25 and r["real_wrong"] <= 0.025
 
 
 def test_a_marker_tracked_point_to_point_becomes_steady():

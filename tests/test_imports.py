@@ -20,7 +20,7 @@ from batgraph.errors import InputError
 from batgraph.formats.anipose import import_anipose
 from batgraph.formats.c3d_trc import read_trc
 from batgraph.formats.deeplabcut import import_deeplabcut
-from batgraph.formats.pose2sim import import_pose2sim
+from batgraph.formats.pose2sim import KEYPOINT_SKELETONS, import_pose2sim
 from batgraph.result import Options
 from batgraph.session import DenseObservations, calibration_toml, dense_observations, read_session
 from batgraph.triangulate import triangulate
@@ -255,7 +255,8 @@ def test_anipose_project(tmp_path):
 
 
 def test_pose2sim_json_errors(tmp_path):
-    """OpenPose JSON problems name the file: wrong keypoint count (model), not JSON, missing 'people'."""
+    """OpenPose JSON problems name the file: wrong keypoint count (model), not JSON, missing 'people'. The model's
+    bones become the skeleton, less those of a keypoint never detected (RHeel here); a custom list has none."""
     rig, _, _, _ = _scene()
     calib = _write_calibration(tmp_path / "calibration.toml", rig)
     dirs = []
@@ -263,11 +264,18 @@ def test_pose2sim_json_errors(tmp_path):
         d = tmp_path / f"cam{cam}_json"
         d.mkdir()
         for f in range(3):
-            kp = np.tile([100.0, 200.0, 0.9], 25).tolist()
-            (d / f"trial_{f:012d}_keypoints.json").write_text(json.dumps({"people": [{"pose_keypoints_2d": kp}]}))
+            kp = np.tile([100.0, 200.0, 0.9], 25)
+            kp[-1] = 0.0  # RHeel (BODY_25B's last keypoint) not detected
+            (d / f"trial_{f:012d}_keypoints.json").write_text(
+                json.dumps({"people": [{"pose_keypoints_2d": kp.tolist()}]}))
         dirs.append(d)
     s = import_pose2sim(dirs, calib, 60, None)
-    assert len(s.observations) == 3 * 3 * 25 and sorted(set(s.observations["frame"])) == [0, 1, 2]
+    assert len(s.observations) == 3 * 3 * 24 and sorted(set(s.observations["frame"])) == [0, 1, 2]
+    bones = KEYPOINT_SKELETONS["BODY_25B"]
+    assert set(s.skeleton) == {b for b in bones if "RHeel" not in b} and len(s.skeleton) == len(bones) - 1
+    assert ("LKnee", "LAnkle") in s.skeleton
+    custom = import_pose2sim(dirs, calib, 60, None, keypoints=[f"k{j}" for j in range(25)])
+    assert custom.skeleton == []
     with pytest.raises(InputError, match=r"trial_000000000000_keypoints.json: people\[0\].* 75 numbers, "
                                           r"expected 3 x 26"):
         import_pose2sim(dirs, calib, 60, None, keypoints="HALPE_26")
@@ -326,7 +334,9 @@ def test_pose2sim_real_demo(tmp_path):
     if not (calib.is_file() and ref_path.is_file()):
         pytest.skip(f"real data absent: {REAL}")
     s = import_pose2sim(REAL_TRIAL / "pose-associated", calib, 60, tmp_path / "p2s", keypoints="BODY_25B")
-    d = dense_observations(read_session(tmp_path / "p2s"))
+    written = read_session(tmp_path / "p2s")
+    assert written.skeleton == s.skeleton and len(s.skeleton) == 25  # BODY_25B's bones, every keypoint seen
+    d = dense_observations(written)
     assert d.cameras == ["cam_01", "cam_02", "cam_03", "cam_04"]
     assert len(d.frames) == 100 and d.frames[0] == 0 and len(d.markers) == 25
     assert (d.weight[d.seen] >= 0.3).all()

@@ -114,10 +114,11 @@ def observations_from_arrays(camera: str, frames: np.ndarray, markers: list[str]
 
 def make_session(name: str, fps: float, rig: Rig, tables: list[pd.DataFrame], markers: list[str],
                  out: str | Path | None, source: str, reference: pd.DataFrame | None = None,
-                 pixel_sigma_px: float | None = None) -> Session:
+                 pixel_sigma_px: float | None = None, skeleton: list[tuple[str, str]] | None = None) -> Session:
     """Assemble and (if ``out``) write a session from per-camera observation tables.
 
     reference: another tool's 3D (frame, marker, x, y, z [m]) to keep as reference_xyz.csv.
+    skeleton: bones (marker name pairs) for session.toml; those with a marker never observed are left out.
 
     markers: the source's keypoint order (becomes session.toml [markers] names).
     source: what was imported (for the error message when nothing is left).
@@ -135,7 +136,8 @@ def make_session(name: str, fps: float, rig: Rig, tables: list[pd.DataFrame], ma
     seen = set(obs["marker"])
     session = Session(name=name, fps=fps, rig=rig, observations=obs,
                       marker_names=[m for m in markers if m in seen], warnings=warnings, reference=reference,
-                      pixel_sigma_px=pixel_sigma_px)
+                      pixel_sigma_px=pixel_sigma_px,
+                      skeleton=[(a, b) for a, b in skeleton or [] if a in seen and b in seen])
     if out is not None:
         session.path = write_session(session, out)
     return session

@@ -47,6 +47,33 @@ KEYPOINT_MODELS: dict[str, list[str]] = {
     "COCO_17": _COCO17,
 }
 
+_ARMS_LEGS_FACE = [("RShoulder", "RElbow"), ("RElbow", "RWrist"), ("LShoulder", "LElbow"), ("LElbow", "LWrist"),
+                   ("RHip", "RKnee"), ("RKnee", "RAnkle"), ("LHip", "LKnee"), ("LKnee", "LAnkle"),
+                   ("Nose", "REye"), ("REye", "REar"), ("Nose", "LEye"), ("LEye", "LEar")]
+_FEET = [("RAnkle", "RBigToe"), ("RBigToe", "RSmallToe"), ("RAnkle", "RHeel"),
+         ("LAnkle", "LBigToe"), ("LBigToe", "LSmallToe"), ("LAnkle", "LHeel")]
+_NECK = [("Neck", "RShoulder"), ("Neck", "LShoulder")]
+KEYPOINT_SKELETONS: dict[str, list[tuple[str, str]]] = {
+    # the bones each model's keypoints are drawn with (Pose2Sim's trees; a hip centre the model lacks, as
+    # BODY_25B's, becomes the triangle of the hips and the neck)
+    "BODY_25B": _ARMS_LEGS_FACE + _FEET + _NECK + [("Neck", "Head"), ("Head", "Nose"), ("RHip", "LHip"),
+                                                   ("Neck", "RHip"), ("Neck", "LHip")],
+    "BODY_25": _ARMS_LEGS_FACE + _FEET + _NECK + [("Neck", "Nose"), ("CHip", "RHip"), ("CHip", "LHip"),
+                                                  ("CHip", "Neck")],
+    "HALPE_26": _ARMS_LEGS_FACE + _FEET + _NECK + [("Neck", "Head"), ("Head", "Nose"), ("Hip", "RHip"),
+                                                   ("Hip", "LHip"), ("Hip", "Neck")],
+    "COCO": _ARMS_LEGS_FACE + _NECK + [("Neck", "Nose"), ("Neck", "RHip"), ("Neck", "LHip")],
+    "COCO_17": _ARMS_LEGS_FACE + [("LShoulder", "RShoulder"), ("RHip", "LHip"), ("RShoulder", "RHip"),
+                                  ("LShoulder", "LHip"), ("REar", "RShoulder"), ("LEar", "LShoulder")],
+}
+"""Each model's bones, written as session.toml's [markers] skeleton: the report and the viewer draw them, and
+``batgraph associate`` takes them as segments (their lengths tell keypoints apart where motion cannot)."""
+
+
+def keypoint_skeleton(keypoints: str | list[str]) -> list[tuple[str, str]]:
+    """The bones of a model in :data:`KEYPOINT_SKELETONS` (case-insensitive); none for a custom list of names."""
+    return list(KEYPOINT_SKELETONS.get(keypoints.upper(), [])) if isinstance(keypoints, str) else []
+
 
 def keypoint_names(keypoints: str | list[str]) -> list[str]:
     """Names of a model in :data:`KEYPOINT_MODELS` (case-insensitive), or a custom list as given."""
@@ -171,4 +198,4 @@ def import_pose2sim(json_dirs: list[str | Path] | str | Path, calibration: str |
                                   "x": xyz[..., 0].ravel(), "y": xyz[..., 1].ravel(), "z": xyz[..., 2].ravel()})
         reference = reference.dropna().reset_index(drop=True)
     return make_session(label, fps, rig, tables, names, out, ", ".join(map(str, dirs)), reference=reference,
-                        pixel_sigma_px=pixel_sigma_px)
+                        pixel_sigma_px=pixel_sigma_px, skeleton=keypoint_skeleton(keypoints))
