@@ -233,12 +233,14 @@ def test_deeplabcut_errors(tmp_path):
 @pytest.mark.skipif(not HAVE_TABLES, reason="Anipose's pose-2d files are .h5 (needs 'tables')")
 def test_anipose_project(tmp_path):
     """An Anipose project: config.toml at the root, session/pose-2d/<trial>-cam<X>.h5, session/calibration/
-    calibration.toml. cam_regex and score_threshold come from config.toml; two trials need trial=."""
+    calibration.toml. cam_regex and score_threshold come from config.toml; two trials need trial=. The scheme's
+    chains become the skeleton, written to session.toml; a scheme that is not lists of names is one line."""
     rig, xyz, uv, lik = _scene(3)
     root = tmp_path / "bat-project"
     root.mkdir()
-    (root / "config.toml").write_text("nesting = 1\n\n[triangulation]\ncam_regex = '-cam([A-Z])$'\n"
-                                      "score_threshold = 0.75\n")
+    config = ("nesting = 1\n\n[triangulation]\ncam_regex = '-cam([A-Z])$'\nscore_threshold = 0.75\n\n[labeling]\n"
+              "scheme = [['snout', 'wrist_r', 'digit3_r'], ['snout', 'tail']]\n")
+    (root / "config.toml").write_text(config)
     session_dir = root / "2024-05-01"
     _write_calibration(session_dir / "calibration" / "calibration.toml", rig)
     _write_dlc(session_dir / "pose-2d", uv, lik, stem="flight1-{cam}", ext="h5")
@@ -248,10 +250,15 @@ def test_anipose_project(tmp_path):
     s = import_anipose(session_dir, 100, tmp_path / "out", trial="flight1")
     assert s.name == "flight1"
     _check_session(s, rig, xyz, uv, lik, 0.75)
+    bones = [("snout", "wrist_r"), ("wrist_r", "digit3_r"), ("snout", "tail")]
+    assert s.skeleton == bones and read_session(tmp_path / "out").skeleton == bones
     s2 = import_anipose(session_dir / "pose-2d", 100, None, trial="flight2", threshold=0.0)
     assert s2.observations["frame"].max() == 4
     with pytest.raises(InputError, match="cam_regex .* finds no camera name"):
         import_anipose(session_dir, 100, None, trial="flight1", cam_regex="_view([0-9])$")
+    (root / "config.toml").write_text(config.replace("['snout', 'tail']", "'tail'"))
+    with pytest.raises(InputError, match=r"config.toml \[labeling\] scheme: expected lists of body part names"):
+        import_anipose(session_dir, 100, None, trial="flight1")
 
 
 def test_pose2sim_json_errors(tmp_path):

@@ -8,7 +8,8 @@ parent (the ``nesting`` levels). As Anipose does, the camera name is the first g
 that match removed. ``cam_regex`` and the likelihood threshold come from config.toml
 (``[triangulation] cam_regex``, ``score_threshold``) when not given, else Anipose's tutorial
 defaults ``-cam([A-Z])$`` and 0.8. The folder names ``pose-2d`` and ``calibration`` follow
-``[pipeline] pose_2d`` and ``calibration_results`` when config.toml sets them.
+``[pipeline] pose_2d`` and ``calibration_results`` when config.toml sets them. The lines Anipose draws between
+body parts (``[labeling] scheme``: lists of body parts, each drawn as a chain) become the session's skeleton.
 """
 
 from __future__ import annotations
@@ -40,8 +41,19 @@ def _find_config(folder: Path, levels: int = 4) -> dict:
                     raise InputError(f"{path} [triangulation] score_threshold: must be in [0, 1], got {x!r}")
             if not isinstance(cfg.get("triangulation", {}).get("cam_regex", ""), str):
                 raise InputError(f"{path} [triangulation] cam_regex: expected a string")
+            _scheme(cfg, path)
             return cfg
     return {}
+
+
+def _scheme(cfg: dict, path: Path | None = None) -> list[tuple[str, str]]:
+    """Anipose's ``[labeling] scheme`` (lists of body parts, each a chain) as pairs of neighbours in a chain."""
+    scheme = cfg.get("labeling", {}).get("scheme", []) if isinstance(cfg.get("labeling", {}), dict) else None
+    if not isinstance(scheme, list) or not all(isinstance(c, list) and all(isinstance(b, str) for b in c)
+                                               for c in scheme):
+        raise InputError(f"{path} [labeling] scheme: expected lists of body part names, got {scheme!r}")
+    return list(dict.fromkeys((a, b) for chain in scheme for a, b in zip(chain[:-1], chain[1:], strict=True)
+                              if a != b))
 
 
 def anipose_trials(pose_dir: Path, cam_regex: str) -> dict[str, dict[str, Path]]:
@@ -102,4 +114,4 @@ def import_anipose(project: str | Path, fps: float, out: str | Path | None, cali
             raise InputError(f"{calibration}: file not found (Anipose's calibration; pass calibration=)")
     cams = trials[trial]
     return import_deeplabcut(list(cams.values()), calibration, fps, out, camera_names=list(cams),
-                             threshold=threshold, name=trial or session_dir.name, units=units)
+                             threshold=threshold, name=trial or session_dir.name, units=units, skeleton=_scheme(cfg))

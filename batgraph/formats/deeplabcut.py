@@ -149,7 +149,8 @@ def read_deeplabcut(path: str | Path, individual: str | None = None,
 
 def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: float, out: str | Path | None,
                       camera_names: list[str] | None = None, threshold: float = 0.6,
-                      individual: str | None = None, name: str | None = None, units: str | None = None) -> Session:
+                      individual: str | None = None, name: str | None = None, units: str | None = None,
+                      skeleton: list[tuple[str, str]] | None = None) -> Session:
     """Import one DeepLabCut 2D file per camera into a session (written to ``out`` unless None).
 
     files: one .h5/.csv per camera. calibration: aniposelib calibration.toml.
@@ -158,6 +159,7 @@ def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: flo
     fps: frame rate [Hz]. threshold: minimum likelihood kept (DeepLabCut's pcutoff is 0.6).
     individual: for multi-animal files, which individual to import. name: session name (default:
         the ``out`` folder's name). units: the calibration's translation units (see keypoints2d.load_rig).
+    skeleton: pairs of body parts for session.toml's [markers] skeleton (Anipose's scheme).
     """
     fps = check_fps(fps)
     calib, rig = load_rig(calibration, units)
@@ -171,4 +173,4 @@ def import_deeplabcut(files: list[str | Path], calibration: str | Path, fps: flo
         tables.append(observations_from_arrays(cam, frames, parts, uv, lik, threshold))
         markers += [m for m in parts if m not in markers]
     label = name or (Path(out).name if out is not None else paths[0].stem)
-    return make_session(label, fps, rig, tables, markers, out, f"{', '.join(map(str, paths))}")
+    return make_session(label, fps, rig, tables, markers, out, f"{', '.join(map(str, paths))}", skeleton=skeleton)
