@@ -55,6 +55,23 @@ def test_well_separated_markers_are_all_named_correctly(tmp_path):
     assert r["real_correct"] >= 0.99 and r["real_wrong"] == 0.0 and r["switches"] == 0
 
 
+def test_the_pixel_noise_is_measured_until_it_settles(tmp_path):
+    """The noise measured from the detections (no [noise] pixel_sigma_px), 4 cameras x 6 markers x 40 frames of
+    Gaussian noise: measured 0.503 px for 0.5 px, 4.93 px for 6 px. Measured twice from the 2 px start, as before,
+    6 px read 3.57 px: the points were found with gates too narrow for most of their views. Views with a rival
+    detection near them are still left out, so large noise still reads low (9 px: 6.55). Bounds: 0.5 px within
+    5 %, 6 px between 4.5 and 6.6 px."""
+    for noise, low, high in ((0.5, 0.475, 0.525), (6.0, 4.5, 6.6)):
+        src = write_tiny_session(tmp_path / f"labelled{noise}", n_cams=4, n_frames=40, n_markers=6)
+        session = dataclasses.replace(read_session(src), pixel_sigma_px=None)
+        rng = np.random.default_rng(0)
+        session.observations[["u", "v"]] += noise * rng.standard_normal((len(session.observations), 2))
+        sc = scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0, seed_frames=(20,)))
+        scenes.write_scene(session, sc, tmp_path / f"detections{noise}")
+        _, _, fig = associate_session(tmp_path / f"detections{noise}")
+        assert low <= fig.summary["pixel_sigma_px"] <= high
+
+
 def test_a_click_on_another_frame_names_as_many(tmp_path):
     """One marker clicked in one camera on frame 2 besides the seeded middle frame: the markers are tracked from the
     frame with the most clicks, so all but 2 of 960 are named, none wrongly, as with the seed frame alone (tracked
@@ -298,11 +315,11 @@ def test_clocks_are_measured_on_a_session_of_two_takes(tmp_path, capsys):
 def test_real_board_corners_are_named_back(tmp_path, late):
     """Caliscope's ChArUco corners (real: 4 webcams at 30 fps, a board moved by hand, 2175 corners) with their
     identities stripped, the frame where most corners are seen by three cameras as the seed: >= 97 % named
-    correctly, none wrongly (measured 97.9 % and none; 92.9 % without moving the detections of a camera out of step
+    correctly, none wrongly (measured 98.25 % and none; 92.9 % without moving the detections of a camera out of step
     or shaken on a frame: cam1's are 5-14 px off on a third of its frames; 2.1 % when the tracker started from a bat
     wing's acceleration noise, 50 m^2/s^3, and kept q above 10 m^2/s^3: its 26 mm prediction std at 30 fps made
     every corner ambiguous). ``late``: cam1's frames numbered as if it had started that many frames late, and
-    calibration.toml saying so (time_offset_s): the same names (measured: the same 97.9 %)."""
+    calibration.toml saying so (time_offset_s): the same names (measured: the same 98.25 %)."""
     rig, folder, truth, n_markers = _board(tmp_path)
     if late:
         i = rig.names.index("cam1")
@@ -338,12 +355,14 @@ def _board(tmp_path: Path) -> tuple:
 
 def test_real_board_is_named_to_98_percent_on_the_clocks_measured_from_its_names(tmp_path):
     """Caliscope's board (4 free-running webcams), no timing stated: ``--sync estimate`` measures the cameras'
-    offsets and readouts from the first names (97.9 % named correctly) and names the corners again on them, the
-    detections moved to their frames' instants (step 7) before step 8. Measured 98.4 % named correctly, none
-    wrongly, on cam1 -3.3 ms and an 8.2 ms readout (98.3 % with the timing `reconstruct --sync estimate` finds on
-    the labelled corners stated: cam1 -3.1 ms, a 7.5 ms readout). Before step 8 stopped trying shifts of half the
-    corners' spacing or more, that stated timing gave 98.0 % and 0.3 % wrongly: cam1's 7 corners on frame 84 named
-    one row off (a 46 px shift; the corners lie 43 px apart)."""
+    offsets and readouts from the first names and names the corners again on them, the detections moved to their
+    frames' instants (step 7) before step 8; the second names are kept where they are more. Measured: 98.25 % named
+    correctly the first time, 98.2 % the second (kept: the first), none wrongly, on cam1 -3.3 ms and a 7.7 ms
+    readout (the timing `reconstruct --sync estimate` finds on the labelled corners: cam1 -3.1 ms, a 7.5 ms
+    readout). With the noise measured twice from 2 px (0.852 px instead of 0.847): 97.9 % the first time, 98.4 %
+    the second. Before step 8 stopped trying shifts of half the corners' spacing or more, the stated timing gave
+    98.0 % and 0.3 % wrongly: cam1's 7 corners on frame 84 named one row off (a 46 px shift; the corners lie 43 px
+    apart)."""
     from batgraph.naming import name_detections
     from batgraph.result import Options
 
@@ -352,9 +371,8 @@ def test_real_board_is_named_to_98_percent_on_the_clocks_measured_from_its_names
     scratch.mkdir()
     named = name_detections(folder, scratch, Options(sync=True, progress=False))
     r = score.score(truth, named.labels["frame"].to_numpy(), named.labels["marker"].to_numpy(), 30.0, n_markers)
-    assert named.figures.summary["clocks_estimated"] and named.figures.summary["clock_rounds"] > 0
     assert r["real_correct"] >= 0.98 and r["real_wrong"] == 0.0, r
-    cam1 = read_calibration(named.calibration).cameras[1]  # measured -3.3 ms and 8.2 ms
+    cam1 = read_calibration(scratch / "clocks.toml").cameras[1]  # measured -3.3 ms and 7.7 ms
     assert abs(cam1.time_offset_s + 3.1e-3) < 0.5e-3 and abs(cam1.readout_s - 7.5e-3) < 1.5e-3
 
 
@@ -570,11 +588,11 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "pose2
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real/pose2sim_demo_4cam_human is absent")
 def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
     """The Pose2Sim demo's OpenPose keypoints (4 cameras, 25 keypoints, 60 fps) with their names stripped and the
-    frame where most are seen three times as the seed, BODY_25B's bones as the import writes them: measured 31.6 %
-    of the 8987 detections named correctly, 1.4 % wrongly (5.7 % and 0.2 % without the bones: the checks had no
-    segment to vouch for a path past the tracker's first doubted link; the face and the feet are lost near the seed
-    with 5.3 px of keypoint noise; docs/associate.md). Bounds: at least 25 % named correctly, at most 2.5 %
-    wrongly."""
+    frame where most are seen three times as the seed, BODY_25B's bones as the import writes them: measured 43.1 %
+    of the 8987 detections named correctly, 0.67 % wrongly, the keypoint noise measured at 14.1 px (with the noise
+    measured twice from 2 px, 5.3 px: 31.6 % and 1.4 %; without the bones 5.7 % and 0.2 %: the checks had no segment
+    to vouch for a path past the tracker's first doubted link). The face and the feet are lost next to the seed
+    (docs/associate.md). Bounds: at least 38 % named correctly, at most 1.5 % wrongly."""
     trial = REAL / "S00_P00_SingleParticipant" / "S00_P00_T01_BalancingTrial"
     argv = ["import", "pose2sim", *sorted(str(p) for p in (trial / "pose-associated").iterdir()), "--calibration",
             str(REAL / "S00_Calibration" / "Calib_qualisys.toml"), "--fps", "60", "--out", str(tmp_path / "p2s")]
@@ -583,7 +601,7 @@ def test_real_keypoints_relabelled_without_wrong_names(tmp_path):
     sc = scenes.strip_labels(session)
     scenes.write_scene(session, sc, tmp_path / "stripped")
     r = named(tmp_path / "stripped", sc, fps=60.0, n_markers=len(session.markers))
-    assert r["real_correct"] >= 0.25 and r["real_wrong"] <= 0.025
+    assert r["real_correct"] >= 0.38 and r["real_wrong"] <= 0.015
 
 
 def test_a_marker_tracked_point_to_point_becomes_steady():
