@@ -259,6 +259,9 @@ def test_anipose_project(tmp_path):
     (root / "config.toml").write_text(config.replace("['snout', 'tail']", "'tail'"))
     with pytest.raises(InputError, match=r"config.toml \[labeling\] scheme: expected lists of body part names"):
         import_anipose(session_dir, 100, None, trial="flight1")
+    (root / "config.toml").write_text("nesting = 1\nlabeling = 3\n")
+    with pytest.raises(InputError, match=r"config.toml: 'labeling' must be a table \[labeling\]"):
+        import_anipose(session_dir, 100, None, trial="flight1")
 
 
 def test_pose2sim_json_errors(tmp_path):

@@ -32,7 +32,7 @@ def _find_config(folder: Path, levels: int = 4) -> dict:
         path = d / "config.toml"
         if path.is_file():
             cfg = read_toml(path)
-            for table in ("pipeline", "triangulation"):
+            for table in ("pipeline", "triangulation", "labeling"):
                 if not isinstance(cfg.get(table, {}), dict):
                     raise InputError(f"{path}: '{table}' must be a table [{table}]")
             if "score_threshold" in cfg.get("triangulation", {}):
@@ -48,7 +48,7 @@ def _find_config(folder: Path, levels: int = 4) -> dict:
 
 def _scheme(cfg: dict, path: Path | None = None) -> list[tuple[str, str]]:
     """Anipose's ``[labeling] scheme`` (lists of body parts, each a chain) as pairs of neighbours in a chain."""
-    scheme = cfg.get("labeling", {}).get("scheme", []) if isinstance(cfg.get("labeling", {}), dict) else None
+    scheme = cfg.get("labeling", {}).get("scheme", [])
     if not isinstance(scheme, list) or not all(isinstance(c, list) and all(isinstance(b, str) for b in c)
                                                for c in scheme):
         raise InputError(f"{path} [labeling] scheme: expected lists of body part names, got {scheme!r}")
