@@ -25,9 +25,8 @@ from .associate import (
     Figures,
     associate_session,
     check_out,
-    coverage_text,
-    out_of_step_text,
     require_named,
+    warning_texts,
     write_associated,
     write_observations,
 )
@@ -108,9 +107,8 @@ def associate_command(args, progress: bool = False) -> int:
           f"pixel noise {s['pixel_sigma_px']:.2f} px, {s['suspected_switches']} suspected identity switch(es)"
           + (f", {s['clock_rounds']} round(s) on the cameras' stated clocks" if s["clock_rounds"] else "")
           + (", named again on the clocks estimated from the first names" if s["clocks_estimated"] else ""))
-    for text in (coverage_text(s), out_of_step_text(s)):
-        if text:
-            print(f"batgraph: warning: {text}", file=sys.stderr)
+    for text in warning_texts(s):
+        print(f"batgraph: warning: {text}", file=sys.stderr)
     print(f"wrote observations.csv, labels.csv and association.json to {out} "
           f"(`batgraph reconstruct {out}` takes it as it is)")
     return 0

@@ -223,8 +223,9 @@ def _detections_only(folder: Path) -> bool:
 
 def _association_warning(counts: dict) -> str:
     """The warning every run on names from unlabelled detections carries: how many, where to check them, the frames
-    that hold names where they are fewer than half, and the cameras whose detections were moved out of step."""
-    more = [t for t in (associate_mod.coverage_text(counts), associate_mod.out_of_step_text(counts)) if t]
+    that hold names where they are fewer than half, the cameras whose detections were moved out of step, and a noise
+    assumed where it could not be measured."""
+    more = associate_mod.warning_texts(counts)
     return (f"the markers were named from unlabelled detections (batgraph associate, experimental): "
             f"{counts['named']} of {counts['detections']} detections named ({100 * counts['named_fraction']:.1f} %), "
             f"{counts['suspected_switches']} suspected identity switch(es), but most wrong names are not among them: "

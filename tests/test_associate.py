@@ -55,6 +55,17 @@ def test_well_separated_markers_are_all_named_correctly(tmp_path):
     assert r["real_correct"] >= 0.99 and r["real_wrong"] == 0.0 and r["switches"] == 0
 
 
+def _noisy_detections(tmp_path: Path, n_cams: int, noise: float) -> Path:
+    """The tiny scene (40 frames, 6 markers) with Gaussian noise [px] as a detections session stating no noise."""
+    src = write_tiny_session(tmp_path / f"labelled{n_cams}_{noise}", n_cams=n_cams, n_frames=40, n_markers=6)
+    session = dataclasses.replace(read_session(src), pixel_sigma_px=None)
+    rng = np.random.default_rng(0)
+    session.observations[["u", "v"]] += noise * rng.standard_normal((len(session.observations), 2))
+    sc = scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0, seed_frames=(20,)))
+    scenes.write_scene(session, sc, tmp_path / f"detections{n_cams}_{noise}")
+    return tmp_path / f"detections{n_cams}_{noise}"
+
+
 def test_the_pixel_noise_is_measured_until_it_settles(tmp_path):
     """The noise measured from the detections (no [noise] pixel_sigma_px), 4 cameras x 6 markers x 40 frames of
     Gaussian noise: measured 0.503 px for 0.5 px, 4.93 px for 6 px. Measured twice from the 2 px start, as before,
@@ -62,14 +73,26 @@ def test_the_pixel_noise_is_measured_until_it_settles(tmp_path):
     detection near them are still left out, so large noise still reads low (9 px: 6.55). Bounds: 0.5 px within
     5 %, 6 px between 4.5 and 6.6 px."""
     for noise, low, high in ((0.5, 0.475, 0.525), (6.0, 4.5, 6.6)):
-        src = write_tiny_session(tmp_path / f"labelled{noise}", n_cams=4, n_frames=40, n_markers=6)
-        session = dataclasses.replace(read_session(src), pixel_sigma_px=None)
-        rng = np.random.default_rng(0)
-        session.observations[["u", "v"]] += noise * rng.standard_normal((len(session.observations), 2))
-        sc = scenes.make_scene(session, rng, scenes.SceneOptions(spurious_rate=0.0, merge_px=0.0, seed_frames=(20,)))
-        scenes.write_scene(session, sc, tmp_path / f"detections{noise}")
-        _, _, fig = associate_session(tmp_path / f"detections{noise}")
+        _, _, fig = associate_session(_noisy_detections(tmp_path, 4, noise))
         assert low <= fig.summary["pixel_sigma_px"] <= high
+        assert fig.summary["pixel_sigma_source"] == "measured"
+
+
+def test_the_pixel_noise_of_three_cameras_is_measured_and_of_two_assumed_aloud(tmp_path, capsys):
+    """A rig of 3 cameras has no point seen by 4: its noise is measured from the points seen by 3 (1 px read 0.93
+    px; it was 2 px assumed without a word). Two cameras' views are paired by their errors, which cannot measure
+    them: 2 px is assumed, association.json says so and ``associate`` warns in one line. A noise stated is used as
+    it is."""
+    _, _, fig = associate_session(_noisy_detections(tmp_path, 3, 1.0))
+    assert 0.85 <= fig.summary["pixel_sigma_px"] <= 1.15 and fig.summary["pixel_sigma_source"] == "measured"
+    two = _noisy_detections(tmp_path, 2, 1.0)
+    assert main(["associate", str(two), "--out", str(tmp_path / "named")]) == 0
+    said = json.loads((tmp_path / "named" / "association.json").read_text())
+    assert said["pixel_sigma_px"] == 2.0 and said["pixel_sigma_source"] == "assumed"
+    warned = [line for line in capsys.readouterr().err.splitlines() if "could not be measured" in line]
+    assert len(warned) == 1 and "2 px assumed" in warned[0] and "pixel_sigma_px" in warned[0]
+    _, _, fig = associate_session(two, AssociateOptions(pixel_sigma_px=1.0))
+    assert fig.summary["pixel_sigma_px"] == 1.0 and fig.summary["pixel_sigma_source"] == "stated"
 
 
 def test_a_click_on_another_frame_names_as_many(tmp_path):

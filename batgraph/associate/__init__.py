@@ -11,12 +11,11 @@ from .session import (
     Figures,
     associate_session,
     check_out,
-    coverage_text,
-    out_of_step_text,
     require_named,
+    warning_texts,
     write_associated,
     write_observations,
 )
 
-__all__ = ["AssociateOptions", "Figures", "associate_session", "check_out", "coverage_text", "out_of_step_text",
-           "require_named", "write_associated", "write_observations"]
+__all__ = ["AssociateOptions", "Figures", "associate_session", "check_out", "require_named", "warning_texts",
+           "write_associated", "write_observations"]

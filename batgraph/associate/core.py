@@ -35,7 +35,7 @@ detection the tracker joined along its marker's predicted ray, or matched to whe
 
 @dataclass
 class AssociateOptions:
-    """pixel_sigma_px: the detections' noise [px] (None: measured from points seen by 4 cameras or more);
+    """pixel_sigma_px: the detections' noise [px] (None: measured from points seen by 4 cameras or more, or 3);
     margin: the least extra cost (chi-square units) for a detection's name to be kept (4.6: confidence 0.9);
     rounds: matching rounds (batgraph.associate.refine); track: the tracker's options; progress: a bar over the
     rounds of step 7 (each a whole association: minutes on a long session)."""
@@ -51,7 +51,9 @@ class AssociateOptions:
 class Association:
     """Per detection (in the order of ``Detections``): label (N,) marker index (-1: unnamed), confidence (N,),
     candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
-    an index into HOW. pixel_sigma_px: the noise used [px]; sweep: what the tracker found per frame and marker;
+    an index into HOW. pixel_sigma_px: the noise used [px], sigma_source how it was had ("stated", "measured", or
+    "assumed": SIGMA_START_PX where no point had views enough to measure it); sweep: what the tracker found per
+    frame and marker;
     moved (F, C) bool: the camera-frames found out of step or shaken and moved (batgraph.associate.jitter; None:
     none), moved_px (N,) how far each detection was moved there [raw px]; clock_rounds: how many times the
     detections were moved to their frames' instants and named again (:func:`_on_the_clock`; 0: on the clock)."""
@@ -63,6 +65,7 @@ class Association:
     how: np.ndarray
     pixel_sigma_px: float
     sweep: tracks.Sweep
+    sigma_source: str = "stated"
     moved: np.ndarray | None = None
     moved_px: np.ndarray | None = None
     clock_rounds: int = 0
@@ -90,30 +93,34 @@ def frame_points(geom: views.Geometry, fi: tracks.FrameDetections, f: int) -> vi
                              np.concatenate([chosen.score, pairs.score]))
 
 
-def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray) -> float:
-    """The detections' noise [px] from the reprojection errors of points seen by 4 cameras or more on up to
-    SIGMA_SAMPLE_FRAMES frames: a view's squared error is sigma^2 (1 - 3 / (2 n)) chi-square(2) for n views, so
-    sigma^2 = median(e^2 / (1 - 3 / (2 n))) / (2 ln 2). The points are found with the gates of the noise assumed,
-    which leave out the views beyond them, so the measurement is repeated with the gates of the last until it
-    settles (SIGMA_SETTLED, at most SIGMA_ROUNDS times): the noise of the views within the gates it sets. Gaussian
-    noise small against the markers' spacing settles in 2-3 rounds next to the truth; large noise still reads low,
-    for views with another detection near them are left out (a wingbeat's 7 px read 2.3 px); markerless keypoints,
-    whose errors have long tails, climb for longer (the Pose2Sim demo: 2.0, 4.0, 5.3, ... 14.1 px)."""
+def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray) -> float | None:
+    """The detections' noise [px] from the reprojection errors of points seen by 4 cameras or more (by 3 where none is
+    seen by 4: a rig of 3 cameras) on up to SIGMA_SAMPLE_FRAMES frames; None where none is seen by 3 (two views'
+    errors are what pairs them: they cannot measure it). A view's squared error is sigma^2 (1 - 3 / (2 n))
+    chi-square(2) for n views, so sigma^2 = median(e^2 / (1 - 3 / (2 n))) / (2 ln 2). The points are found with the
+    gates of the noise assumed, which leave out the views beyond them, so the measurement is repeated with the gates
+    of the last until it settles (SIGMA_SETTLED, at most SIGMA_ROUNDS times): the noise of the views within the gates
+    it sets. Gaussian noise small against the markers' spacing settles in 2-3 rounds next to the truth; large noise
+    still reads low, for views with another detection near them are left out (a wingbeat's 7 px read 2.3 px);
+    markerless keypoints, whose errors have long tails, climb for longer (the Pose2Sim demo: 2.0, 4.0, 5.3, ... 14.1
+    px)."""
     frames = fi.first + np.unique(np.linspace(0, fi.n_frames - 1, min(fi.n_frames, SIGMA_SAMPLE_FRAMES)).astype(int))
-    sigma = SIGMA_START_PX
+    sigma, measured = SIGMA_START_PX, False
     for _ in range(SIGMA_ROUNDS):
         fi.sig = sigma * scale
+        pts = [frame_points(geom, fi, int(f)) for f in frames]
+        least = 4 if any((p.n_views >= 4).any() for p in pts) else 3
         e2 = []
-        for f in frames:
-            p = frame_points(geom, fi, int(f))
+        for p in pts:
             n = p.n_views
-            four = n >= 4
-            if four.any():
-                r2 = views.residuals(geom, fi.uv, scale, p.views[four], p.xyz[four])
-                e2.append((r2 / (1 - 3 / (2 * n[four]))[:, None])[p.views[four] >= 0])
+            enough = n >= least
+            if enough.any():
+                r2 = views.residuals(geom, fi.uv, scale, p.views[enough], p.xyz[enough])
+                e2.append((r2 / (1 - 3 / (2 * n[enough]))[:, None])[p.views[enough] >= 0])
         if not e2:
-            return sigma
-        last, sigma = sigma, float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
+            return sigma if measured else None
+        last, measured = sigma, True
+        sigma = float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
         if abs(sigma - last) <= SIGMA_SETTLED * last:
             break
     return sigma
@@ -147,7 +154,7 @@ def _subset_points(rig: Rig, fi: tracks.FrameDetections, seed_det: np.ndarray):
 def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
                seed_lab: np.ndarray) -> float:
     """The detections' noise [px] from the seed: the reprojection errors of the seeded markers clicked in 4
-    cameras or more, as :func:`measure_sigma` reads them (SIGMA_START_PX where there are none)."""
+    cameras or more, as :func:`measure_sigma` reads them (None where there are none)."""
     e2 = []
     C = len(geom.rig)
     for f in np.unique(fi.frame[seed_det]):
@@ -163,7 +170,7 @@ def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarr
             r2 = views.residuals(geom, fi.uv, scale, v, views.triangulate(geom, fi.uv, v))
             e2.append((r2 / (1 - 3 / (2 * (v >= 0).sum(axis=1)))[:, None])[v >= 0])
     if not e2:
-        return SIGMA_START_PX
+        return None
     return float(np.sqrt(np.median(np.concatenate(e2)) / (2 * np.log(2))))
 
 
@@ -262,6 +269,7 @@ class _Tracked:
     """What the tracking from the seed left for the naming (:func:`_track`)."""
 
     sigma: float
+    sigma_source: str  # Association.sigma_source
     noise_m: float
     track_options: tracks.TrackOptions
     sweep: tracks.Sweep
@@ -280,7 +288,7 @@ class _Tracked:
         how = np.where(self.fixed >= 0, 1, np.where(label < 0, 0, np.where((label == self.swept) | (filled > 0),
                                                                             how, 4)))
         track = np.where((label >= 0) & (label == self.swept), self.track, -1)
-        return Association(label, conf, cand, track, how, self.sigma, self.sweep)
+        return Association(label, conf, cand, track, how, self.sigma, self.sweep, self.sigma_source)
 
 
 def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
@@ -291,9 +299,10 @@ def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, 
     names checked (steps 1-2 and 4 of docs/associate.md)."""
     rig = geom.rig
     large = len(rig) > PAIRS_UP_TO_CAMERAS
-    sigma = opt.pixel_sigma_px
+    sigma, source = opt.pixel_sigma_px, "stated"
     if sigma is None:
         sigma = seed_sigma(geom, fi, scale, seed_det, seed_lab) if large else measure_sigma(geom, fi, scale)
+        sigma, source = (SIGMA_START_PX, "assumed") if sigma is None else (sigma, "measured")
     fi.sig = sigma * scale
     frames = np.arange(fi.first, fi.first + fi.n_frames)
     if large:  # points from the markers' predictions: matching every camera pair would cost too much
@@ -342,7 +351,7 @@ def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, 
     ref = opt.track.segment_lengths
     doubt = tracks.doubtful(sw, start - fi.first)
     label = _vouched(geom, fi, label, fixed, seeded, pairs, n_labels, noise_m, ref, doubt)
-    return _Tracked(sigma, noise_m, opt.track, sw, label, how, track, fixed, seeded, doubt, points, points_at)
+    return _Tracked(sigma, source, noise_m, opt.track, sw, label, how, track, fixed, seeded, doubt, points, points_at)
 
 
 def _name(geom: views.Geometry, fi: tracks.FrameDetections, t: _Tracked, label: np.ndarray, n_labels: int,

@@ -151,7 +151,8 @@ def _figures(dets: Detections, cameras: list[str], markers: list[str], res: Asso
                              "confidence": conf[suspect]})
     n = len(dets.frame)
     summary = {"detections": n, "named": int(named.sum()), "named_fraction": float(named.mean()) if n else 0.0,
-               "pixel_sigma_px": res.pixel_sigma_px, "tracks": int(res.track.max()) + 1 if n else 0,
+               "pixel_sigma_px": res.pixel_sigma_px, "pixel_sigma_source": res.sigma_source,
+               "tracks": int(res.track.max()) + 1 if n else 0,
                "suspected_switches": int(suspect.sum()), "detections_file": str(det_path)}
     for i, h in enumerate(HOW):
         summary[f"how_{h or 'none'}"] = int((res.how == i).sum())
@@ -215,6 +216,20 @@ def out_of_step_text(summary: dict) -> str:
     return (f"detections out of step with the other cameras (a free-running or shaken camera) were moved to be "
             f"named: {each}; the estimators take them as they are (where a camera's offset is constant, "
             "--sync estimate measures it from the names and names the detections again on it)")
+
+
+def noise_text(summary: dict) -> str:
+    """One sentence where the detections' noise was assumed, for no point had views enough to measure it ('' else)."""
+    if summary.get("pixel_sigma_source") != "assumed":
+        return ""
+    return (f"the detections' noise could not be measured (no point is seen by 3 cameras or more): "
+            f"{summary['pixel_sigma_px']:g} px assumed for the gates; state it (session.toml's [noise] pixel_sigma_px, "
+            "or --pixel-sigma)")
+
+
+def warning_texts(summary: dict) -> list[str]:
+    """The association's warnings, each one sentence: the names' coverage, cameras out of step, the noise assumed."""
+    return [t for t in (coverage_text(summary), out_of_step_text(summary), noise_text(summary)) if t]
 
 
 def check_out(folder: Path, out: Path) -> None:
