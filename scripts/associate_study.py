@@ -9,16 +9,18 @@ detections) and on the recovered labels less the wrong ones, for the RMSE on obs
 last says whether the names left out or the wrong ones cost accuracy. Prints one line per case and the medians.
 
 Usage: ``python scripts/associate_study.py [--scenes flight14,flight24,wingbeat] [--seeds 0,1,2] [--out DIR]
-[--no-smoother] [--sync] [--seed-frames N] [--also-label F1,F2]``.
+[--no-smoother] [--sync] [--seed-frames N] [--also-label F1,F2] [--measure-noise]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -83,12 +85,27 @@ def hidden_rivals(session) -> dict:
     return {"hidden_wrong": float(chance.mean()), "hidden_doubt": float((chance > 0.01).mean())}
 
 
-def run_case(scene: str, seed: int, work: Path, with_smoother: bool, sync: bool = False, seed_frames: int = 1,
-             also: tuple[int, ...] = ()) -> dict:
-    """One case's scores (and smoother RMSEs); seed_frames: how many frames the user labels (scenes.seed_frames),
-    also: frames labelled besides those."""
+@dataclass
+class CaseOptions:
+    """smoother: also the smoother's RMSEs (two reconstructs); sync: as associate --sync estimate; seed_frames: how many
+    frames the user labels (scenes.seed_frames); also: frames labelled besides those; noise_stated: session.toml
+    states the simulated noise (1 px), else the association measures it, as on a user's data."""
+
+    smoother: bool = True
+    sync: bool = False
+    seed_frames: int = 1
+    also: tuple[int, ...] = ()
+    noise_stated: bool = True
+
+
+def run_case(scene: str, seed: int, work: Path, opt: CaseOptions | None = None) -> dict:
+    """One case's scores (and smoother RMSEs)."""
+    opt = opt or CaseOptions()
+    sync = opt.sync
     session = simulate(scene, seed)
-    frames = tuple(scenes.seed_frames(session.observations, seed_frames)) + also
+    if not opt.noise_stated:
+        session = dataclasses.replace(session, pixel_sigma_px=None)
+    frames = tuple(scenes.seed_frames(session.observations, opt.seed_frames)) + opt.also
     sc = scenes.make_scene(session, np.random.default_rng(1000 + seed), scenes.SceneOptions(seed_frames=frames))
     case = work / f"{scene}_{seed}"
     scenes.write_scene(session, sc, case / "input")
@@ -102,7 +119,7 @@ def run_case(scene: str, seed: int, work: Path, with_smoother: bool, sync: bool 
                           len(session.marker_names))
     row = {"scene": scene, "seed": seed, "associate_s": wall, "clock_rounds": fig.summary["clock_rounds"],
            "clocks_estimated": fig.summary["clocks_estimated"], **figures, **hidden_rivals(session)}
-    if with_smoother:
+    if opt.smoother:
         real = (sc.truth["kind"] == "marker").to_numpy()
         true_obs = sc.detections[real].assign(marker=sc.truth["marker"][real].to_numpy(), weight=1.0)
         session.observations = true_obs[["frame", "camera", "marker", "u", "v", "weight"]].reset_index(drop=True)
@@ -129,14 +146,17 @@ def main_study(argv: list[str] | None = None) -> int:
                    "first names, the detections named again on them); the reconstructs with --sync estimate too")
     p.add_argument("--seed-frames", type=int, default=1, help="how many frames the user labels (scenes.seed_frames)")
     p.add_argument("--also-label", default="", help="frames labelled besides those, e.g. 20,140")
+    p.add_argument("--measure-noise", action="store_true", help="session.toml states no noise: the association "
+                   "measures it (and reconstruct, per camera), as on a user's data")
     args = p.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
         for scene in args.scenes.split(","):
             for seed in (int(s) for s in args.seeds.split(",")):
-                row = run_case(scene, seed, work, not args.no_smoother, args.sync, args.seed_frames,
-                               tuple(int(f) for f in args.also_label.split(",") if f))
+                row = run_case(scene, seed, work, CaseOptions(
+                    not args.no_smoother, args.sync, args.seed_frames,
+                    tuple(int(f) for f in args.also_label.split(",") if f), not args.measure_noise))
                 rows.append(row)
                 print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
                       flush=True)

@@ -178,7 +178,7 @@ def main_study(argv: list[str] | None = None) -> int:
             for seed in (int(s) for s in args.seeds.split(",")):
                 row = run_footage(scene, seed, work, args.codec)
                 if not args.no_baseline:
-                    base = run_case(scene, seed, work / "generator", True)
+                    base = run_case(scene, seed, work / "generator")
                     row.update(base_correct=base["real_correct"], base_wrong=base["real_wrong"],
                                base_rmse_ratio=base["rmse_ratio"], base_associate_s=base["associate_s"])
                 rows.append(row)
