@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import warnings
 from pathlib import Path
 
@@ -951,7 +952,7 @@ def test_a_gap_name_on_a_point_where_another_unnamed_marker_may_be_is_dropped():
     assert not ok[0, 0] and ok[1, 0] and ok[2, 0]
 
 
-def test_study_bound_counts_the_blob_a_hidden_marker_projects_onto():
+def test_study_bound_counts_the_blob_a_hidden_marker_projects_onto(monkeypatch):
     """associate_study.hidden_rivals: marker b sits on the ray of cam0 through marker a, 1.1 times as far, and cam0
     does not see b: a's blob there is b's as likely as a's (chance 0.5); the other 4 detections have no hidden rival.
     So an ideal namer names 0.5 / 5 of them wrongly naming all, and leaves 1 / 5 unnamed naming only the sure ones.
@@ -965,6 +966,7 @@ def test_study_bound_counts_the_blob_a_hidden_marker_projects_onto():
     path = Path(__file__).resolve().parents[1] / "scripts" / "associate_study.py"
     spec = importlib.util.spec_from_file_location("associate_study", path)
     study = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "associate_study", study)  # its dataclasses look their module up there
     spec.loader.exec_module(study)
     rig = tiny_rig(3)
     a = np.array([0.0, 0.0, 0.1])
