@@ -222,10 +222,9 @@ def noise_text(summary: dict) -> str:
     """One sentence where the detections' noise was assumed, for no point had views enough to measure it ('' else)."""
     if summary.get("pixel_sigma_source") != "assumed":
         return ""
-    return (f"the detections' noise could not be measured (no point is seen by 3 cameras or more; in a rig of more "
-            f"than 8, no seed click in 4): "
-            f"{summary['pixel_sigma_px']:g} px assumed for the gates; state it (session.toml's [noise] pixel_sigma_px, "
-            "or --pixel-sigma)")
+    return ("the detections' noise could not be measured (no point is seen by 3 cameras or more; in a rig of more "
+            f"than 8, no seed click in 4): {summary['pixel_sigma_px']:g} px assumed for the gates; state it "
+            "(session.toml's [noise] pixel_sigma_px, or --pixel-sigma)")
 
 
 def warning_texts(summary: dict) -> list[str]:
