@@ -93,7 +93,8 @@ def frame_points(geom: views.Geometry, fi: tracks.FrameDetections, f: int) -> vi
                              np.concatenate([chosen.score, pairs.score]))
 
 
-def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray) -> float | None:
+def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray,
+                  start: float = SIGMA_START_PX) -> float | None:
     """The detections' noise [px] from the reprojection errors of points seen by 4 cameras or more (by 3 where none is
     seen by 4: a rig of 3 cameras) on up to SIGMA_SAMPLE_FRAMES frames; None where none is seen by 3 (two views'
     errors are what pairs them: they cannot measure it). A view's squared error is sigma^2 (1 - 3 / (2 n))
@@ -105,7 +106,7 @@ def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.nd
     markerless keypoints, whose errors have long tails, climb for longer (the Pose2Sim demo: 2.0, 4.0, 5.3, ... 14.1
     px)."""
     frames = fi.first + np.unique(np.linspace(0, fi.n_frames - 1, min(fi.n_frames, SIGMA_SAMPLE_FRAMES)).astype(int))
-    sigma, measured = SIGMA_START_PX, False
+    sigma, measured = start, False
     for _ in range(SIGMA_ROUNDS):
         fi.sig = sigma * scale
         pts = [frame_points(geom, fi, int(f)) for f in frames]
@@ -255,7 +256,7 @@ def _on_the_clock(geom: views.Geometry, fi: tracks.FrameDetections, ideal: np.nd
         bar.set_postfix_str(f"{100 * named / len(ideal):.0f} % named")
         xyz, _, _, vel = jitter.paths(geom, fi, label[0], n_labels, fps, t.noise_m)
         fi.uv = jitter.along_motion(geom, fi, ideal, xyz, vel, np.zeros_like(ideal), dt)
-        t = _track(geom, fi, scale, seed_det, seed_lab, n_labels, pairs, fps, opt)
+        t = _track(geom, fi, scale, seed_det, seed_lab, n_labels, pairs, fps, opt, t.sigma)
         label = _name(geom, fi, t, t.swept, n_labels, pairs, fps, opt)
         grown = int((label[0] >= 0).sum()) - named
         named += grown
@@ -292,16 +293,18 @@ class _Tracked:
 
 
 def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
-           seed_lab: np.ndarray, n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions
-           ) -> _Tracked:
-    """The noise measured (sets fi.sig), each frame's points found, the markers tracked forwards and backwards from
+           seed_lab: np.ndarray, n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions,
+           sigma_start: float = SIGMA_START_PX) -> _Tracked:
+    """The noise measured (sets fi.sig; from sigma_start [px]: a round of step 7 starts from the last round's),
+    each frame's points found, the markers tracked forwards and backwards from
     the seed frame with the most clicks (other seed frames placed where the sweeps reach them), and the tracker's
     names checked (steps 1-2 and 4 of docs/associate.md)."""
     rig = geom.rig
     large = len(rig) > PAIRS_UP_TO_CAMERAS
     sigma, source = opt.pixel_sigma_px, "stated"
     if sigma is None:
-        sigma = seed_sigma(geom, fi, scale, seed_det, seed_lab) if large else measure_sigma(geom, fi, scale)
+        sigma = seed_sigma(geom, fi, scale, seed_det, seed_lab) if large else measure_sigma(geom, fi, scale,
+                                                                                              sigma_start)
         sigma, source = (SIGMA_START_PX, "assumed") if sigma is None else (sigma, "measured")
     fi.sig = sigma * scale
     frames = np.arange(fi.first, fi.first + fi.n_frames)
