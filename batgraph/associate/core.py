@@ -99,12 +99,12 @@ def measure_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.nd
     seen by 4: a rig of 3 cameras) on up to SIGMA_SAMPLE_FRAMES frames; None where none is seen by 3 (two views'
     errors are what pairs them: they cannot measure it). A view's squared error is sigma^2 (1 - 3 / (2 n))
     chi-square(2) for n views, so sigma^2 = median(e^2 / (1 - 3 / (2 n))) / (2 ln 2). The points are found with the
-    gates of the noise assumed, which leave out the views beyond them, so the measurement is repeated with the gates
-    of the last until it settles (SIGMA_SETTLED, at most SIGMA_ROUNDS times): the noise of the views within the gates
-    it sets. Gaussian noise small against the markers' spacing settles in 2-3 rounds next to the truth; large noise
-    still reads low, for views with another detection near them are left out (a wingbeat's 7 px read 2.3 px);
-    markerless keypoints, whose errors have long tails, climb for longer (the Pose2Sim demo: 2.0, 4.0, 5.3, ... 14.1
-    px)."""
+    gates of the noise assumed (``start`` [px] at first), which leave out the views beyond them, so the measurement
+    is repeated with the gates of the last until it settles (SIGMA_SETTLED, at most SIGMA_ROUNDS times): the noise of
+    the views within the gates it sets. Gaussian noise small against the markers' spacing settles in 2-3 rounds next
+    to the truth; large noise still reads low, for views with another detection near them are left out (a wingbeat's
+    7 px read 2.3 px); markerless keypoints, whose errors have long tails, climb for longer (the Pose2Sim demo: 2.0,
+    4.0, 5.3, ... 14.1 px)."""
     frames = fi.first + np.unique(np.linspace(0, fi.n_frames - 1, min(fi.n_frames, SIGMA_SAMPLE_FRAMES)).astype(int))
     sigma, measured = start, False
     for _ in range(SIGMA_ROUNDS):
