@@ -494,6 +494,22 @@ def test_parquet_detections_and_score_column(tmp_path):
     assert np.allclose(obs["weight"], 0.5)
 
 
+def test_each_detection_keeps_its_own_score_as_weight(tmp_path):
+    """Scores that differ per detection, in a file whose rows within a frame are not in camera order (association
+    sorts them by frame and camera): each named detection's weight is its own row's score, as labels.csv keeps it."""
+    folder, _ = detections_folder(tmp_path)
+    det = pd.read_csv(folder / "detections.csv")
+    det["score"] = np.random.default_rng(0).uniform(0.2, 1.0, len(det)).round(4)
+    det = det.sort_values(["frame", "camera"], ascending=[True, False], kind="stable")
+    det.to_csv(folder / "detections.csv", index=False)
+    obs, labels, _ = associate_session(folder)
+    key = ["frame", "camera", "u", "v"]
+    both = obs.merge(det[key + ["score"]], on=key, how="left", validate="one_to_one")
+    assert len(both) == len(obs) >= 0.99 * len(det)
+    assert np.allclose(both["weight"], both["score"])
+    assert np.allclose(labels["score"].to_numpy(), det["score"].to_numpy())
+
+
 def test_names_on_few_frames_are_warned(tmp_path, capsys):
     """The tiny scene with its frames shuffled (each frame's detections those of another, the seed frame's kept):
     the markers jump 0.1-0.4 m from frame to frame, so the names lie on a few of the 40 frames (3: measured), and

@@ -54,6 +54,13 @@ class Detections:
     def __len__(self) -> int:
         return len(self.frame)
 
+    @property
+    def weight(self) -> np.ndarray:
+        """(N,) each detection's weight in observations.csv: the score where it is in (0, 1], else 1."""
+        if self.score is None:
+            return np.ones(len(self.frame))
+        return np.where((self.score > 0) & (self.score <= 1), self.score, 1.0)
+
 
 @dataclass
 class SessionSetup:

@@ -92,10 +92,9 @@ def associate_session(folder: str | Path, options: AssociateOptions | None = Non
                     pairs, setup.fps, opt)
     labels = _labels_table(dets, rig.names, markers, res)
     named = labels[labels["marker"] != ""]
-    weight = np.ones(len(named))
-    if dets.score is not None:
-        score = dets.score[named.index.to_numpy()]
-        weight = np.where((score > 0) & (score <= 1), score, 1.0)
+    at = np.empty_like(dets.row)
+    at[dets.row] = np.arange(len(dets.row))  # a file row's place in dets (sorted by frame then camera)
+    weight = dets.weight[at[named.index.to_numpy()]]
     obs = pd.DataFrame({"frame": named["frame"].to_numpy(), "camera": named["camera"].to_numpy(),
                         "marker": named["marker"].to_numpy(), "u": named["u"].to_numpy(), "v": named["v"].to_numpy(),
                         "weight": weight})
