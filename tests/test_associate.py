@@ -767,6 +767,26 @@ def test_a_path_resumed_on_a_weak_link_needs_its_segments():
     assert keep[:19, 0].all() and not keep[20:, 0].any()
 
 
+def test_a_name_seen_by_one_camera_is_carried_from_a_vouched_frame_up_to_a_doubt():
+    """verify.carried: a marker vouched on frame 3 and named in one camera only on frames 0-2 and 4-9 (no position to
+    check) keeps its name forwards up to the link into frame 7, which the tracker doubted, and backwards up to the
+    link between frames 0 and 1, also in doubt; a second marker named on one camera only, never vouched, keeps none."""
+    from batgraph.associate import verify
+
+    keep = np.zeros((10, 2), bool)
+    keep[3, 0] = True
+    single = np.ones((10, 2), bool)
+    single[3, 0] = False
+    doubt = np.zeros((10, 2), bool)
+    doubt[[1, 7], 0] = True
+    out = verify.carried(keep, single, doubt)
+    assert out[:, 0].tolist() == [False, True, True, True, True, True, True, False, False, False]
+    assert not out[:, 1].any()
+    gap = single.copy()
+    gap[5, 0] = False  # a frame without the name stops it too
+    assert verify.carried(keep, gap, doubt)[:, 0].tolist() == [False, True, True, True, True] + [False] * 5
+
+
 def test_positions_one_frame_before_a_stretch_are_tested_for_a_jump():
     """A marker's path seeded on frame 30 (2 mm of noise), no segment partners, named on frames 0-5, 14-16 and 18-39.
     Frames 14-16 join the seeded stretch where they continue the path, and lose the name where they lie 5 cm off it

@@ -418,8 +418,8 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
              seeded: np.ndarray, pairs: list[tuple[int, int]], n_labels: int, noise_m: float,
              reference: dict | None, doubt: np.ndarray | None = None) -> np.ndarray:
     """The names (N,) left where batgraph.associate.verify vouches for the marker's path (doubt (F, L): where
-    the tracker's link is in doubt, :func:`_doubtful`); a name on a frame where its marker has no triangulated
-    position stays only if the path is vouched for within 2 frames of it."""
+    the tracker's link is in doubt, tracks.doubtful); a name on a frame where its marker has no triangulated
+    position (one view) stays where verify.carried carries a vouched name to it."""
     xyz, std, label = refine.positions(geom, fi, label, n_labels)
     have = np.isfinite(std)
     X = np.where(have[..., None], xyz, np.nan)
@@ -427,11 +427,11 @@ def _vouched(geom: views.Geometry, fi: tracks.FrameDetections, label: np.ndarray
     seg = segments.measure(X, pairs, True, noise_m, reference, stats)
     relations = affine.learn(X, {m for pair in pairs for m in pair}, noise_m, stats)
     keep = verify.vouched(xyz, have, seeded, seg, noise_m, doubt, relations)
-    near = keep.copy()
-    for s_ in (1, 2):
-        near[s_:] |= keep[:-s_]
-        near[:-s_] |= keep[s_:]
     k = fi.frame - fi.first
     lab = np.maximum(label, 0)
-    ok = np.where(have[k, lab], keep[k, lab], near[k, lab] & ~have[k, lab])
+    single = np.zeros_like(have)
+    single[k[label >= 0], label[label >= 0]] = True
+    single &= ~have
+    carried = verify.carried(keep, single, np.zeros_like(keep) if doubt is None else doubt)
+    ok = np.where(have[k, lab], keep[k, lab], carried[k, lab])
     return np.where(fixed >= 0, fixed, np.where((label >= 0) & ok, label, -1))

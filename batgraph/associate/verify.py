@@ -12,7 +12,8 @@ relation, batgraph.associate.affine), or when it meets a vouched stretch across 
 extrapolated linearly, lands within the jump bound of the other's start): a name carried by continuity from the
 seed. A link the tracker doubted (placed with a confidence below batgraph.associate.tracks.DOUBT_BELOW) cuts the
 path too, and continuity does not carry a name across it: the stretch beyond keeps its name only where its segments
-vouch for it.
+vouch for it. A frame where the marker is named in one camera only has no position to check: its name is kept where
+continuity carries a vouched name to it over such frames (:func:`carried`).
 """
 
 from __future__ import annotations
@@ -172,3 +173,16 @@ def _continues(x: np.ndarray, a: np.ndarray, b: np.ndarray, bound: float) -> boo
     else:
         guess = x[end[0]]
     return float(np.linalg.norm(x[start] - guess)) <= bound + 0.002 * gap
+
+
+def carried(keep: np.ndarray, single: np.ndarray, doubt: np.ndarray) -> np.ndarray:
+    """Where a name is kept (F, L): the vouched positions ``keep`` and the frames continuity carries them to over
+    frames where the marker is named in one camera only (``single``: no position to check; the tracker followed it
+    along its predicted ray), forwards and backwards, up to a link in doubt (``doubt`` (F, L), marked on the later
+    frame of a link) or a frame without the name."""
+    out = keep.copy()
+    for k in range(1, len(out)):
+        out[k] |= out[k - 1] & single[k] & ~doubt[k]
+    for k in range(len(out) - 2, -1, -1):
+        out[k] |= out[k + 1] & single[k] & ~doubt[k + 1]
+    return out
