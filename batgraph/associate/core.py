@@ -53,10 +53,10 @@ class Association:
     candidate (N,) the best marker of an unnamed one (-1: none near), track (N,) its track id (-1: none), how (N,)
     an index into HOW. pixel_sigma_px: the noise used [px], sigma_source how it was had ("stated", "measured", or
     "assumed": SIGMA_START_PX where no point had views enough to measure it); sweep: what the tracker found per
-    frame and marker;
-    moved (F, C) bool: the camera-frames found out of step or shaken and moved (batgraph.associate.jitter; None:
-    none), moved_px (N,) how far each detection was moved there [raw px]; clock_rounds: how many times the
-    detections were moved to their frames' instants and named again (:func:`_on_the_clock`; 0: on the clock)."""
+    frame and marker; moved (F, C) bool: the camera-frames found out of step or shaken and moved
+    (batgraph.associate.jitter; None: none), moved_px (N,) how far each detection was moved there [raw px];
+    clock_rounds: how many times the detections were moved to their frames' instants and named again
+    (:func:`_on_the_clock`; 0: on the clock)."""
 
     label: np.ndarray
     confidence: np.ndarray
@@ -153,7 +153,7 @@ def _subset_points(rig: Rig, fi: tracks.FrameDetections, seed_det: np.ndarray):
 
 
 def seed_sigma(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, seed_det: np.ndarray,
-               seed_lab: np.ndarray) -> float:
+               seed_lab: np.ndarray) -> float | None:
     """The detections' noise [px] from the seed: the reprojection errors of the seeded markers clicked in 4
     cameras or more, as :func:`measure_sigma` reads them (None where there are none)."""
     e2 = []
@@ -296,9 +296,9 @@ def _track(geom: views.Geometry, fi: tracks.FrameDetections, scale: np.ndarray, 
            seed_lab: np.ndarray, n_labels: int, pairs: list[tuple[int, int]], fps: float, opt: AssociateOptions,
            sigma_start: float = SIGMA_START_PX) -> _Tracked:
     """The noise measured (sets fi.sig; from sigma_start [px]: a round of step 7 starts from the last round's),
-    each frame's points found, the markers tracked forwards and backwards from
-    the seed frame with the most clicks (other seed frames placed where the sweeps reach them), and the tracker's
-    names checked (steps 1-2 and 4 of docs/associate.md)."""
+    each frame's points found, the markers tracked forwards and backwards from the seed frame with the most clicks
+    (other seed frames placed where the sweeps reach them), and the tracker's names checked (steps 1-2 and 4 of
+    docs/associate.md)."""
     rig = geom.rig
     large = len(rig) > PAIRS_UP_TO_CAMERAS
     sigma, source = opt.pixel_sigma_px, "stated"
