@@ -77,6 +77,33 @@ def _progress_bars(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
+def _add_model_options(p) -> None:
+    """The model's and the solvers' options, which reconstruct and validate share (read by :func:`_options`)."""
+    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
+                   help="motion model (default: session.toml [motion] model, else auto: the smoother picks constant "
+                        "velocity or acceleration per marker by marginal likelihood; the filters use constant "
+                        "velocity for auto and constant_acceleration)")
+    p.add_argument("--accel-psd", type=positive_float, metavar="Q",
+                   help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
+    p.add_argument("--sync", choices=["estimate", "given"],
+                   help="estimate: each camera's time offset and rolling-shutter readout from the markers, with the "
+                        "trajectories (written to OUT/rig.toml); given: the calibration's timing as it is (default: "
+                        "session.toml [sync] estimate, else given)")
+    p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
+                   help="robust loss on projection factors (default huber)")
+    p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
+    p.add_argument("--solver", choices=["fast", "gtsam"], default="fast",
+                   help="smoother/filter solver: batgraph's vectorised per-marker solvers (fast, default; same "
+                        "problem, tested against GTSAM) or GTSAM's LM / iSAM2 directly (gtsam)")
+
+
+def _options(args, refine_rig: bool = False) -> Options:
+    """The run's Options from the arguments of :func:`_add_model_options` (and --quiet's progress bars)."""
+    return Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
+                   accel_psd_m2_s3=args.accel_psd, sync=SYNC[args.sync], refine_rig=refine_rig,
+                   progress=_progress_bars(args), solver=args.solver)
+
+
 # ----- reconstruct -----------------------------------------------------------------------------
 def _add_reconstruct(sub):
     p = sub.add_parser("reconstruct", help="3D trajectories of every marker on every frame, with covariance",
@@ -90,25 +117,10 @@ def _add_reconstruct(sub):
                         "recording); the session folders are not modified")
     p.add_argument("--methods", help=methods_help())
     p.add_argument("--compare", action="store_true", help="add every other method, for a side-by-side report")
-    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
-                   help="motion model (default: session.toml [motion] model, else auto: the smoother picks constant "
-                        "velocity or acceleration per marker by marginal likelihood; the filters use constant "
-                        "velocity for auto and constant_acceleration)")
-    p.add_argument("--accel-psd", type=positive_float, metavar="Q",
-                   help="constant-velocity white-noise acceleration PSD [m^2/s^3] (default: chosen from the data)")
-    p.add_argument("--sync", choices=["estimate", "given"],
-                   help="estimate: each camera's time offset and rolling-shutter readout from the markers, with the "
-                        "trajectories (written to OUT/rig.toml); given: the calibration's timing as it is (default: "
-                        "session.toml [sync] estimate, else given)")
+    _add_model_options(p)
     p.add_argument("--refine-rig", action="store_true",
                    help="refine every camera's pose with the trajectories (a rig bumped since its calibration; the "
                         "refined rig goes to OUT/rig.toml)")
-    p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber",
-                   help="robust loss on projection factors (default huber)")
-    p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
-    p.add_argument("--solver", choices=["fast", "gtsam"], default="fast",
-                   help="smoother/filter solver: batgraph's vectorised per-marker solvers (fast, default; same "
-                        "problem, tested against GTSAM) or GTSAM's LM / iSAM2 directly (gtsam)")
     p.add_argument("--viewer", choices=["spawn", "save", "none"],
                    help="Rerun: stream the filter live to a viewer window and save recording.rrd (spawn, the "
                         "default with a display), only write recording.rrd (save, the default without one), or none")
@@ -160,9 +172,7 @@ def _cmd_reconstruct(args) -> int:
     for session in args.sessions:
         _check_not_a_result(session)
     methods = parse_methods(args.methods, args.compare)
-    options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, sync=SYNC[args.sync], refine_rig=args.refine_rig,
-                      progress=_progress_bars(args), solver=args.solver)
+    options = _options(args, args.refine_rig)
     batch = is_batch(args.sessions) or args.scheduler is not None
     if args.out is not None or (not batch and Path(args.sessions[0]).is_dir()):
         check_output_dir(args.out if args.out is not None else Path(args.sessions[0]) / "out")
@@ -220,14 +230,7 @@ def _add_validate(sub):
     p.add_argument("--methods", help="comma-separated: smoother, filter, ekf, ukf, triangulate "
                                      "(default smoother,filter,triangulate)")
     p.add_argument("--compare", action="store_true", help="add every other method")
-    p.add_argument("--motion", choices=["auto", "constant_velocity", "constant_acceleration", "random_walk"],
-                   help="motion model (as reconstruct)")
-    p.add_argument("--accel-psd", type=positive_float, metavar="Q",
-                   help="constant-velocity PSD [m^2/s^3] (as reconstruct)")
-    p.add_argument("--sync", choices=["estimate", "given"], help="as reconstruct")
-    p.add_argument("--robust", choices=["huber", "cauchy", "none"], default="huber", help="robust loss (default huber)")
-    p.add_argument("--robust-k", type=positive_float, default=2.0, help="robust loss threshold [sigmas] (default 2)")
-    p.add_argument("--solver", choices=["fast", "gtsam"], default="fast", help="smoother/filter solver (default fast)")
+    _add_model_options(p)
     p.add_argument("--viewer", choices=["save", "none"], default="save",
                    help="write recording.rrd (save, default) or not (none)")
     p.add_argument("--workers", type=positive_int, help="processes for the folds (default: one per core)")
@@ -251,9 +254,7 @@ def _cmd_validate(args) -> int:
         check_output_dir(args.out if args.out is not None else Path(args.session) / "out")
     text = args.methods or ",".join([*DEFAULT_METHODS, "triangulate"])
     methods = parse_methods(text, args.compare)
-    options = Options(motion_model=args.motion, robust=args.robust, robust_k=args.robust_k,
-                      accel_psd_m2_s3=args.accel_psd, sync=SYNC[args.sync], progress=_progress_bars(args),
-                      solver=args.solver)
+    options = _options(args)
     _compile_note(args)
     result = reconstruct(args.session, args.out, methods, options, viewer=args.viewer, calibration=args.calibration,
                          validate=True, validate_workers=args.workers)
