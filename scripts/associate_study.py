@@ -136,6 +136,18 @@ def run_case(scene: str, seed: int, work: Path, opt: CaseOptions | None = None) 
     return row
 
 
+def cases(scenes: str, seeds: str):
+    """Every (scene, seed) of the comma-separated ``scenes`` and ``seeds``, scene by scene."""
+    for scene in scenes.split(","):
+        for seed in (int(s) for s in seeds.split(",")):
+            yield scene, seed
+
+
+def row_line(row: dict) -> str:
+    """One case's figures as key=value on one line (4 significant digits)."""
+    return " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items())
+
+
 def main_study(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", default="flight14,flight24,wingbeat")
@@ -152,14 +164,12 @@ def main_study(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
-        for scene in args.scenes.split(","):
-            for seed in (int(s) for s in args.seeds.split(",")):
-                row = run_case(scene, seed, work, CaseOptions(
-                    not args.no_smoother, args.sync, args.seed_frames,
-                    tuple(int(f) for f in args.also_label.split(",") if f), not args.measure_noise))
-                rows.append(row)
-                print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
-                      flush=True)
+        for scene, seed in cases(args.scenes, args.seeds):
+            row = run_case(scene, seed, work, CaseOptions(
+                not args.no_smoother, args.sync, args.seed_frames,
+                tuple(int(f) for f in args.also_label.split(",") if f), not args.measure_noise))
+            rows.append(row)
+            print(row_line(row), flush=True)
     table = pd.DataFrame(rows)
     cols = [c for c in ("real_correct", "real_wrong", "real_unnamed", "switches_per_100_marker_s", "spurious_unnamed",
                         "merged_unnamed", "hidden_wrong", "hidden_doubt", "rmse_ratio", "rmse_right_only_ratio",

@@ -39,7 +39,7 @@ from batgraph.render import render_session  # noqa: E402
 from batgraph.session import write_session  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "scripts"))
-from associate_study import run_case, simulate, smoother_rmse  # noqa: E402
+from associate_study import cases, row_line, run_case, simulate, smoother_rmse  # noqa: E402
 
 ALONE_PX = 8.0  # a blob with no other marker's centre this near is alone (its detection is not a merge)
 
@@ -174,16 +174,14 @@ def main_study(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.out) if args.out else Path(tmp)
-        for scene in args.scenes.split(","):
-            for seed in (int(s) for s in args.seeds.split(",")):
-                row = run_footage(scene, seed, work, args.codec)
-                if not args.no_baseline:
-                    base = run_case(scene, seed, work / "generator")
-                    row.update(base_correct=base["real_correct"], base_wrong=base["real_wrong"],
-                               base_rmse_ratio=base["rmse_ratio"], base_associate_s=base["associate_s"])
-                rows.append(row)
-                print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
-                      flush=True)
+        for scene, seed in cases(args.scenes, args.seeds):
+            row = run_footage(scene, seed, work, args.codec)
+            if not args.no_baseline:
+                base = run_case(scene, seed, work / "generator")
+                row.update(base_correct=base["real_correct"], base_wrong=base["real_wrong"],
+                           base_rmse_ratio=base["rmse_ratio"], base_associate_s=base["associate_s"])
+            rows.append(row)
+            print(row_line(row), flush=True)
     table = pd.DataFrame(rows)
     cols = ["lone_found", "centre_err_median_px", "centre_err_p95_px", "sbd_err_median_px",
             "own_err_median_px_cam1", "named_correctly_of_observations", "real_correct", "real_wrong",
