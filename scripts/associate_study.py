@@ -20,6 +20,7 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,7 +137,7 @@ def run_case(scene: str, seed: int, work: Path, opt: CaseOptions | None = None) 
     return row
 
 
-def cases(scenes: str, seeds: str):
+def cases(scenes: str, seeds: str) -> Iterator[tuple[str, int]]:
     """Every (scene, seed) of the comma-separated ``scenes`` and ``seeds``, scene by scene."""
     for scene in scenes.split(","):
         for seed in (int(s) for s in seeds.split(",")):
