@@ -92,9 +92,7 @@ def associate_session(folder: str | Path, options: AssociateOptions | None = Non
                     pairs, setup.fps, opt)
     labels = _labels_table(dets, rig.names, markers, res)
     named = labels[labels["marker"] != ""]
-    at = np.empty_like(dets.row)
-    at[dets.row] = np.arange(len(dets.row))  # a file row's place in dets (sorted by frame then camera)
-    weight = dets.weight[at[named.index.to_numpy()]]
+    weight = pd.Series(dets.weight, index=dets.row)[named.index].to_numpy()  # by file row, as labels is indexed
     obs = pd.DataFrame({"frame": named["frame"].to_numpy(), "camera": named["camera"].to_numpy(),
                         "marker": named["marker"].to_numpy(), "u": named["u"].to_numpy(), "v": named["v"].to_numpy(),
                         "weight": weight})
